@@ -1,0 +1,1 @@
+//! State-space-model learning with particle filters (placeholder until the model issue).
