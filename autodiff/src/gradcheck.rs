@@ -22,6 +22,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 
+use crate::nn::{BoundParams, ParamStore};
 use crate::tape::{Tape, Var};
 use crate::tensor::Tensor;
 
@@ -108,6 +109,22 @@ impl fmt::Display for GradCheckError {
 impl std::error::Error for GradCheckError {}
 
 impl GradCheck {
+    /// Checks a model's gradient with respect to every parameter of `store`: `f`
+    /// builds the scalar from the bound parameters, as training code does.
+    pub fn check_params<Func>(
+        &self,
+        store: &ParamStore<f64>,
+        f: Func,
+    ) -> Result<GradCheckReport, GradCheckError>
+    where
+        Func: for<'t> Fn(&'t Tape<f64>, &BoundParams<'t, f64>) -> Var<'t, f64>,
+    {
+        self.check(
+            |tape, vars| f(tape, &BoundParams::from_vars(vars.to_vec())),
+            store.values(),
+        )
+    }
+
     /// Checks `f`'s reverse-mode gradient with respect to every input against central
     /// differences. `f` receives a fresh tape and the inputs as tracked leaves and
     /// must return a scalar.
