@@ -4,7 +4,8 @@
 //! forward with a tape, forward+backward, their ratio (target <= 3), achieved
 //! GEMM GFLOP/s against a rough peak, and the speed-up from using both cores.
 //!
-//! Run: `cargo bench --bench engine` (add `-- --quick` for fewer repetitions).
+//! Run: `cargo bench --bench engine` (add `-- --quick` for fewer repetitions, `-- f32`
+//! for one element type).
 
 use std::time::Instant;
 
@@ -140,6 +141,12 @@ fn main() {
         "autodiff engine benchmark: {}",
         if quick { "quick" } else { "full" }
     );
-    report::<f32>(reps);
-    report::<f64>(reps);
+    // `-- f32` or `-- f64` runs one element type only.
+    let only = |name: &str| !std::env::args().any(|a| a == "f32" || a == "f64") || std::env::args().any(|a| a == name);
+    if only("f32") {
+        report::<f32>(reps);
+    }
+    if only("f64") {
+        report::<f64>(reps);
+    }
 }

@@ -451,7 +451,7 @@ fn matmul_backward<F: Float>(
     }
     if sink.wants(w) {
         // gw = x^T g, reduced over the long dimension in fixed blocks.
-        let mut gw = sink.alloc(k * n);
+        let mut gw = sink.alloc_zeroed(k * n);
         kernels::gemm_at_b_acc(par, xv, g, m, k, n, &mut gw);
         sink.add(w, gw);
     }

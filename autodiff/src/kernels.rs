@@ -121,6 +121,24 @@ pub(crate) fn add_assign<F: Float>(par: Parallelism, dst: &mut [F], src: &[F]) {
     }
 }
 
+/// Adds `row` to every row of `dst` (a bias): `dst[r, j] += row[j]`.
+pub(crate) fn add_rows<F: Float>(par: Parallelism, dst: &mut [F], row: &[F]) {
+    let n = row.len().max(1);
+    let body = |d: &mut [F]| {
+        for r in d.chunks_exact_mut(n) {
+            for (o, &b) in r.iter_mut().zip(row) {
+                *o += b;
+            }
+        }
+    };
+    if par.split(dst.len()) {
+        let rows_per_task = (CHUNK_ELEMS / n).max(1);
+        dst.par_chunks_mut(rows_per_task * n).for_each(body);
+    } else {
+        body(dst);
+    }
+}
+
 /// Sum of all elements, accumulated in f64 over fixed chunks combined in order.
 pub(crate) fn sum_f64<F: Float>(par: Parallelism, data: &[F]) -> f64 {
     let chunk_sum = |c: &[F]| c.iter().map(|x| x.to_f64()).sum::<f64>();
@@ -567,7 +585,13 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
         return;
     }
     if k == 0 {
-        c.iter_mut().for_each(|x| *x *= beta);
+        // Empty inner dimension: C = beta C, where beta = 0 must not read C (it may
+        // hold stale values, as the GEMM kernel's contract allows).
+        if beta == F::ZERO {
+            c.fill(F::ZERO);
+        } else {
+            c.iter_mut().for_each(|x| *x *= beta);
+        }
         return;
     }
     let (rsa, csa) = a.strides();

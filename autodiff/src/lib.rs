@@ -25,6 +25,7 @@
 #![deny(missing_docs)]
 
 mod backward;
+pub mod dist;
 pub mod fastmath;
 mod float;
 pub mod gradcheck;

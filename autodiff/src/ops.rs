@@ -349,16 +349,8 @@ impl<'t, F: Float> Var<'t, F> {
             |v, out, par| {
                 let (k, n) = (sw[0], sw[1]);
                 let m = v[0].numel() / k.max(1);
-                for row in out.chunks_mut(n.max(1)) {
-                    row.copy_from_slice(v[2].data());
-                }
-                kernels::gemm(
-                    par,
-                    MatRef::new(v[0].data(), m, k),
-                    MatRef::new(v[1].data(), k, n),
-                    F::ONE,
-                    out,
-                );
+                kernels::gemm(par, MatRef::new(v[0].data(), m, k), MatRef::new(v[1].data(), k, n), F::ZERO, out);
+                kernels::add_rows(par, out, v[2].data());
             },
         )
     }
@@ -520,7 +512,10 @@ impl<'t, F: Float> Var<'t, F> {
             &[self.id],
             out_shape,
             move || Op::ScatterAdd(self.id, axis, idx2),
-            |v, out, par| kernels::scatter_add_rows(par, v[0].data(), dims, &idx, size, out),
+            |v, out, par| {
+                out.fill(F::ZERO);
+                kernels::scatter_add_rows(par, v[0].data(), dims, &idx, size, out)
+            },
         )
     }
 

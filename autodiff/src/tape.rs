@@ -135,7 +135,8 @@ impl<F: Float> Tape<F> {
         self.constant(Tensor::scalar(F::from_f64(x)))
     }
 
-    /// A zero-filled buffer of `len` elements, recycled from earlier steps when possible.
+    /// A buffer of `len` elements with unspecified (but initialised) contents, recycled
+    /// from earlier steps when possible. For outputs that are written in full.
     pub(crate) fn alloc(&self, len: usize) -> Vec<F> {
         let mut pool = self.pool.borrow_mut();
         // Best fit among recycled buffers: the smallest capacity that holds `len`.
@@ -150,8 +151,18 @@ impl<F: Float> Tape<F> {
             None => Vec::with_capacity(len),
         };
         drop(pool);
-        buf.clear();
-        buf.resize(len, F::ZERO);
+        if buf.len() >= len {
+            buf.truncate(len);
+        } else {
+            buf.resize(len, F::ZERO);
+        }
+        buf
+    }
+
+    /// A zero-filled buffer of `len` elements (for outputs that are accumulated into).
+    pub(crate) fn alloc_zeroed(&self, len: usize) -> Vec<F> {
+        let mut buf = self.alloc(len);
+        buf.fill(F::ZERO);
         buf
     }
 
@@ -259,9 +270,14 @@ impl<F: Float> GradSink<'_, F> {
         self.tape.recycle(buf);
     }
 
-    /// A zeroed scratch buffer from the tape's pool.
+    /// A scratch buffer from the tape's pool, contents unspecified (write it in full).
     pub fn alloc(&self, len: usize) -> Vec<F> {
         self.tape.alloc(len)
+    }
+
+    /// A zero-filled scratch buffer from the tape's pool.
+    pub fn alloc_zeroed(&self, len: usize) -> Vec<F> {
+        self.tape.alloc_zeroed(len)
     }
 
     /// Adds `contrib` (with the input's shape) to the gradient of input `id`.
@@ -292,7 +308,7 @@ impl<F: Float> GradSink<'_, F> {
         }
         let n = self.nodes[id].value.numel();
         if self.grads[id].is_none() {
-            self.grads[id] = Some(self.tape.alloc(n));
+            self.grads[id] = Some(self.tape.alloc_zeroed(n));
         }
         f(self.grads[id].as_mut().expect("just set"));
     }
