@@ -1,1 +1,10 @@
-//! State-space-model learning with particle filters (placeholder until the model issue).
+//! State-space-model learning for road users: the vehicle motion model, policies,
+//! observation models, the particle filter and fixed-lag smoother, score
+//! estimators (PF-SEFI and the through-filter baselines), training, metrics,
+//! datasets and model criticism.
+//!
+//! Data flows one way: dataset -> filter (forward, no tape) -> estimator
+//! (surrogate on the tape) -> gradients -> optimiser -> parameters.
+#![deny(missing_docs)]
+
+pub mod data;
