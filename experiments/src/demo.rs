@@ -50,7 +50,8 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
     let mut rng = StdRng::seed_from_u64(seed);
     let (n, steps) = if quick { (512, 150) } else { (8192, 1500) };
     let mut store = ParamStore::<f64>::new();
-    let mlp = Mlp::new(&mut store, "mdn", &[1, 32, 32, 3 * COMPONENTS], Activation::Tanh, Activation::Identity, &mut rng);
+    let mlp =
+        Mlp::new(&mut store, "mdn", &[1, 32, 32, 3 * COMPONENTS], Activation::Tanh, Activation::Identity, &mut rng);
     let (x, y) = generate(&mut rng, n);
 
     // 1. The engine's gradient of this model agrees with finite differences (f64).
@@ -60,18 +61,14 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
     let check = GradCheck::default()
         .check_params(&store, |tape, p| mixture_nll(&mlp, p, tape.constant(xc.clone()), tape.constant(yc.clone())))
         .map_err(|e| e.to_string())?;
-    println!(
-        "gradient check: {} comparisons, max relative error {:.2e}",
-        check.comparisons, check.max_rel_error
-    );
+    println!("gradient check: {} comparisons, max relative error {:.2e}", check.comparisons, check.max_rel_error);
 
     // 2. Fit on the f32 tape with Adam and global-norm clipping.
     let (x32, y32) = (x.cast::<f32>(), y.cast::<f32>());
     let mut adam = Adam::new(0.01);
     let mut tape = Tape::<f32>::new();
-    let bar = ProgressBar::new(steps as u64).with_style(
-        ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({eta})").expect("valid template"),
-    );
+    let bar = ProgressBar::new(steps as u64)
+        .with_style(ProgressStyle::with_template("{msg} [{bar:40}] {pos}/{len} ({eta})").expect("valid template"));
     bar.set_message("fitting");
     let started = Instant::now();
     let mut curve = Vec::with_capacity(steps);
@@ -106,7 +103,9 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
 
     write_csv(&out.join("demo_loss.csv"), &["step", "nll"], &curve)?;
     let series = [Series { name: "training NLL".into(), points: curve.iter().map(|r| (r[0], r[1])).collect() }];
-    write_with(&out.join("demo_loss.svg"), |p| line_chart(p, "Mixture density network fit", "step", "NLL (nats/point)", &series))?;
+    write_with(&out.join("demo_loss.svg"), |p| {
+        line_chart(p, "Mixture density network fit", "step", "NLL (nats/point)", &series)
+    })?;
     write_json(
         &out.join("demo_summary.json"),
         &json!({

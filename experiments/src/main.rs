@@ -3,6 +3,7 @@
 //! `autodiff` and `ssm` libraries.
 
 mod demo;
+mod import;
 mod output;
 mod plot;
 
@@ -33,12 +34,36 @@ enum Command {
         #[arg(long)]
         quick: bool,
     },
+    /// Turn the KITTI tracking sequences into box-detection datasets (train and val).
+    ImportKitti {
+        /// The KITTI folder (label_02, det_pointrcnn, ego_pose_orbslam3, calib).
+        #[arg(default_value = "../shared/data/kitti-tracking")]
+        root: PathBuf,
+        /// Output directory: datasets are written to OUT/train and OUT/val.
+        #[arg(long, default_value = "out/kitti")]
+        out: PathBuf,
+        /// Steps per scene window (T + 1).
+        #[arg(long, default_value_t = 20)]
+        steps: usize,
+        /// Keep every k-th frame (dt = 0.1 s * k).
+        #[arg(long, default_value_t = 1)]
+        stride: usize,
+        /// Association gate (m).
+        #[arg(long, default_value_t = 2.0)]
+        gate: f64,
+        /// Discard detections scoring below this.
+        #[arg(long)]
+        min_score: Option<f64>,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Demo { out, seed, quick } => demo::run(&out, seed, quick),
+        Command::ImportKitti { root, out, steps, stride, gate, min_score } => {
+            import::kitti(&root, &out, steps, stride, gate, min_score)
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -36,3 +36,29 @@ fn unknown_subcommand_fails_with_a_message() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("frobnicate"));
 }
+
+#[test]
+fn import_kitti_writes_readable_train_and_val_datasets() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/kitti-tracking");
+    if !root.exists() {
+        eprintln!("skipped: {} not present", root.display());
+        return;
+    }
+    let dir = std::env::temp_dir().join(format!("sefi-kitti-{}", std::process::id()));
+    let out = sefi().arg("import-kitti").arg(&root).arg("--out").arg(&dir).output().expect("runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for split in ["train", "val"] {
+        let d = ssm::data::Dataset::read(&dir.join(split)).unwrap_or_else(|e| panic!("{split}: {e}"));
+        assert!(d.objects().len() > 100, "{split}: {} objects", d.objects().len());
+        assert!(d.boxes().is_some() && d.states().is_some());
+    }
+    assert!(std::fs::read_to_string(dir.join("import_report.md")).unwrap().contains("association rate"));
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn import_kitti_from_a_missing_folder_names_it() {
+    let out = sefi().args(["import-kitti", "/nonexistent/kitti", "--out"]).arg(std::env::temp_dir()).output().unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/kitti"));
+}

@@ -8,3 +8,8 @@
 #![deny(missing_docs)]
 
 pub mod data;
+pub mod filter;
+pub mod lgssm;
+pub mod linear_gaussian;
+pub mod model;
+pub mod vehicle;

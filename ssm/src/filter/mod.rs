@@ -1,0 +1,360 @@
+//! The bootstrap particle filter, batched over objects (in parallel with rayon),
+//! with fixed-lag ancestry for smoothing and for PF-SEFI.
+//!
+//! Each object is filtered independently with its own random stream, seeded from
+//! `(seed, object)`, so results do not depend on the number of threads. Log-weights
+//! are kept normalised in f64; the log-likelihood increment at step `t` is
+//! `ln sum_i W_{t-1}^i g(y_t | x_t^i)` (with `W` uniform after resampling), which is
+//! also right under ESS-triggered resampling, where weights are carried.
+//!
+//! The particle history kept is a ring buffer of `L + 2` steps (states, the actions
+//! drawn to reach them and the parent indices), so memory does not grow with `T`.
+//! When step `s = t + L` has been weighted, the normalised weights `W_s` are pushed
+//! back along the ancestry by scatter-adds to step `t` and handed to an
+//! [`Observer`] as the fixed-lag smoothing weights of the particles at `t`; after
+//! the last step the remaining `L` steps are flushed with `W_T`.
+//!
+//! If every particle is impossible at some step (all log-weights `-inf` or NaN) the
+//! step's observation is skipped, the previous weights are kept and the step is
+//! counted in [`ObjectSummary::collapsed_steps`]: no NaN or `-inf` ever reaches the
+//! weights or the likelihood.
+
+mod moments;
+mod resample;
+
+use std::time::{Duration, Instant};
+
+use rand::rngs::SmallRng;
+use rand::SeedableRng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+pub use moments::Moments;
+pub use resample::{effective_sample_size, Resampling};
+
+use crate::model::ParticleModel;
+
+/// Settings of a particle-filter run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FilterConfig {
+    /// Particles per object (`N`).
+    pub particles: usize,
+    /// Resampling scheme.
+    pub resampling: Resampling,
+    /// Resample only when the ESS falls below this fraction of `N`; `None` resamples
+    /// at every step.
+    pub ess_threshold: Option<f64>,
+    /// Fixed lag `L` of the smoothing weights handed to observers.
+    pub lag: usize,
+    /// Seed of the random streams.
+    pub seed: u64,
+}
+
+impl Default for FilterConfig {
+    fn default() -> Self {
+        FilterConfig { particles: 1024, resampling: Resampling::Systematic, ess_threshold: None, lag: 8, seed: 0 }
+    }
+}
+
+/// The particles at step `t` with their fixed-lag smoothing weights.
+pub struct LagView<'a> {
+    /// The step.
+    pub t: usize,
+    /// Number of particles.
+    pub n: usize,
+    /// `x_t`, dimension-major (`state_dim * n`).
+    pub states: &'a [f32],
+    /// What was drawn to reach `x_t` (`action_dim * n`; empty at `t = 0`).
+    pub actions: &'a [f32],
+    /// For each particle, the index of its parent in `prev_states` (empty at `t = 0`).
+    pub parents: &'a [usize],
+    /// `x_{t-1}` (`None` at `t = 0`).
+    pub prev_states: Option<&'a [f32]>,
+    /// Smoothing weights `p(x_t^i | y_{0:min(t+L, T)})`, summing to one.
+    pub weights: &'a [f64],
+}
+
+/// Receives what the filter computes for one object, as it computes it.
+pub trait Observer: Send {
+    /// The particles at `t` with their normalised filtering weights.
+    fn filtered(&mut self, _t: usize, _states: &[f32], _weights: &[f64]) {}
+    /// The particles at `t` with their fixed-lag smoothing weights (each `t` once, in order).
+    fn smoothed(&mut self, _view: &LagView<'_>) {}
+}
+
+impl Observer for () {}
+
+/// What the filter measured for one object.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ObjectSummary {
+    /// The estimate `l_hat = ln p_hat(y_{0:T})`.
+    pub log_likelihood: f64,
+    /// Observed units (points, detections) that entered the likelihood.
+    pub observed_units: usize,
+    /// Steps at which every particle was impossible (their observation was skipped).
+    pub collapsed_steps: usize,
+    /// Steps at which the particles were resampled.
+    pub resampled_steps: usize,
+    /// Smallest effective sample size after weighting.
+    pub min_ess: f64,
+    /// Mean effective sample size after weighting.
+    pub mean_ess: f64,
+}
+
+/// Time spent in each phase, summed over objects (and so over threads).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PhaseTimes {
+    /// Drawing from the prior and the transition.
+    pub propagate: Duration,
+    /// Evaluating observation log-likelihoods.
+    pub likelihood: Duration,
+    /// Normalising, resampling and gathering parents.
+    pub resample: Duration,
+    /// Pushing weights back along the ancestry and calling observers.
+    pub smoothing: Duration,
+}
+
+impl PhaseTimes {
+    fn add(&mut self, o: &PhaseTimes) {
+        self.propagate += o.propagate;
+        self.likelihood += o.likelihood;
+        self.resample += o.resample;
+        self.smoothing += o.smoothing;
+    }
+}
+
+/// The result of filtering every object.
+pub struct FilterRun<O> {
+    /// Per-object summaries, in object order.
+    pub objects: Vec<ObjectSummary>,
+    /// Per-object observers, in object order.
+    pub observers: Vec<O>,
+    /// Time per phase, summed over objects.
+    pub times: PhaseTimes,
+}
+
+impl<O> FilterRun<O> {
+    /// Sum of the objects' log-likelihood estimates.
+    pub fn log_likelihood(&self) -> f64 {
+        self.objects.iter().map(|o| o.log_likelihood).sum()
+    }
+
+    /// Total observed units.
+    pub fn observed_units(&self) -> usize {
+        self.objects.iter().map(|o| o.observed_units).sum()
+    }
+
+    /// Total collapsed steps.
+    pub fn collapsed_steps(&self) -> usize {
+        self.objects.iter().map(|o| o.collapsed_steps).sum()
+    }
+}
+
+/// The seed of one object's random stream (SplitMix64 of seed and object).
+pub fn stream_seed(seed: u64, object: usize) -> u64 {
+    let mix = |mut z: u64| {
+        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    };
+    mix(seed ^ mix(object as u64 ^ 0x5eed))
+}
+
+/// Filters every object of `model`, in parallel over objects. `make_observer(object)`
+/// builds the observer that receives that object's filtering and smoothing output.
+pub fn run_filter<M, O>(model: &M, config: &FilterConfig, make_observer: impl Fn(usize) -> O + Sync) -> FilterRun<O>
+where
+    M: ParticleModel,
+    O: Observer,
+{
+    assert!(config.particles > 0, "run_filter: need at least one particle");
+    let results: Vec<(ObjectSummary, O, PhaseTimes)> = (0..model.num_objects())
+        .into_par_iter()
+        .map_init(
+            || model.new_scratch(),
+            |scratch, object| {
+                let mut observer = make_observer(object);
+                let (summary, times) = filter_object(model, config, object, scratch, &mut observer);
+                (summary, observer, times)
+            },
+        )
+        .collect();
+    let mut times = PhaseTimes::default();
+    let mut objects = Vec::with_capacity(results.len());
+    let mut observers = Vec::with_capacity(results.len());
+    for (s, o, t) in results {
+        times.add(&t);
+        objects.push(s);
+        observers.push(o);
+    }
+    FilterRun { objects, observers, times }
+}
+
+/// The particle history of the last `L + 2` steps.
+struct Ring {
+    slots: usize,
+    states: Vec<Vec<f32>>,
+    actions: Vec<Vec<f32>>,
+    parents: Vec<Vec<usize>>,
+}
+
+impl Ring {
+    fn new(slots: usize, n: usize, d: usize, a: usize) -> Self {
+        Ring {
+            slots,
+            states: vec![vec![0.0; d * n]; slots],
+            actions: vec![vec![0.0; a * n]; slots],
+            parents: vec![(0..n).collect(); slots],
+        }
+    }
+    fn slot(&self, t: usize) -> usize {
+        t % self.slots
+    }
+}
+
+/// Filters one object; the core loop of [`run_filter`].
+pub fn filter_object<M: ParticleModel, O: Observer>(
+    model: &M,
+    config: &FilterConfig,
+    object: usize,
+    scratch: &mut M::Scratch,
+    observer: &mut O,
+) -> (ObjectSummary, PhaseTimes) {
+    let n = config.particles;
+    let (d, a) = (model.state_dim(), model.action_dim());
+    let steps = model.num_steps();
+    let lag = config.lag;
+    let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, object));
+    let mut ring = Ring::new(lag + 2, n, d, a);
+    let mut times = PhaseTimes::default();
+    let mut summary = ObjectSummary { min_ess: f64::INFINITY, ..Default::default() };
+
+    let uniform = -(n as f64).ln();
+    let mut log_w = vec![uniform; n]; // normalised log-weights
+    let mut log_w_before = vec![uniform; n];
+    let mut weights = vec![1.0 / n as f64; n];
+    let mut loglik = vec![0.0f32; n];
+    let mut gathered = vec![0.0f32; d * n];
+    let mut ancestors: Vec<usize> = (0..n).collect();
+    let mut resample_scratch = Vec::with_capacity(n);
+    let mut push = (vec![0.0f64; n], vec![0.0f64; n]);
+    let mut ess_sum = 0.0;
+
+    for t in 0..steps {
+        let slot = ring.slot(t);
+        let clock = Instant::now();
+        if t == 0 {
+            model.sample_prior(object, n, &mut rng, &mut ring.states[slot]);
+            times.propagate += clock.elapsed();
+        } else {
+            let prev = ring.slot(t - 1);
+            let resample_now = match config.ess_threshold {
+                None => true,
+                Some(frac) => effective_sample_size(&weights) < frac * n as f64,
+            };
+            if resample_now {
+                config.resampling.draw(&weights, &mut rng, &mut ancestors, &mut resample_scratch);
+                log_w.fill(uniform);
+                summary.resampled_steps += 1;
+            } else {
+                ancestors.iter_mut().enumerate().for_each(|(i, p)| *p = i);
+            }
+            for k in 0..d {
+                let src = &ring.states[prev][k * n..(k + 1) * n];
+                for (g, &p) in gathered[k * n..(k + 1) * n].iter_mut().zip(&ancestors) {
+                    *g = src[p];
+                }
+            }
+            ring.parents[slot].copy_from_slice(&ancestors);
+            let mid = Instant::now();
+            times.resample += mid - clock;
+            let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
+            model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
+            times.propagate += mid.elapsed();
+        }
+
+        // Weight by the observation (if any).
+        let clock = Instant::now();
+        let observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
+        let mid = Instant::now();
+        times.likelihood += mid - clock;
+        if observed {
+            log_w_before.copy_from_slice(&log_w);
+            let mut max = f64::NEG_INFINITY;
+            for (lw, &l) in log_w.iter_mut().zip(&loglik) {
+                let l = l as f64;
+                *lw += if l.is_nan() { f64::NEG_INFINITY } else { l };
+                max = max.max(*lw);
+            }
+            if max == f64::NEG_INFINITY || max.is_nan() {
+                // Every particle impossible: keep the previous weights, skip this observation.
+                summary.collapsed_steps += 1;
+                log_w.copy_from_slice(&log_w_before);
+            } else {
+                let total: f64 = log_w.iter().map(|&lw| (lw - max).exp()).sum();
+                let lse = max + total.ln();
+                summary.log_likelihood += lse;
+                summary.observed_units += model.observation_count(object, t);
+                log_w.iter_mut().for_each(|lw| *lw -= lse);
+            }
+        }
+        for (w, &lw) in weights.iter_mut().zip(&log_w) {
+            *w = lw.exp();
+        }
+        let ess = effective_sample_size(&weights);
+        ess_sum += ess;
+        summary.min_ess = summary.min_ess.min(ess);
+        times.resample += mid.elapsed();
+
+        let clock = Instant::now();
+        observer.filtered(t, &ring.states[slot], &weights);
+        if t >= lag {
+            emit_smoothed(&ring, t - lag, t, n, &weights, &mut push, observer);
+        }
+        times.smoothing += clock.elapsed();
+    }
+    // Flush the last L steps with the final weights.
+    let clock = Instant::now();
+    let last = steps - 1;
+    let first_unflushed = if last >= lag { last - lag + 1 } else { 0 };
+    for u in first_unflushed..steps {
+        emit_smoothed(&ring, u, last, n, &weights, &mut push, observer);
+    }
+    times.smoothing += clock.elapsed();
+    summary.mean_ess = ess_sum / steps as f64;
+    (summary, times)
+}
+
+/// Pushes the weights of step `s` back along the ancestry to step `u` (scatter-adds
+/// over parents) and hands the particles of `u` to the observer.
+fn emit_smoothed<O: Observer>(
+    ring: &Ring,
+    u: usize,
+    s: usize,
+    n: usize,
+    weights_s: &[f64],
+    push: &mut (Vec<f64>, Vec<f64>),
+    observer: &mut O,
+) {
+    let (cur, next) = push;
+    cur.copy_from_slice(weights_s);
+    for k in (u + 1..=s).rev() {
+        next.fill(0.0);
+        for (&p, &w) in ring.parents[ring.slot(k)].iter().zip(cur.iter()) {
+            next[p] += w;
+        }
+        std::mem::swap(cur, next);
+    }
+    let slot = ring.slot(u);
+    let view = LagView {
+        t: u,
+        n,
+        states: &ring.states[slot],
+        actions: if u == 0 { &[] } else { &ring.actions[slot] },
+        parents: if u == 0 { &[] } else { &ring.parents[slot] },
+        prev_states: if u == 0 { None } else { Some(&ring.states[ring.slot(u - 1)]) },
+        weights: cur,
+    };
+    observer.smoothed(&view);
+}

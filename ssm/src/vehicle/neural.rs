@@ -1,0 +1,164 @@
+//! The neural policy of the measured data (SPEC §3): an MLP
+//! `(v, kappa) -> 32 ReLU -> 32 ReLU -> 5` whose outputs are the two action means
+//! and the lower-triangular Cholesky factor of their covariance (positive diagonal
+//! through a softplus). 1,317 parameters, held in an [`autodiff::nn::ParamStore`].
+//!
+//! The network is written once, on the tape: the plain (filter) path runs it on a
+//! non-recording tape and copies the outputs out, so both paths compute the same
+//! numbers.
+
+use autodiff::nn::{Activation, Mlp, ParamStore};
+use autodiff::{Float, Parallelism, Tape, Tensor, Var};
+use rand::Rng;
+
+use super::policy::{check_parameters, ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
+
+/// Widths of the network, input first.
+pub const NEURAL_POLICY_LAYERS: [usize; 4] = [2, 32, 32, 5];
+/// Speed is fed to the network as `v * SPEED_INPUT_SCALE` (order one over 0–40 m/s).
+pub const SPEED_INPUT_SCALE: f64 = 0.1;
+/// Curvature is fed as `kappa * CURVATURE_INPUT_SCALE` (order one over |kappa| <= 0.2).
+pub const CURVATURE_INPUT_SCALE: f64 = 10.0;
+/// Output 1 times this is the mean pinch: pinch is two orders smaller than accel, so
+/// order-one outputs cover it.
+pub const PINCH_OUTPUT_SCALE: f64 = 0.1;
+/// Smallest accel sd (m/s^2), added to `softplus(output 2)`.
+pub const MIN_SD_ACCEL: f64 = 1e-3;
+/// Smallest conditional pinch sd (1/(m s)), added to `PINCH_OUTPUT_SCALE * softplus(output 4)`.
+pub const MIN_SD_PINCH: f64 = 1e-4;
+
+/// The neural policy: an MLP from `(v, kappa)` to a bivariate Gaussian over actions.
+///
+/// Outputs `o` map to `mean_accel = o0`, `mean_pinch = s o1`,
+/// `l11 = softplus(o2) + 1e-3`, `l21 = s o3`, `l22 = s softplus(o4) + 1e-4` with
+/// `s = 0.1` ([`PINCH_OUTPUT_SCALE`]).
+///
+/// ```
+/// use rand::SeedableRng;
+/// use ssm::vehicle::{ActionGaussians, GaussianPolicy, NeuralPolicy};
+/// let policy = NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(0));
+/// assert_eq!(policy.num_parameters(), 1317);
+/// let mut g = ActionGaussians::default();
+/// policy.gaussians(&[10.0f32, 3.0], &[0.01, -0.05], &mut g);
+/// assert!(g.l11.iter().chain(&g.l22).all(|&s| s > 0.0));
+/// ```
+#[derive(Clone, Debug, PartialEq)]
+pub struct NeuralPolicy {
+    store: ParamStore<f64>,
+    mlp: Mlp,
+    par: Parallelism,
+}
+
+impl NeuralPolicy {
+    /// A freshly initialised network (He-scaled ReLU layers, Glorot output, zero
+    /// biases), its parameters named `policy.0.w`, `policy.0.b`, ...
+    pub fn new<R: Rng + ?Sized>(rng: &mut R) -> Self {
+        let mut store = ParamStore::new();
+        let mut rng = rng;
+        let mlp =
+            Mlp::new(&mut store, "policy", &NEURAL_POLICY_LAYERS, Activation::Relu, Activation::Identity, &mut rng);
+        NeuralPolicy { store, mlp, par: Parallelism::Serial }
+    }
+
+    /// How the plain path's matrix products use threads: `Serial` (default; the
+    /// filter parallelises over objects) or `Rayon`.
+    pub fn with_parallelism(mut self, par: Parallelism) -> Self {
+        self.par = par;
+        self
+    }
+
+    /// The parameter store (f64 master copy).
+    pub fn store(&self) -> &ParamStore<f64> {
+        &self.store
+    }
+
+    /// The parameter store, mutable (e.g. for an optimiser step).
+    pub fn store_mut(&mut self) -> &mut ParamStore<f64> {
+        &mut self.store
+    }
+
+    /// The network's layout (parameter ids index [`GaussianPolicy::parameters`]).
+    pub fn mlp(&self) -> &Mlp {
+        &self.mlp
+    }
+
+    /// The network on a tape: parameters as `Var`s in store order, states `[n]`.
+    fn forward<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        v: Var<'t, F>,
+        kappa: Var<'t, F>,
+    ) -> ActionGaussianVars<'t, F> {
+        let n = v.numel();
+        let tape = v.tape();
+        let x = tape.concat(
+            &[
+                v.reshape(&[n, 1]).mul_scalar(SPEED_INPUT_SCALE),
+                kappa.reshape(&[n, 1]).mul_scalar(CURVATURE_INPUT_SCALE),
+            ],
+            1,
+        );
+        let o =
+            self.mlp.layers.iter().fold(x, |h, layer| layer.act.apply(h.affine(params[layer.w.0], params[layer.b.0])));
+        let col = |j: usize| o.slice(1, j, 1).reshape(&[n]);
+        ActionGaussianVars {
+            mean_accel: col(0),
+            mean_pinch: col(1).mul_scalar(PINCH_OUTPUT_SCALE),
+            l11: col(2).softplus().add_scalar(MIN_SD_ACCEL),
+            l21: Some(col(3).mul_scalar(PINCH_OUTPUT_SCALE)),
+            l22: col(4).softplus().mul_scalar(PINCH_OUTPUT_SCALE).add_scalar(MIN_SD_PINCH),
+        }
+    }
+}
+
+impl GaussianPolicy for NeuralPolicy {
+    fn parameters(&self) -> Vec<Tensor<f64>> {
+        self.store.values().to_vec()
+    }
+
+    fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {
+        check_parameters(self.store.values(), params)?;
+        self.store.values_mut().clone_from_slice(params);
+        Ok(())
+    }
+
+    #[track_caller]
+    fn gaussians<F: Float>(&self, v: &[F], kappa: &[F], out: &mut ActionGaussians<F>) {
+        let n = v.len();
+        assert_eq!(kappa.len(), n, "NeuralPolicy::gaussians: {n} speeds, {} curvatures", kappa.len());
+        out.resize(n);
+        if n == 0 {
+            return;
+        }
+        let tape = Tape::<F>::no_record().with_parallelism(self.par);
+        let params: Vec<Var<'_, F>> = self.store.values().iter().map(|p| tape.constant(p.cast())).collect();
+        let c = |x: &[F]| tape.constant(Tensor::from_vec(x.to_vec()));
+        let g = self.forward(&params, c(v), c(kappa));
+        let l21 = g.l21.expect("the neural policy has a full Cholesky factor");
+        for (dst, var) in [
+            (&mut out.mean_accel, g.mean_accel),
+            (&mut out.mean_pinch, g.mean_pinch),
+            (&mut out.l11, g.l11),
+            (&mut out.l21, l21),
+            (&mut out.l22, g.l22),
+        ] {
+            dst.copy_from_slice(var.value().data());
+        }
+    }
+
+    #[track_caller]
+    fn gaussians_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        v: Var<'t, F>,
+        kappa: Var<'t, F>,
+    ) -> ActionGaussianVars<'t, F> {
+        let shapes: Vec<Vec<usize>> = params.iter().map(|p| p.shape()).collect();
+        let want: Vec<&[usize]> = self.store.values().iter().map(|p| p.shape()).collect();
+        assert!(
+            shapes.len() == want.len() && shapes.iter().zip(&want).all(|(a, b)| a == b),
+            "NeuralPolicy::gaussians_on_tape: parameter shapes {shapes:?}, expected {want:?}"
+        );
+        self.forward(params, v, kappa)
+    }
+}
