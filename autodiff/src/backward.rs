@@ -6,17 +6,12 @@
 
 use crate::float::Float;
 use crate::kernels::{self, MatRef};
-use crate::ops::{lane_max_logsum, transpose_into, Binary, Op, Unary};
+use crate::ops::{lane_max_logsum, leading_rows, transpose_into, Binary, Op, Unary};
 use crate::tape::{GradSink, Node, NodeId};
 use crate::tensor::axis_split;
 
 /// Propagates the cotangent `g` of node `id` to its inputs.
-pub(crate) fn backward_node<F: Float>(
-    nodes: &[Node<F>],
-    id: NodeId,
-    g: &[F],
-    sink: &mut GradSink<'_, F>,
-) {
+pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], sink: &mut GradSink<'_, F>) {
     let node = &nodes[id];
     let par = sink.par;
     let val = |i: NodeId| &nodes[i].value;
@@ -36,13 +31,13 @@ pub(crate) fn backward_node<F: Float>(
         Op::Matmul(x, w) => {
             let (x, w) = (*x, *w);
             let (k, n) = (val(w).shape()[0], val(w).shape()[1]);
-            let m = val(x).numel() / k.max(1);
+            let m = leading_rows(val(x).shape());
             matmul_backward(x, w, m, k, n, val(x).data(), val(w).data(), g, sink);
         }
         Op::Affine(x, w, b) => {
             let (x, w, b) = (*x, *w, *b);
             let (k, n) = (val(w).shape()[0], val(w).shape()[1]);
-            let m = val(x).numel() / k.max(1);
+            let m = leading_rows(val(x).shape());
             matmul_backward(x, w, m, k, n, val(x).data(), val(w).data(), g, sink);
             if sink.wants(b) {
                 sink.add(b, kernels::sum_to_shape(par, g, &[m, n], &[n]));
@@ -72,22 +67,13 @@ pub(crate) fn backward_node<F: Float>(
                 let (outer, n, inner) = axis_split(val(x).shape(), *axis, "logsumexp");
                 let (full, red) = ([outer, n, inner], [outer, 1, inner]);
                 let mut w = sink.alloc(val(x).numel());
-                kernels::broadcast_zip(
-                    par,
-                    val(x).data(),
-                    &full,
-                    node.value.data(),
-                    &red,
-                    &full,
-                    &mut w,
-                    |x, l| {
-                        if l == F::NEG_INFINITY {
-                            F::ZERO
-                        } else {
-                            (x - l).exp()
-                        }
-                    },
-                );
+                kernels::broadcast_zip(par, val(x).data(), &full, node.value.data(), &red, &full, &mut w, |x, l| {
+                    if l == F::NEG_INFINITY {
+                        F::ZERO
+                    } else {
+                        (x - l).exp()
+                    }
+                });
                 let mut gx = sink.alloc(val(x).numel());
                 kernels::broadcast_zip(par, &w, &full, g, &red, &full, &mut gx, |w, g| w * g);
                 sink.add(x, gx);
@@ -134,9 +120,7 @@ pub(crate) fn backward_node<F: Float>(
         Op::Gather(x, axis, idx) => {
             let x = *x;
             let (outer, n, inner) = axis_split(val(x).shape(), *axis, "gather");
-            sink.add_with(x, |gx| {
-                kernels::scatter_add_rows(par, g, (outer, idx.len(), inner), idx, n, gx)
-            });
+            sink.add_with(x, |gx| kernels::scatter_add_rows(par, g, (outer, idx.len(), inner), idx, n, gx));
         }
         Op::ScatterAdd(x, axis, idx) => {
             let x = *x;
@@ -154,16 +138,7 @@ pub(crate) fn backward_node<F: Float>(
             for &p in parts {
                 let (outer, n, inner) = axis_split(val(p).shape(), *axis, "concat");
                 sink.add_with(p, |gp| {
-                    kernels::copy_axis_range(
-                        g,
-                        (outer, total, inner),
-                        at,
-                        gp,
-                        (outer, n, inner),
-                        0,
-                        n,
-                        true,
-                    )
+                    kernels::copy_axis_range(g, (outer, total, inner), at, gp, (outer, n, inner), 0, n, true)
                 });
                 at += n;
             }
@@ -173,16 +148,7 @@ pub(crate) fn backward_node<F: Float>(
             let (outer, n, inner) = axis_split(val(x).shape(), *axis, "slice");
             let len = out_shape[*axis];
             sink.add_with(x, |gx| {
-                kernels::copy_axis_range(
-                    g,
-                    (outer, len, inner),
-                    0,
-                    gx,
-                    (outer, n, inner),
-                    *start,
-                    len,
-                    true,
-                )
+                kernels::copy_axis_range(g, (outer, len, inner), 0, gx, (outer, n, inner), *start, len, true)
             });
         }
         Op::Reshape(x) => {
@@ -221,14 +187,7 @@ pub(crate) fn backward_node<F: Float>(
     }
 }
 
-fn unary_backward<F: Float>(
-    u: Unary,
-    par: kernels::Parallelism,
-    g: &[F],
-    x: &[F],
-    y: &[F],
-    gx: &mut [F],
-) {
+fn unary_backward<F: Float>(u: Unary, par: kernels::Parallelism, g: &[F], x: &[F], y: &[F], gx: &mut [F]) {
     use kernels::zip3;
     let zero = F::ZERO;
     let one = F::ONE;
@@ -269,14 +228,7 @@ fn unary_backward<F: Float>(
         }
         Unary::Clamp(lo, hi) => {
             let (lo, hi) = (F::from_f64(lo), F::from_f64(hi));
-            zip3(
-                par,
-                g,
-                x,
-                y,
-                gx,
-                |g, x, _| if x >= lo && x <= hi { g } else { zero },
-            )
+            zip3(par, g, x, y, gx, |g, x, _| if x >= lo && x <= hi { g } else { zero })
         }
     }
 }
@@ -360,52 +312,12 @@ fn binary_backward<F: Float>(
             let (fa, fc) = (full(sink, va.data(), sa), full(sink, vc.data(), sc));
             let d = |da: bool, fa: &[F], fc: &[F], dst: &mut [F]| match (b, da) {
                 // atan2(y, x): d/dy = x / r^2, d/dx = -y / r^2.
-                (Binary::Atan2, true) => {
-                    kernels::zip3(par, g, fa, fc, dst, |g, y, x| g * x / (x * x + y * y))
-                }
-                (Binary::Atan2, false) => {
-                    kernels::zip3(par, g, fa, fc, dst, |g, y, x| -g * y / (x * x + y * y))
-                }
-                (Binary::Min, true) => {
-                    kernels::zip3(
-                        par,
-                        g,
-                        fa,
-                        fc,
-                        dst,
-                        |g, x, y| if x <= y { g } else { F::ZERO },
-                    )
-                }
-                (Binary::Min, false) => {
-                    kernels::zip3(
-                        par,
-                        g,
-                        fa,
-                        fc,
-                        dst,
-                        |g, x, y| if x <= y { F::ZERO } else { g },
-                    )
-                }
-                (Binary::Max, true) => {
-                    kernels::zip3(
-                        par,
-                        g,
-                        fa,
-                        fc,
-                        dst,
-                        |g, x, y| if x >= y { g } else { F::ZERO },
-                    )
-                }
-                (Binary::Max, false) => {
-                    kernels::zip3(
-                        par,
-                        g,
-                        fa,
-                        fc,
-                        dst,
-                        |g, x, y| if x >= y { F::ZERO } else { g },
-                    )
-                }
+                (Binary::Atan2, true) => kernels::zip3(par, g, fa, fc, dst, |g, y, x| g * x / (x * x + y * y)),
+                (Binary::Atan2, false) => kernels::zip3(par, g, fa, fc, dst, |g, y, x| -g * y / (x * x + y * y)),
+                (Binary::Min, true) => kernels::zip3(par, g, fa, fc, dst, |g, x, y| if x <= y { g } else { F::ZERO }),
+                (Binary::Min, false) => kernels::zip3(par, g, fa, fc, dst, |g, x, y| if x <= y { F::ZERO } else { g }),
+                (Binary::Max, true) => kernels::zip3(par, g, fa, fc, dst, |g, x, y| if x >= y { g } else { F::ZERO }),
+                (Binary::Max, false) => kernels::zip3(par, g, fa, fc, dst, |g, x, y| if x >= y { F::ZERO } else { g }),
                 _ => unreachable!("only atan2, min and max reach here"),
             };
             if wa {
@@ -440,13 +352,7 @@ fn matmul_backward<F: Float>(
     if sink.wants(x) {
         // gx = g w^T
         let mut gx = sink.alloc(m * k);
-        kernels::gemm(
-            par,
-            MatRef::new(g, m, n),
-            MatRef::t(wv, k, n),
-            F::ZERO,
-            &mut gx,
-        );
+        kernels::gemm(par, MatRef::new(g, m, n), MatRef::t(wv, k, n), F::ZERO, &mut gx);
         sink.add(x, gx);
     }
     if sink.wants(w) {

@@ -30,8 +30,7 @@ pub fn exp_f32(x: f32) -> f32 {
     let n = (xc * LOG2E + ROUND_MAGIC) - ROUND_MAGIC;
     let r = xc - n * LN2_HI - n * LN2_LO;
     let r2 = r * r;
-    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r
-        + 1.666_666_5e-1)
+    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r + 1.666_666_5e-1)
         * r
         + 5.000_000_1e-1;
     let y = p * r2 + r + 1.0;
@@ -64,9 +63,7 @@ pub fn ln_f32(x: f32) -> f32 {
     e = if small { e - 1 } else { e };
     m = if small { m + m - 1.0 } else { m - 1.0 };
     let z = m * m;
-    let mut y = ((((((((7.037_683_6e-2 * m - 1.151_461e-1) * m + 1.167_699_9e-1) * m
-        - 1.242_014_1e-1)
-        * m
+    let mut y = ((((((((7.037_683_6e-2 * m - 1.151_461e-1) * m + 1.167_699_9e-1) * m - 1.242_014_1e-1) * m
         + 1.424_932_3e-1)
         * m
         - 1.666_805_8e-1)
@@ -83,11 +80,7 @@ pub fn ln_f32(x: f32) -> f32 {
     y += -0.5 * z;
     let mut out = m + y + LN2_HI * ef;
     out = if x == 0.0 { f32::NEG_INFINITY } else { out };
-    out = if x == f32::INFINITY {
-        f32::INFINITY
-    } else {
-        out
-    };
+    out = if x == f32::INFINITY { f32::INFINITY } else { out };
     if x < 0.0 || x.is_nan() {
         f32::NAN
     } else {
@@ -101,9 +94,7 @@ pub fn tanh_f32(x: f32) -> f32 {
     const CLAMP: f32 = 7.905_311;
     let xc = x.clamp(-CLAMP, CLAMP);
     let x2 = xc * xc;
-    let p = ((((((-2.760_768_5e-16 * x2 + 2.000_187_9e-13) * x2 - 8.604_671_5e-11) * x2
-        + 5.122_297e-8)
-        * x2
+    let p = ((((((-2.760_768_5e-16 * x2 + 2.000_187_9e-13) * x2 - 8.604_671_5e-11) * x2 + 5.122_297e-8) * x2
         + 1.485_722_4e-5)
         * x2
         + 6.372_619_3e-4)
@@ -129,11 +120,7 @@ pub fn softplus_f32(x: f32) -> f32 {
     // that rounding (u - 1 is exact for e <= 1, and ln_f32 is relatively accurate
     // near 1). For tiny e the series e - e^2/2 is accurate to e^2/3 < 4e-9.
     let u = 1.0 + e;
-    let l = if e < 1e-4 {
-        e - 0.5 * e * e
-    } else {
-        ln_f32(u) * (e / (u - 1.0))
-    };
+    let l = if e < 1e-4 { e - 0.5 * e * e } else { ln_f32(u) * (e / (u - 1.0)) };
     x.max(0.0) + l
 }
 
@@ -147,6 +134,42 @@ pub fn sigmoid_f32(x: f32) -> f32 {
     } else {
         e * s
     }
+}
+
+/// 2 / pi.
+const FRAC_2_PI: f32 = std::f32::consts::FRAC_2_PI;
+/// pi / 2 in three parts for Cody–Waite reduction (the first two exact in few bits).
+const PIO2_1: f32 = 1.570_312_5;
+const PIO2_2: f32 = 4.837_513e-4;
+const PIO2_3: f32 = 7.549_79e-8;
+
+/// (sin x, cos x) for f32: reduction by multiples of pi/2 and Cephes' minimax
+/// polynomials on [-pi/4, pi/4]. Absolute error below 5e-7 for |x| <= 1e4 (the
+/// reduction loses accuracy slowly beyond; vehicle headings stay far inside).
+#[inline(always)]
+pub fn sin_cos_f32(x: f32) -> (f32, f32) {
+    let k = (x * FRAC_2_PI + ROUND_MAGIC) - ROUND_MAGIC;
+    let r = ((x - k * PIO2_1) - k * PIO2_2) - k * PIO2_3;
+    let z = r * r;
+    let s = ((-1.951_529_6e-4 * z + 8.332_161e-3) * z - 1.666_665_5e-1) * z * r + r;
+    let c = ((2.443_315_7e-5 * z - 1.388_731_6e-3) * z + 4.166_664_6e-2) * z * z - 0.5 * z + 1.0;
+    let q = (k as i32) & 3;
+    let (sin, cos) = (if q & 1 == 0 { s } else { c }, if q & 1 == 0 { c } else { s });
+    let sin = if q & 2 == 0 { sin } else { -sin };
+    let cos = if (q + 1) & 2 == 0 { cos } else { -cos };
+    (sin, cos)
+}
+
+/// sin x for f32 (see [`sin_cos_f32`]).
+#[inline(always)]
+pub fn sin_f32(x: f32) -> f32 {
+    sin_cos_f32(x).0
+}
+
+/// cos x for f32 (see [`sin_cos_f32`]).
+#[inline(always)]
+pub fn cos_f32(x: f32) -> f32 {
+    sin_cos_f32(x).1
 }
 
 #[cfg(test)]
@@ -211,12 +234,21 @@ mod tests {
             let xd = x as f64;
             let sp = xd.max(0.0) + (-xd.abs()).exp().ln_1p();
             // Relative: softplus(x) ~ e^x for x << 0 must keep its leading digits.
-            assert!(
-                (softplus_f32(x) as f64 - sp).abs() < 1e-6 * sp,
-                "softplus({x})"
-            );
+            assert!((softplus_f32(x) as f64 - sp).abs() < 1e-6 * sp, "softplus({x})");
             let sg = 1.0 / (1.0 + (-xd).exp());
             assert!((sigmoid_f32(x) as f64 - sg).abs() < 3e-7, "sigmoid({x})");
         }
+    }
+
+    #[test]
+    fn sin_cos_match_std() {
+        let mut worst = 0.0f64;
+        for x in grid(-1e4, 1e4, 2_000_000).chain(grid(-7.0, 7.0, 200_000)) {
+            let (s, c) = sin_cos_f32(x);
+            let xd = x as f64;
+            worst = worst.max((s as f64 - xd.sin()).abs()).max((c as f64 - xd.cos()).abs());
+        }
+        assert!(worst < 5e-7, "worst absolute error {worst}");
+        assert_eq!(sin_cos_f32(0.0), (0.0, 1.0));
     }
 }

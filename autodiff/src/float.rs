@@ -130,14 +130,6 @@ macro_rules! common_float_impl {
             <$t>::ln_1p(self)
         }
         #[inline(always)]
-        fn sin(self) -> Self {
-            <$t>::sin(self)
-        }
-        #[inline(always)]
-        fn cos(self) -> Self {
-            <$t>::cos(self)
-        }
-        #[inline(always)]
         fn sqrt(self) -> Self {
             <$t>::sqrt(self)
         }
@@ -215,6 +207,14 @@ impl Float for f64 {
         f64::tanh(self)
     }
     #[inline(always)]
+    fn sin(self) -> Self {
+        f64::sin(self)
+    }
+    #[inline(always)]
+    fn cos(self) -> Self {
+        f64::cos(self)
+    }
+    #[inline(always)]
     fn softplus(self) -> Self {
         self.max(0.0) + (-self.abs()).exp().ln_1p()
     }
@@ -252,6 +252,14 @@ impl Float for f32 {
     #[inline(always)]
     fn tanh(self) -> Self {
         fastmath::tanh_f32(self)
+    }
+    #[inline(always)]
+    fn sin(self) -> Self {
+        fastmath::sin_f32(self)
+    }
+    #[inline(always)]
+    fn cos(self) -> Self {
+        fastmath::cos_f32(self)
     }
     #[inline(always)]
     fn softplus(self) -> Self {

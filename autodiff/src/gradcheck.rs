@@ -51,14 +51,7 @@ pub struct GradCheck {
 
 impl Default for GradCheck {
     fn default() -> Self {
-        GradCheck {
-            step: 1e-3,
-            rel_tol: 1e-6,
-            abs_floor: 1e-6,
-            per_coordinate_limit: 256,
-            directions: 6,
-            seed: 7,
-        }
+        GradCheck { step: 1e-3, rel_tol: 1e-6, abs_floor: 1e-6, per_coordinate_limit: 256, directions: 6, seed: 7 }
     }
 }
 
@@ -98,12 +91,7 @@ impl fmt::Display for GradCheckError {
                 write!(f, "gradient check: output has shape {s:?}, not a scalar")
             }
             GradCheckError::NonFinite(w) => write!(f, "gradient check: non-finite {w}"),
-            GradCheckError::Mismatch {
-                at,
-                analytic,
-                numeric,
-                rel_error,
-            } => write!(
+            GradCheckError::Mismatch { at, analytic, numeric, rel_error } => write!(
                 f,
                 "gradient check: at {at} reverse mode gives {analytic:.10e}, finite differences \
                  {numeric:.10e} (relative error {rel_error:.2e})"
@@ -117,28 +105,17 @@ impl std::error::Error for GradCheckError {}
 impl GradCheck {
     /// Checks a model's gradient with respect to every parameter of `store`: `f`
     /// builds the scalar from the bound parameters, as training code does.
-    pub fn check_params<Func>(
-        &self,
-        store: &ParamStore<f64>,
-        f: Func,
-    ) -> Result<GradCheckReport, GradCheckError>
+    pub fn check_params<Func>(&self, store: &ParamStore<f64>, f: Func) -> Result<GradCheckReport, GradCheckError>
     where
         Func: for<'t> Fn(&'t Tape<f64>, &BoundParams<'t, f64>) -> Var<'t, f64>,
     {
-        self.check(
-            |tape, vars| f(tape, &BoundParams::from_vars(vars.to_vec())),
-            store.values(),
-        )
+        self.check(|tape, vars| f(tape, &BoundParams::from_vars(vars.to_vec())), store.values())
     }
 
     /// Checks `f`'s reverse-mode gradient with respect to every input against central
     /// differences. `f` receives a fresh tape and the inputs as tracked leaves and
     /// must return a scalar.
-    pub fn check<Func>(
-        &self,
-        f: Func,
-        inputs: &[Tensor<f64>],
-    ) -> Result<GradCheckReport, GradCheckError>
+    pub fn check<Func>(&self, f: Func, inputs: &[Tensor<f64>]) -> Result<GradCheckReport, GradCheckError>
     where
         Func: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
     {
@@ -166,21 +143,13 @@ impl GradCheck {
             }
         }
 
-        let mut report = GradCheckReport {
-            max_rel_error: 0.0,
-            comparisons: 0,
-        };
+        let mut report = GradCheckReport { max_rel_error: 0.0, comparisons: 0 };
         let mut compare = |at: String, a: f64, n: f64| -> Result<(), GradCheckError> {
             let rel = (a - n).abs() / a.abs().max(n.abs()).max(self.abs_floor);
             report.max_rel_error = report.max_rel_error.max(rel);
             report.comparisons += 1;
             if rel > self.rel_tol || !n.is_finite() {
-                return Err(GradCheckError::Mismatch {
-                    at,
-                    analytic: a,
-                    numeric: n,
-                    rel_error: rel,
-                });
+                return Err(GradCheckError::Mismatch { at, analytic: a, numeric: n, rel_error: rel });
             }
             Ok(())
         };
@@ -213,12 +182,7 @@ impl GradCheck {
                         }
                         eval(&ys)
                     });
-                    let a: f64 = analytic[i]
-                        .data()
-                        .iter()
-                        .zip(&u)
-                        .map(|(g, uj)| g * uj / norm)
-                        .sum();
+                    let a: f64 = analytic[i].data().iter().zip(&u).map(|(g, uj)| g * uj / norm).sum();
                     compare(format!("input[{i}] direction {d}"), a, numeric)?;
                 }
             }

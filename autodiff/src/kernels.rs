@@ -48,22 +48,14 @@ pub(crate) fn map<F: Float>(par: Parallelism, src: &[F], dst: &mut [F], f: impl 
         }
     };
     if par.split(dst.len()) {
-        dst.par_chunks_mut(CHUNK_ELEMS)
-            .zip(src.par_chunks(CHUNK_ELEMS))
-            .for_each(|(d, s)| body(d, s));
+        dst.par_chunks_mut(CHUNK_ELEMS).zip(src.par_chunks(CHUNK_ELEMS)).for_each(|(d, s)| body(d, s));
     } else {
         body(dst, src);
     }
 }
 
 /// `dst[i] = f(a[i], b[i])`.
-pub(crate) fn zip<F: Float>(
-    par: Parallelism,
-    a: &[F],
-    b: &[F],
-    dst: &mut [F],
-    f: impl Fn(F, F) -> F + Sync,
-) {
+pub(crate) fn zip<F: Float>(par: Parallelism, a: &[F], b: &[F], dst: &mut [F], f: impl Fn(F, F) -> F + Sync) {
     debug_assert!(a.len() == dst.len() && b.len() == dst.len());
     let body = |d: &mut [F], a: &[F], b: &[F]| {
         for ((o, &x), &y) in d.iter_mut().zip(a).zip(b) {
@@ -113,9 +105,7 @@ pub(crate) fn add_assign<F: Float>(par: Parallelism, dst: &mut [F], src: &[F]) {
         }
     };
     if par.split(dst.len()) {
-        dst.par_chunks_mut(CHUNK_ELEMS)
-            .zip(src.par_chunks(CHUNK_ELEMS))
-            .for_each(|(d, s)| body(d, s));
+        dst.par_chunks_mut(CHUNK_ELEMS).zip(src.par_chunks(CHUNK_ELEMS)).for_each(|(d, s)| body(d, s));
     } else {
         body(dst, src);
     }
@@ -190,20 +180,13 @@ pub(crate) fn broadcast_zip<F: Float>(
     let sa = broadcast_strides(shape_a, out);
     let sb = broadcast_strides(shape_b, out);
     let row_len = out.last().copied().unwrap_or(1).max(1);
-    let (ia, ib) = (
-        sa.last().copied().unwrap_or(0),
-        sb.last().copied().unwrap_or(0),
-    );
+    let (ia, ib) = (sa.last().copied().unwrap_or(0), sb.last().copied().unwrap_or(0));
     let rows_body = |first_row: usize, d: &mut [F]| {
         for (r, drow) in d.chunks_mut(row_len).enumerate() {
             let (oa, ob) = row_offsets(first_row + r, out, &sa, &sb);
             match (ia, ib) {
                 (1, 1) => {
-                    for ((o, &x), &y) in drow
-                        .iter_mut()
-                        .zip(&a[oa..oa + row_len])
-                        .zip(&b[ob..ob + row_len])
-                    {
+                    for ((o, &x), &y) in drow.iter_mut().zip(&a[oa..oa + row_len]).zip(&b[ob..ob + row_len]) {
                         *o = f(x, y);
                     }
                 }
@@ -230,9 +213,7 @@ pub(crate) fn broadcast_zip<F: Float>(
         dst[0] = f(a[0], b[0]);
     } else if par.split(dst.len()) {
         let rows_per_task = (CHUNK_ELEMS / row_len).max(1);
-        dst.par_chunks_mut(rows_per_task * row_len)
-            .enumerate()
-            .for_each(|(t, d)| rows_body(t * rows_per_task, d));
+        dst.par_chunks_mut(rows_per_task * row_len).enumerate().for_each(|(t, d)| rows_body(t * rows_per_task, d));
     } else {
         rows_body(0, dst);
     }
@@ -240,12 +221,7 @@ pub(crate) fn broadcast_zip<F: Float>(
 
 /// Sums `src` (of shape `from`) down to `to`, the shape of an input that was broadcast
 /// to `from`: the gradient rule for broadcasting.
-pub(crate) fn sum_to_shape<F: Float>(
-    par: Parallelism,
-    src: &[F],
-    from: &[usize],
-    to: &[usize],
-) -> Vec<F> {
+pub(crate) fn sum_to_shape<F: Float>(par: Parallelism, src: &[F], from: &[usize], to: &[usize]) -> Vec<F> {
     let numel_to: usize = to.iter().product();
     if from == to {
         return src.to_vec();
@@ -317,17 +293,12 @@ fn outer_blocks<F: Float>(
     let work = outer * src_per.max(dst_per);
     if par.split(work) && outer > 1 {
         let per_task = (CHUNK_ELEMS / src_per.max(dst_per).max(1)).max(1);
-        dst.par_chunks_mut(per_task * dst_per)
-            .enumerate()
-            .for_each(|(t, d)| {
-                let o0 = t * per_task;
-                let no = d.len() / dst_per;
-                let blocks: Vec<&[F]> = srcs
-                    .iter()
-                    .map(|s| &s[o0 * src_per..(o0 + no) * src_per])
-                    .collect();
-                body(&blocks, d);
-            });
+        dst.par_chunks_mut(per_task * dst_per).enumerate().for_each(|(t, d)| {
+            let o0 = t * per_task;
+            let no = d.len() / dst_per;
+            let blocks: Vec<&[F]> = srcs.iter().map(|s| &s[o0 * src_per..(o0 + no) * src_per]).collect();
+            body(&blocks, d);
+        });
     } else {
         body(srcs, dst);
     }
@@ -351,6 +322,13 @@ pub(crate) fn reduce_lanes<F: Float>(
     f: impl Fn(&[F]) -> F + Sync,
 ) {
     debug_assert_eq!(dst.len(), outer * inner);
+    if n == 0 {
+        // Empty lanes: the reduction of nothing (0 for a sum, -inf for a log-sum-exp).
+        // Written explicitly: output buffers are not zero-filled.
+        let empty = f(&[]);
+        dst.iter_mut().for_each(|o| *o = empty);
+        return;
+    }
     outer_blocks(par, outer, &[src], n * inner, dst, inner, |s, d| {
         let s = s[0];
         if inner == 1 {
@@ -418,13 +396,7 @@ pub(crate) fn map_lanes<F: Float>(
 }
 
 /// `dst` (shape `to`) filled with `src` (shape `from`) broadcast to `to`.
-pub(crate) fn expand<F: Float>(
-    par: Parallelism,
-    src: &[F],
-    from: &[usize],
-    to: &[usize],
-    dst: &mut [F],
-) {
+pub(crate) fn expand<F: Float>(par: Parallelism, src: &[F], from: &[usize], to: &[usize], dst: &mut [F]) {
     broadcast_zip(par, src, from, &[F::ZERO], &[], to, dst, |x, _| x);
 }
 
@@ -457,9 +429,7 @@ pub(crate) fn gather_rows<F: Float>(
     };
     if par.split(dst.len()) {
         let rows_per_task = (CHUNK_ELEMS / inner).max(1);
-        dst.par_chunks_mut(rows_per_task * inner)
-            .enumerate()
-            .for_each(|(t, d)| body(t * rows_per_task, d));
+        dst.par_chunks_mut(rows_per_task * inner).enumerate().for_each(|(t, d)| body(t * rows_per_task, d));
     } else {
         body(0, dst);
     }
@@ -495,9 +465,7 @@ pub(crate) fn scatter_add_rows<F: Float>(
         }
     };
     if par.split(src.len()) && outer > 1 {
-        dst.par_chunks_mut(block_out)
-            .zip(src.par_chunks(block_in.max(1)))
-            .for_each(|(d, s)| body(s, d));
+        dst.par_chunks_mut(block_out).zip(src.par_chunks(block_in.max(1))).for_each(|(d, s)| body(s, d));
     } else {
         for (d, s) in dst.chunks_mut(block_out).zip(src.chunks(block_in.max(1))) {
             body(s, d);
@@ -544,21 +512,11 @@ pub(crate) struct MatRef<'a, F> {
 
 impl<'a, F> MatRef<'a, F> {
     pub fn new(data: &'a [F], rows: usize, cols: usize) -> Self {
-        MatRef {
-            data,
-            rows,
-            cols,
-            transposed: false,
-        }
+        MatRef { data, rows, cols, transposed: false }
     }
     /// The transpose of a stored `rows x cols` matrix, seen as `cols x rows`.
     pub fn t(data: &'a [F], rows: usize, cols: usize) -> Self {
-        MatRef {
-            data,
-            rows: cols,
-            cols: rows,
-            transposed: true,
-        }
+        MatRef { data, rows: cols, cols: rows, transposed: true }
     }
     fn strides(&self) -> (isize, isize) {
         if self.transposed {
@@ -600,22 +558,7 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
         let (pa, _) = a.row_block(r0, nr);
         // SAFETY: strides describe the valid matrices built by MatRef; c does not alias.
         unsafe {
-            F::gemm(
-                nr,
-                k,
-                n,
-                F::ONE,
-                pa,
-                rsa,
-                csa,
-                b.data.as_ptr(),
-                rsb,
-                csb,
-                beta,
-                cblock.as_mut_ptr(),
-                n as isize,
-                1,
-            )
+            F::gemm(nr, k, n, F::ONE, pa, rsa, csa, b.data.as_ptr(), rsb, csb, beta, cblock.as_mut_ptr(), n as isize, 1)
         }
     };
     let flops = m * k * n;
@@ -623,12 +566,10 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
         let threads = rayon::current_num_threads().max(1);
         // Several tasks per thread for balance, but each large enough for the kernel.
         let rows_per_task = m.div_ceil(threads * 4).max(64).min(m);
-        c.par_chunks_mut(rows_per_task * n)
-            .enumerate()
-            .for_each(|(t, cb)| {
-                let r0 = t * rows_per_task;
-                run(r0, cb.len() / n, cb);
-            });
+        c.par_chunks_mut(rows_per_task * n).enumerate().for_each(|(t, cb)| {
+            let r0 = t * rows_per_task;
+            run(r0, cb.len() / n, cb);
+        });
     } else {
         run(0, m, c);
     }
@@ -637,15 +578,7 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
 /// `c += a^T b` where `a` is row-major `m x k` and `b` row-major `m x n` with `m` long
 /// (the weight-gradient product). Partial products over fixed blocks of
 /// [`GEMM_REDUCE_ROWS`] rows are summed in block order.
-pub(crate) fn gemm_at_b_acc<F: Float>(
-    par: Parallelism,
-    a: &[F],
-    b: &[F],
-    m: usize,
-    k: usize,
-    n: usize,
-    c: &mut [F],
-) {
+pub(crate) fn gemm_at_b_acc<F: Float>(par: Parallelism, a: &[F], b: &[F], m: usize, k: usize, n: usize, c: &mut [F]) {
     assert_eq!(a.len(), m * k);
     assert_eq!(b.len(), m * n);
     assert_eq!(c.len(), k * n);
@@ -696,13 +629,7 @@ mod tests {
         let a: Vec<f64> = (0..m * k).map(|i| (i as f64 * 0.37).sin()).collect();
         let b: Vec<f64> = (0..k * n).map(|i| (i as f64 * 0.11).cos()).collect();
         let mut c = vec![0.0; m * n];
-        gemm(
-            Parallelism::Rayon,
-            MatRef::new(&a, m, k),
-            MatRef::new(&b, k, n),
-            0.0,
-            &mut c,
-        );
+        gemm(Parallelism::Rayon, MatRef::new(&a, m, k), MatRef::new(&b, k, n), 0.0, &mut c);
         for i in 0..m {
             for j in 0..n {
                 let e: f64 = (0..k).map(|l| a[i * k + l] * b[l * n + j]).sum();
@@ -723,10 +650,7 @@ mod tests {
     #[test]
     fn sums_do_not_depend_on_parallelism() {
         let data: Vec<f32> = (0..300_001).map(|i| ((i as f32) * 0.001).sin()).collect();
-        assert_eq!(
-            sum_f64(Parallelism::Serial, &data),
-            sum_f64(Parallelism::Rayon, &data)
-        );
+        assert_eq!(sum_f64(Parallelism::Serial, &data), sum_f64(Parallelism::Rayon, &data));
         let from = [3000, 100];
         let s = sum_to_shape(Parallelism::Serial, &data[..300_000], &from, &[100]);
         let p = sum_to_shape(Parallelism::Rayon, &data[..300_000], &from, &[100]);

@@ -102,27 +102,16 @@ pub const PARAM_FORMAT_VERSION: u32 = 1;
 
 /// FNV-1a, 64-bit: a cheap checksum that catches truncation and bit flips.
 fn fnv1a(bytes: &[u8]) -> u64 {
-    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| {
-        (h ^ b as u64).wrapping_mul(0x0100_0000_01b3)
-    })
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
 }
 
 /// Serialises `value` with bincode behind a magic number, a format version and a
 /// checksum, and writes it atomically (temporary file in the same directory, then
 /// rename), so an existing file is never left half-written.
-pub fn write_versioned<T: Serialize>(
-    path: &Path,
-    version: u32,
-    value: &T,
-) -> Result<(), ParamError> {
-    let io = |source| ParamError::Io {
-        path: path.display().to_string(),
-        source,
-    };
-    let payload = bincode::serialize(value).map_err(|e| ParamError::Corrupt {
-        path: path.display().to_string(),
-        reason: e.to_string(),
-    })?;
+pub fn write_versioned<T: Serialize>(path: &Path, version: u32, value: &T) -> Result<(), ParamError> {
+    let io = |source| ParamError::Io { path: path.display().to_string(), source };
+    let payload = bincode::serialize(value)
+        .map_err(|e| ParamError::Corrupt { path: path.display().to_string(), reason: e.to_string() })?;
     let mut bytes = Vec::with_capacity(payload.len() + 20);
     bytes.extend_from_slice(MAGIC);
     bytes.extend_from_slice(&version.to_le_bytes());
@@ -142,19 +131,10 @@ pub fn write_versioned<T: Serialize>(
 }
 
 /// Reads a file written by [`write_versioned`], checking magic, version and checksum.
-pub fn read_versioned<T: for<'de> Deserialize<'de>>(
-    path: &Path,
-    version: u32,
-) -> Result<T, ParamError> {
+pub fn read_versioned<T: for<'de> Deserialize<'de>>(path: &Path, version: u32) -> Result<T, ParamError> {
     let p = path.display().to_string();
-    let bytes = std::fs::read(path).map_err(|source| ParamError::Io {
-        path: p.clone(),
-        source,
-    })?;
-    let corrupt = |reason: &str| ParamError::Corrupt {
-        path: p.clone(),
-        reason: reason.to_string(),
-    };
+    let bytes = std::fs::read(path).map_err(|source| ParamError::Io { path: p.clone(), source })?;
+    let corrupt = |reason: &str| ParamError::Corrupt { path: p.clone(), reason: reason.to_string() };
     if bytes.len() < 20 || &bytes[..8] != MAGIC {
         return Err(corrupt("not a PF-SEFI file (bad header)"));
     }
@@ -173,19 +153,13 @@ pub fn read_versioned<T: for<'de> Deserialize<'de>>(
 impl<F: Float> ParamStore<F> {
     /// An empty store.
     pub fn new() -> Self {
-        ParamStore {
-            names: Vec::new(),
-            values: Vec::new(),
-        }
+        ParamStore { names: Vec::new(), values: Vec::new() }
     }
 
     /// Adds a parameter. Panics if the name is taken (a programming error).
     #[track_caller]
     pub fn add(&mut self, name: &str, value: Tensor<F>) -> ParamId {
-        assert!(
-            self.id(name).is_none(),
-            "ParamStore::add: duplicate parameter name {name:?}"
-        );
+        assert!(self.id(name).is_none(), "ParamStore::add: duplicate parameter name {name:?}");
         self.names.push(name.to_string());
         self.values.push(value);
         ParamId(self.values.len() - 1)
@@ -243,17 +217,12 @@ impl<F: Float> ParamStore<F> {
 
     /// Copies every value into another float type (e.g. f64 master weights to an f32 tape).
     pub fn cast<G: Float>(&self) -> ParamStore<G> {
-        ParamStore {
-            names: self.names.clone(),
-            values: self.values.iter().map(|v| v.cast()).collect(),
-        }
+        ParamStore { names: self.names.clone(), values: self.values.iter().map(|v| v.cast()).collect() }
     }
 
     /// Puts every parameter on `tape` as a tracked leaf (a constant on a non-recording tape).
     pub fn bind<'t>(&self, tape: &'t Tape<F>) -> BoundParams<'t, F> {
-        BoundParams {
-            vars: self.values.iter().map(|v| tape.param(v.clone())).collect(),
-        }
+        BoundParams { vars: self.values.iter().map(|v| tape.param(v.clone())).collect() }
     }
 
     /// Replaces values with those of `other` for every name both share with equal
@@ -275,10 +244,7 @@ impl<F: Float> ParamStore<F> {
     /// Checks that `other` has exactly this store's names and shapes.
     pub fn check_same_layout(&self, other: &ParamStore<F>) -> Result<(), ParamError> {
         if self.names != other.names {
-            return Err(ParamError::Mismatch(format!(
-                "expected parameters {:?}, found {:?}",
-                self.names, other.names
-            )));
+            return Err(ParamError::Mismatch(format!("expected parameters {:?}, found {:?}", self.names, other.names)));
         }
         for (i, (a, b)) in self.values.iter().zip(&other.values).enumerate() {
             if a.shape() != b.shape() {
@@ -390,18 +356,10 @@ impl Dense {
         rng: &mut impl Rng,
     ) -> Self {
         let normal = Normal::new(0.0, act.init_std(inputs, outputs)).expect("finite std");
-        let w: Vec<F> = (0..inputs * outputs)
-            .map(|_| F::from_f64(normal.sample(rng)))
-            .collect();
+        let w: Vec<F> = (0..inputs * outputs).map(|_| F::from_f64(normal.sample(rng))).collect();
         let w = store.add(&format!("{name}.w"), Tensor::new(&[inputs, outputs], w));
         let b = store.add(&format!("{name}.b"), Tensor::zeros(&[outputs]));
-        Dense {
-            w,
-            b,
-            act,
-            inputs,
-            outputs,
-        }
+        Dense { w, b, act, inputs, outputs }
     }
 
     /// Applies the layer to `x` of shape `[.., inputs]`.
@@ -430,21 +388,11 @@ impl Mlp {
         output: Activation,
         rng: &mut impl Rng,
     ) -> Self {
-        assert!(
-            sizes.len() >= 2,
-            "Mlp::new: need at least input and output sizes, got {sizes:?}"
-        );
+        assert!(sizes.len() >= 2, "Mlp::new: need at least input and output sizes, got {sizes:?}");
         let layers = (0..sizes.len() - 1)
             .map(|i| {
                 let act = if i + 2 == sizes.len() { output } else { hidden };
-                Dense::new(
-                    store,
-                    &format!("{name}.{i}"),
-                    sizes[i],
-                    sizes[i + 1],
-                    act,
-                    rng,
-                )
+                Dense::new(store, &format!("{name}.{i}"), sizes[i], sizes[i + 1], act, rng)
             })
             .collect();
         Mlp { layers }
@@ -457,9 +405,6 @@ impl Mlp {
 
     /// Number of scalar parameters.
     pub fn num_params(&self) -> usize {
-        self.layers
-            .iter()
-            .map(|l| l.inputs * l.outputs + l.outputs)
-            .sum()
+        self.layers.iter().map(|l| l.inputs * l.outputs + l.outputs).sum()
     }
 }

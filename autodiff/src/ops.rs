@@ -143,10 +143,7 @@ fn reduced_shape(shape: &[usize], axis: usize, keepdim: bool) -> Vec<usize> {
 impl<'t, F: Float> Var<'t, F> {
     #[track_caller]
     fn same_tape(self, other: Var<'t, F>, op: &str) {
-        assert!(
-            std::ptr::eq(self.tape, other.tape),
-            "{op}: operands live on different tapes"
-        );
+        assert!(std::ptr::eq(self.tape, other.tape), "{op}: operands live on different tapes");
     }
 
     /// Runs `compute(input values, output buffer)` and records the result.
@@ -173,12 +170,7 @@ impl<'t, F: Float> Var<'t, F> {
 
     fn unary(self, u: Unary) -> Var<'t, F> {
         let shape = self.shape();
-        self.record(
-            &[self.id],
-            shape,
-            || Op::Unary(u, self.id),
-            |v, out, par| unary_forward(u, par, v[0].data(), out),
-        )
+        self.record(&[self.id], shape, || Op::Unary(u, self.id), |v, out, par| unary_forward(u, par, v[0].data(), out))
     }
 
     #[track_caller]
@@ -196,16 +188,7 @@ impl<'t, F: Float> Var<'t, F> {
             |v, out, par| {
                 let (a, c) = (v[0], v[1]);
                 let z = |f: fn(F, F) -> F, out: &mut [F]| {
-                    kernels::broadcast_zip(
-                        par,
-                        a.data(),
-                        a.shape(),
-                        c.data(),
-                        c.shape(),
-                        &out_shape,
-                        out,
-                        f,
-                    )
+                    kernels::broadcast_zip(par, a.data(), a.shape(), c.data(), c.shape(), &out_shape, out, f)
                 };
                 match b {
                     Binary::Add => z(|x, y| x + y, out),
@@ -317,15 +300,8 @@ impl<'t, F: Float> Var<'t, F> {
             shape,
             || Op::Matmul(self.id, w.id),
             |v, out, par| {
-                let (k, n) = (sw[0], sw[1]);
-                let m = v[0].numel() / k.max(1);
-                kernels::gemm(
-                    par,
-                    MatRef::new(v[0].data(), m, k),
-                    MatRef::new(v[1].data(), k, n),
-                    F::ZERO,
-                    out,
-                );
+                let (m, k, n) = (leading_rows(&sx), sw[0], sw[1]);
+                kernels::gemm(par, MatRef::new(v[0].data(), m, k), MatRef::new(v[1].data(), k, n), F::ZERO, out);
             },
         )
     }
@@ -337,18 +313,13 @@ impl<'t, F: Float> Var<'t, F> {
         self.same_tape(b, "affine");
         let (sx, sw, sb) = (self.shape(), w.shape(), b.shape());
         let shape = matmul_shape(&sx, &sw, "affine");
-        assert!(
-            sb == [sw[1]],
-            "affine: bias shape {sb:?} must be [{}]",
-            sw[1]
-        );
+        assert!(sb == [sw[1]], "affine: bias shape {sb:?} must be [{}]", sw[1]);
         self.record(
             &[self.id, w.id, b.id],
             shape,
             || Op::Affine(self.id, w.id, b.id),
             |v, out, par| {
-                let (k, n) = (sw[0], sw[1]);
-                let m = v[0].numel() / k.max(1);
+                let (m, k, n) = (leading_rows(&sx), sw[0], sw[1]);
                 kernels::gemm(par, MatRef::new(v[0].data(), m, k), MatRef::new(v[1].data(), k, n), F::ZERO, out);
                 kernels::add_rows(par, out, v[2].data());
             },
@@ -536,9 +507,7 @@ impl<'t, F: Float> Var<'t, F> {
             &[self.id],
             out_shape,
             || Op::Slice(self.id, axis, start),
-            |v, out, _| {
-                kernels::copy_axis_range(v[0].data(), dims, start, out, out_dims, 0, len, false)
-            },
+            |v, out, _| kernels::copy_axis_range(v[0].data(), dims, start, out, out_dims, 0, len, false),
         )
     }
 
@@ -551,12 +520,7 @@ impl<'t, F: Float> Var<'t, F> {
             shape.iter().product::<usize>(),
             "reshape: {old:?} -> {shape:?} changes the element count"
         );
-        self.record(
-            &[self.id],
-            shape.to_vec(),
-            || Op::Reshape(self.id),
-            |v, out, _| out.copy_from_slice(v[0].data()),
-        )
+        self.record(&[self.id], shape.to_vec(), || Op::Reshape(self.id), |v, out, _| out.copy_from_slice(v[0].data()))
     }
 
     /// Transpose of a matrix.
@@ -576,11 +540,7 @@ impl<'t, F: Float> Var<'t, F> {
     #[track_caller]
     pub fn broadcast_to(self, shape: &[usize]) -> Var<'t, F> {
         let s = self.shape();
-        assert_eq!(
-            broadcast_shapes(&s, shape).as_deref(),
-            Some(shape),
-            "broadcast_to: {s:?} -> {shape:?}"
-        );
+        assert_eq!(broadcast_shapes(&s, shape).as_deref(), Some(shape), "broadcast_to: {s:?} -> {shape:?}");
         let to = shape.to_vec();
         self.record(
             &[self.id],
@@ -599,12 +559,15 @@ pub(crate) fn transpose_into<F: Float>(src: &[F], rows: usize, cols: usize, dst:
     }
 }
 
+/// Rows of the matrix that a `[.., k]` operand of a matrix product stands for: the
+/// product of its leading dimensions (`numel / k` is wrong for `k = 0`).
+pub(crate) fn leading_rows(shape: &[usize]) -> usize {
+    shape[..shape.len().saturating_sub(1)].iter().product()
+}
+
 #[track_caller]
 fn matmul_shape(sx: &[usize], sw: &[usize], op: &str) -> Vec<usize> {
-    assert!(
-        sw.len() == 2,
-        "{op}: weights must be a matrix, got shape {sw:?}"
-    );
+    assert!(sw.len() == 2, "{op}: weights must be a matrix, got shape {sw:?}");
     assert!(
         !sx.is_empty() && sx[sx.len() - 1] == sw[0],
         "{op}: shapes {sx:?} and {sw:?} do not chain (last dimension must be {})",
@@ -622,20 +585,14 @@ impl<F: Float> Tape<F> {
         assert!(!parts.is_empty(), "concat: no inputs");
         let shapes: Vec<Vec<usize>> = parts.iter().map(|p| p.shape()).collect();
         let first = &shapes[0];
-        for s in &shapes {
+        for (s, p) in shapes.iter().zip(parts) {
             assert!(
                 s.len() == first.len()
                     && axis < s.len()
-                    && s.iter()
-                        .zip(first)
-                        .enumerate()
-                        .all(|(d, (a, b))| d == axis || a == b),
+                    && s.iter().zip(first).enumerate().all(|(d, (a, b))| d == axis || a == b),
                 "concat: shapes {shapes:?} do not agree off axis {axis}"
             );
-            assert!(
-                std::ptr::eq(parts[0].tape, self),
-                "concat: inputs live on another tape"
-            );
+            assert!(std::ptr::eq(p.tape, self), "concat: inputs live on another tape");
         }
         let total: usize = shapes.iter().map(|s| s[axis]).sum();
         let mut out_shape = first.clone();
@@ -651,16 +608,7 @@ impl<F: Float> Tape<F> {
                 let mut at = 0;
                 for t in v {
                     let n = t.shape()[axis];
-                    kernels::copy_axis_range(
-                        t.data(),
-                        (outer, n, inner),
-                        0,
-                        out,
-                        (outer, total, inner),
-                        at,
-                        n,
-                        false,
-                    );
+                    kernels::copy_axis_range(t.data(), (outer, n, inner), 0, out, (outer, total, inner), at, n, false);
                     at += n;
                 }
             },
@@ -684,12 +632,7 @@ impl<F: Float> Tape<F> {
             sa,
             move || Op::Where(m2, a.id, b.id),
             |v, out, _| {
-                for (((o, &x), &y), &k) in out
-                    .iter_mut()
-                    .zip(v[0].data())
-                    .zip(v[1].data())
-                    .zip(m.iter())
-                {
+                for (((o, &x), &y), &k) in out.iter_mut().zip(v[0].data()).zip(v[1].data()).zip(m.iter()) {
                     *o = if k { x } else { y };
                 }
             },

@@ -79,39 +79,19 @@ impl std::error::Error for StepError {}
 impl Adam {
     /// Adam with learning rate `lr` and the usual defaults (0.9, 0.999, 1e-8).
     pub fn new(lr: f64) -> Self {
-        Adam {
-            lr,
-            beta1: 0.9,
-            beta2: 0.999,
-            eps: 1e-8,
-            t: 0,
-            m: Vec::new(),
-            v: Vec::new(),
-        }
+        Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, t: 0, m: Vec::new(), v: Vec::new() }
     }
 
     /// One update of `params` with `grads` (same order and shapes). A non-finite
     /// gradient leaves parameters and state untouched and returns
     /// [`StepError::NonFinite`].
-    pub fn step<F: Float>(
-        &mut self,
-        params: &mut ParamStore<F>,
-        grads: &[Tensor<F>],
-    ) -> Result<(), StepError> {
+    pub fn step<F: Float>(&mut self, params: &mut ParamStore<F>, grads: &[Tensor<F>]) -> Result<(), StepError> {
         if grads.len() != params.len() {
-            return Err(StepError::Layout(format!(
-                "{} gradients for {} parameters",
-                grads.len(),
-                params.len()
-            )));
+            return Err(StepError::Layout(format!("{} gradients for {} parameters", grads.len(), params.len())));
         }
         for (g, p) in grads.iter().zip(params.values()) {
             if g.shape() != p.shape() {
-                return Err(StepError::Layout(format!(
-                    "gradient {:?} for parameter {:?}",
-                    g.shape(),
-                    p.shape()
-                )));
+                return Err(StepError::Layout(format!("gradient {:?} for parameter {:?}", g.shape(), p.shape())));
             }
         }
         if !grads.iter().all(|g| g.all_finite()) {
@@ -145,10 +125,7 @@ mod tests {
 
     #[test]
     fn clipping_bounds_the_norm_and_keeps_direction() {
-        let mut g = vec![
-            Tensor::from_vec(vec![3.0f64, 0.0]),
-            Tensor::from_vec(vec![4.0]),
-        ];
+        let mut g = vec![Tensor::from_vec(vec![3.0f64, 0.0]), Tensor::from_vec(vec![4.0])];
         let before = clip_global_norm(&mut g, 1.0);
         assert_eq!(before, 5.0);
         assert!((global_norm(&g) - 1.0).abs() < 1e-12);
@@ -177,12 +154,8 @@ mod tests {
         let mut store = ParamStore::<f64>::new();
         store.add("a", Tensor::from_vec(vec![0.0, 0.0]));
         let mut adam = Adam::new(0.01);
-        adam.step(&mut store, &[Tensor::from_vec(vec![5.0, -0.001])])
-            .unwrap();
+        adam.step(&mut store, &[Tensor::from_vec(vec![5.0, -0.001])]).unwrap();
         let d = store.values()[0].data();
-        assert!(
-            (d[0] + 0.01).abs() < 1e-8 && (d[1] - 0.01).abs() < 1e-6,
-            "{d:?}"
-        );
+        assert!((d[0] + 0.01).abs() < 1e-8 && (d[1] - 0.01).abs() < 1e-6, "{d:?}");
     }
 }

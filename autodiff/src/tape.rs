@@ -176,16 +176,9 @@ impl<F: Float> Tape<F> {
 
     pub(crate) fn push_node(&self, value: Tensor<F>, op: Op, tracked: bool) -> Var<'_, F> {
         let mut nodes = self.nodes.borrow_mut();
-        let (op, tracked) = if tracked && self.is_recording() {
-            (op, true)
-        } else {
-            (Op::Leaf, false)
-        };
+        let (op, tracked) = if tracked && self.is_recording() { (op, true) } else { (Op::Leaf, false) };
         nodes.push(Node { value, op, tracked });
-        Var {
-            tape: self,
-            id: nodes.len() - 1,
-        }
+        Var { tape: self, id: nodes.len() - 1 }
     }
 
     pub(crate) fn nodes(&self) -> Ref<'_, Vec<Node<F>>> {
@@ -212,17 +205,10 @@ impl<F: Float> Tape<F> {
     /// in one reverse walk of the tape.
     #[track_caller]
     pub fn vjp(&self, output: Var<'_, F>, cotangent: Tensor<F>) -> Gradients<F> {
-        assert!(
-            std::ptr::eq(output.tape, self),
-            "vjp: output belongs to another tape"
-        );
+        assert!(std::ptr::eq(output.tape, self), "vjp: output belongs to another tape");
         let nodes = self.nodes.borrow();
         let out_shape = nodes[output.id].value.shape();
-        assert_eq!(
-            out_shape,
-            cotangent.shape(),
-            "vjp: cotangent shape must equal output shape"
-        );
+        assert_eq!(out_shape, cotangent.shape(), "vjp: cotangent shape must equal output shape");
         let mut grads: Vec<Option<Vec<F>>> = Vec::new();
         grads.resize_with(output.id + 1, || None);
         if nodes[output.id].tracked {
@@ -238,12 +224,7 @@ impl<F: Float> Tape<F> {
                 leaf_grads[id] = Some(Tensor::from_parts(node.value.shape().to_vec(), g));
                 continue;
             }
-            let mut sink = GradSink {
-                nodes: &nodes,
-                grads: &mut grads,
-                par,
-                tape: self,
-            };
+            let mut sink = GradSink { nodes: &nodes, grads: &mut grads, par, tape: self };
             backward::backward_node(&nodes, id, &g, &mut sink);
             self.recycle(g);
         }
@@ -286,11 +267,7 @@ impl<F: Float> GradSink<'_, F> {
             self.tape.recycle(contrib);
             return;
         }
-        debug_assert_eq!(
-            contrib.len(),
-            self.nodes[id].value.numel(),
-            "gradient size for node {id}"
-        );
+        debug_assert_eq!(contrib.len(), self.nodes[id].value.numel(), "gradient size for node {id}");
         match &mut self.grads[id] {
             Some(g) => {
                 kernels::add_assign(self.par, g, &contrib);

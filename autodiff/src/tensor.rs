@@ -26,24 +26,13 @@ impl<F: Float> Tensor<F> {
     #[track_caller]
     pub fn new(shape: &[usize], data: Vec<F>) -> Self {
         let numel: usize = shape.iter().product();
-        assert_eq!(
-            numel,
-            data.len(),
-            "Tensor::new: shape {shape:?} needs {numel} elements, got {}",
-            data.len()
-        );
-        Tensor {
-            shape: shape.to_vec(),
-            data,
-        }
+        assert_eq!(numel, data.len(), "Tensor::new: shape {shape:?} needs {numel} elements, got {}", data.len());
+        Tensor { shape: shape.to_vec(), data }
     }
 
     /// A 1-D tensor holding `data`.
     pub fn from_vec(data: Vec<F>) -> Self {
-        Tensor {
-            shape: vec![data.len()],
-            data,
-        }
+        Tensor { shape: vec![data.len()], data }
     }
 
     /// A 1-D tensor from f64 values (converted to `F`).
@@ -53,19 +42,13 @@ impl<F: Float> Tensor<F> {
 
     /// A scalar (shape `[]`).
     pub fn scalar(x: F) -> Self {
-        Tensor {
-            shape: vec![],
-            data: vec![x],
-        }
+        Tensor { shape: vec![], data: vec![x] }
     }
 
     /// A tensor of the given shape filled with `value`.
     pub fn full(shape: &[usize], value: F) -> Self {
         let numel = shape.iter().product();
-        Tensor {
-            shape: shape.to_vec(),
-            data: vec![value; numel],
-        }
+        Tensor { shape: shape.to_vec(), data: vec![value; numel] }
     }
 
     /// A tensor of zeros.
@@ -111,12 +94,7 @@ impl<F: Float> Tensor<F> {
     /// The single value of a one-element tensor.
     #[track_caller]
     pub fn item(&self) -> F {
-        assert_eq!(
-            self.data.len(),
-            1,
-            "item: tensor of shape {:?} is not a scalar",
-            self.shape
-        );
+        assert_eq!(self.data.len(), 1, "item: tensor of shape {:?} is not a scalar", self.shape);
         self.data[0]
     }
 
@@ -135,19 +113,10 @@ impl<F: Float> Tensor<F> {
 
     #[track_caller]
     fn offset(&self, index: &[usize]) -> usize {
-        assert_eq!(
-            index.len(),
-            self.shape.len(),
-            "index {index:?} for shape {:?}",
-            self.shape
-        );
+        assert_eq!(index.len(), self.shape.len(), "index {index:?} for shape {:?}", self.shape);
         let mut o = 0;
         for (&i, &d) in index.iter().zip(&self.shape) {
-            assert!(
-                i < d,
-                "index {index:?} out of bounds for shape {:?}",
-                self.shape
-            );
+            assert!(i < d, "index {index:?} out of bounds for shape {:?}", self.shape);
             o = o * d + i;
         }
         o
@@ -157,30 +126,19 @@ impl<F: Float> Tensor<F> {
     #[track_caller]
     pub fn reshape(mut self, shape: &[usize]) -> Self {
         let numel: usize = shape.iter().product();
-        assert_eq!(
-            numel,
-            self.data.len(),
-            "reshape: {:?} -> {shape:?}",
-            self.shape
-        );
+        assert_eq!(numel, self.data.len(), "reshape: {:?} -> {shape:?}", self.shape);
         self.shape = shape.to_vec();
         self
     }
 
     /// Applies `f` to every element.
     pub fn map(&self, f: impl Fn(F) -> F) -> Self {
-        Tensor {
-            shape: self.shape.clone(),
-            data: self.data.iter().map(|&x| f(x)).collect(),
-        }
+        Tensor { shape: self.shape.clone(), data: self.data.iter().map(|&x| f(x)).collect() }
     }
 
     /// Converts every element to another float type.
     pub fn cast<G: Float>(&self) -> Tensor<G> {
-        Tensor {
-            shape: self.shape.clone(),
-            data: self.data.iter().map(|&x| G::from_f64(x.to_f64())).collect(),
-        }
+        Tensor { shape: self.shape.clone(), data: self.data.iter().map(|&x| G::from_f64(x.to_f64())).collect() }
     }
 
     /// The data as f64 values.
@@ -211,10 +169,7 @@ impl<F: Float> Tensor<F> {
 /// Splits `shape` around `axis` into (outer, axis length, inner) element counts.
 #[track_caller]
 pub(crate) fn axis_split(shape: &[usize], axis: usize, op: &str) -> (usize, usize, usize) {
-    assert!(
-        axis < shape.len(),
-        "{op}: axis {axis} out of range for shape {shape:?}"
-    );
+    assert!(axis < shape.len(), "{op}: axis {axis} out of range for shape {shape:?}");
     let outer = shape[..axis].iter().product();
     let inner = shape[axis + 1..].iter().product();
     (outer, shape[axis], inner)
@@ -225,16 +180,8 @@ pub fn broadcast_shapes(a: &[usize], b: &[usize]) -> Option<Vec<usize>> {
     let rank = a.len().max(b.len());
     let mut out = vec![0; rank];
     for i in 0..rank {
-        let da = if i + a.len() >= rank {
-            a[i + a.len() - rank]
-        } else {
-            1
-        };
-        let db = if i + b.len() >= rank {
-            b[i + b.len() - rank]
-        } else {
-            1
-        };
+        let da = if i + a.len() >= rank { a[i + a.len() - rank] } else { 1 };
+        let db = if i + b.len() >= rank { b[i + b.len() - rank] } else { 1 };
         out[i] = if da == db || db == 1 {
             da
         } else if da == 1 {

@@ -64,11 +64,7 @@ fn gather_and_index_select_every_axis_with_repeats() {
 
         let name = format!("gather axis {axis}");
         check(&name, |_, v| v[0].gather(axis, &idx), &[x.clone()]);
-        check(
-            &format!("index_select axis {axis}"),
-            |_, v| v[0].index_select(axis, &idx),
-            &[x.clone()],
-        );
+        check(&format!("index_select axis {axis}"), |_, v| v[0].index_select(axis, &idx), &[x.clone()]);
         // The gradient of a sum counts how often each position was picked.
         let (_, g) = grads(|_, v| v[0].gather(axis, &idx), &[x.clone()]);
         for i in 0..x.numel() {
@@ -104,10 +100,7 @@ fn scatter_add_every_axis_with_repeats() {
         let idx = scatter_indices(n);
         let x = normal(&mut r, &SHAPE);
         let tape = Tape::<f64>::new();
-        let y = tape
-            .constant(x.clone())
-            .scatter_add(axis, &idx, size)
-            .to_tensor();
+        let y = tape.constant(x.clone()).scatter_add(axis, &idx, size).to_tensor();
         let mut out_shape = SHAPE.to_vec();
         out_shape[axis] = size;
         assert_eq!(y.shape(), &out_shape[..]);
@@ -118,18 +111,8 @@ fn scatter_add_every_axis_with_repeats() {
             let v = expected.at(&at) + x.data()[i];
             expected.set(&at, v);
         }
-        assert_close(
-            &format!("scatter_add axis {axis}"),
-            y.data(),
-            expected.data(),
-            1e-15,
-            1.0,
-        );
-        check(
-            &format!("scatter_add axis {axis}"),
-            |_, v| v[0].scatter_add(axis, &idx, size),
-            &[x],
-        );
+        assert_close(&format!("scatter_add axis {axis}"), y.data(), expected.data(), 1e-15, 1.0);
+        check(&format!("scatter_add axis {axis}"), |_, v| v[0].scatter_add(axis, &idx, size), &[x]);
     }
 }
 
@@ -177,22 +160,14 @@ fn concat_three_parts_every_axis() {
             at[axis] = k;
             assert_eq!(y.data()[i], parts[p].at(&at), "concat axis {axis}");
         }
-        check(
-            &format!("concat axis {axis}"),
-            |tape, v| tape.concat(v, axis),
-            &parts,
-        );
+        check(&format!("concat axis {axis}"), |tape, v| tape.concat(v, axis), &parts);
     }
 }
 
 #[test]
 fn concat_of_a_value_with_itself_accumulates() {
     let x = normal(&mut rng(34), &[2, 3]);
-    check(
-        "concat [x, x, x]",
-        |tape, v| tape.concat(&[v[0], v[0].square(), v[0]], 1),
-        &[x.clone()],
-    );
+    check("concat [x, x, x]", |tape, v| tape.concat(&[v[0], v[0].square(), v[0]], 1), &[x.clone()]);
     let (_, g) = grads(|tape, v| tape.concat(&[v[0], v[0]], 0), &[x]);
     assert!(g[0].data().iter().all(|&v| v == 2.0));
 }
@@ -214,22 +189,13 @@ fn slice_every_axis() {
                 at[axis] += start;
                 assert_eq!(y.data()[i], x.at(&at));
             }
-            check(
-                &format!("slice axis {axis} {start}..{}", start + len),
-                |_, v| v[0].slice(axis, start, len),
-                &[x],
-            );
+            check(&format!("slice axis {axis} {start}..{}", start + len), |_, v| v[0].slice(axis, start, len), &[x]);
         }
     }
     // Two overlapping slices of one value: gradients add where they overlap.
     let x = normal(&mut r, &[6, 2]);
-    let (_, g) = grads(
-        |_, v| v[0].slice(0, 0, 4) + v[0].slice(0, 2, 4),
-        &[x.clone()],
-    );
-    let expected: Vec<f64> = (0..12)
-        .map(|i| if (4..8).contains(&i) { 2.0 } else { 1.0 })
-        .collect();
+    let (_, g) = grads(|_, v| v[0].slice(0, 0, 4) + v[0].slice(0, 2, 4), &[x.clone()]);
+    let expected: Vec<f64> = (0..12).map(|i| if (4..8).contains(&i) { 2.0 } else { 1.0 }).collect();
     assert_eq!(g[0].data(), &expected[..]);
 }
 
@@ -241,11 +207,7 @@ fn reshape_transpose_and_broadcast_to() {
     let y = tape.constant(x.clone()).reshape(&[12, 5]).to_tensor();
     assert_eq!(y.shape(), &[12, 5]);
     assert_eq!(y.data(), x.data());
-    check(
-        "reshape",
-        |_, v| v[0].reshape(&[5, 12]).tanh().reshape(&[60]),
-        &[x],
-    );
+    check("reshape", |_, v| v[0].reshape(&[5, 12]).tanh().reshape(&[60]), &[x]);
 
     let m = normal(&mut r, &[3, 5]);
     let t = tape.constant(m.clone()).t().to_tensor();
@@ -256,11 +218,7 @@ fn reshape_transpose_and_broadcast_to() {
         }
     }
     check("transpose", |_, v| v[0].t(), &[m.clone()]);
-    check(
-        "x^T x",
-        |_, v| v[0].t().matmul(v[0]),
-        &[m],
-    );
+    check("x^T x", |_, v| v[0].t().matmul(v[0]), &[m]);
 
     for (from, to) in [
         (vec![3, 1], vec![2, 3, 4]),
@@ -276,18 +234,10 @@ fn reshape_transpose_and_broadcast_to() {
         for i in 0..y.numel() {
             let at = unravel(i, &to);
             let off = to.len() - from.len();
-            let src: Vec<usize> = from
-                .iter()
-                .enumerate()
-                .map(|(d, &n)| if n == 1 { 0 } else { at[off + d] })
-                .collect();
+            let src: Vec<usize> = from.iter().enumerate().map(|(d, &n)| if n == 1 { 0 } else { at[off + d] }).collect();
             assert_eq!(y.data()[i], x.at(&src));
         }
-        check(
-            &format!("broadcast_to {from:?} -> {to:?}"),
-            |_, v| v[0].broadcast_to(&to),
-            &[x],
-        );
+        check(&format!("broadcast_to {from:?} -> {to:?}"), |_, v| v[0].broadcast_to(&to), &[x]);
     }
 }
 
@@ -298,18 +248,12 @@ fn select_with_a_constant_mask() {
     let b = normal(&mut r, &[3, 4]);
     let mask: Vec<bool> = (0..12).map(|i| i % 3 != 1).collect();
     let tape = Tape::<f64>::new();
-    let y = tape
-        .select(&mask, tape.constant(a.clone()), tape.constant(b.clone()))
-        .to_tensor();
+    let y = tape.select(&mask, tape.constant(a.clone()), tape.constant(b.clone())).to_tensor();
     for i in 0..12 {
         let e = if mask[i] { a.data()[i] } else { b.data()[i] };
         assert_eq!(y.data()[i], e);
     }
-    check(
-        "select",
-        |tape, v| tape.select(&mask, v[0], v[1]),
-        &[a.clone(), b.clone()],
-    );
+    check("select", |tape, v| tape.select(&mask, v[0], v[1]), &[a.clone(), b.clone()]);
     let (_, g) = grads(|tape, v| tape.select(&mask, v[0], v[1]), &[a, b]);
     for i in 0..12 {
         assert_eq!(g[0].data()[i], if mask[i] { 1.0 } else { 0.0 });

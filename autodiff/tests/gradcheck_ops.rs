@@ -35,14 +35,7 @@ fn unary_cases() -> Vec<UnaryCase> {
         hi: f64,
         kinks: &'static [f64],
     ) -> UnaryCase {
-        UnaryCase {
-            name,
-            op,
-            reference,
-            lo,
-            hi,
-            kinks,
-        }
+        UnaryCase { name, op, reference, lo, hi, kinks }
     }
     vec![
         c("neg", |x| x.neg(), |x| -x, -3.0, 3.0, &[]),
@@ -52,49 +45,21 @@ fn unary_cases() -> Vec<UnaryCase> {
         c("ln_1p", |x| x.ln_1p(), f64::ln_1p, -0.8, 3.0, &[]),
         c("tanh", |x| x.tanh(), f64::tanh, -3.0, 3.0, &[]),
         c("relu", |x| x.relu(), |x| x.max(0.0), -3.0, 3.0, &[0.0]),
-        c(
-            "softplus",
-            |x| x.softplus(),
-            |x| (1.0 + x.exp()).ln(),
-            -6.0,
-            6.0,
-            &[],
-        ),
-        c(
-            "sigmoid",
-            |x| x.sigmoid(),
-            |x| 1.0 / (1.0 + (-x).exp()),
-            -6.0,
-            6.0,
-            &[],
-        ),
+        c("softplus", |x| x.softplus(), |x| (1.0 + x.exp()).ln(), -6.0, 6.0, &[]),
+        c("sigmoid", |x| x.sigmoid(), |x| 1.0 / (1.0 + (-x).exp()), -6.0, 6.0, &[]),
         c("sin", |x| x.sin(), f64::sin, -4.0, 4.0, &[]),
         c("cos", |x| x.cos(), f64::cos, -4.0, 4.0, &[]),
         c("abs", |x| x.abs(), f64::abs, -3.0, 3.0, &[0.0]),
         c("sqrt", |x| x.sqrt(), f64::sqrt, 0.1, 4.0, &[]),
         c("square", |x| x.square(), |x| x * x, -3.0, 3.0, &[]),
         c("powf(2.5)", |x| x.powf(2.5), |x| x.powf(2.5), 0.1, 3.0, &[]),
-        c(
-            "powf(-1.5)",
-            |x| x.powf(-1.5),
-            |x| x.powf(-1.5),
-            0.2,
-            3.0,
-            &[],
-        ),
+        c("powf(-1.5)", |x| x.powf(-1.5), |x| x.powf(-1.5), 0.2, 3.0, &[]),
         c("powf(3) of negatives", |x| x.powf(3.0), |x| x * x * x, -2.0, 2.0, &[]),
         c("powf(1)", |x| x.powf(1.0), |x| x, -2.0, 2.0, &[]),
         c("powf(0)", |x| x.powf(0.0), |_| 1.0, 0.1, 2.0, &[]),
         c("add_scalar", |x| x.add_scalar(0.7), |x| x + 0.7, -3.0, 3.0, &[]),
         c("mul_scalar", |x| x.mul_scalar(-1.3), |x| -1.3 * x, -3.0, 3.0, &[]),
-        c(
-            "clamp",
-            |x| x.clamp(-0.5, 0.8),
-            |x| x.max(-0.5).min(0.8),
-            -2.0,
-            2.0,
-            &[-0.5, 0.8],
-        ),
+        c("clamp", |x| x.clamp(-0.5, 0.8), |x| x.max(-0.5).min(0.8), -2.0, 2.0, &[-0.5, 0.8]),
         c("mean", |x| x.mean(), |x| x, -3.0, 3.0, &[]),
     ]
 }
@@ -103,7 +68,7 @@ fn unary_cases() -> Vec<UnaryCase> {
 fn unary_ops_match_std_and_finite_differences() {
     let mut r = rng(1);
     for case in unary_cases() {
-        let x = away_from(&mut r, &SHAPE, case.lo, case.hi, case.kinks, 1e-3);
+        let x = away_from(&mut r, &SHAPE, case.lo, case.hi, case.kinks, KINK_GAP);
         // Forward: f64 uses std's correctly rounded functions, so the values agree
         // to a few ulp (softplus/sigmoid are computed in a stabler form).
         if case.name != "mean" {
@@ -160,11 +125,7 @@ fn unravel(mut i: usize, shape: &[usize]) -> Vec<usize> {
 fn broadcast_read(t: &Tensor<f64>, out_idx: &[usize]) -> f64 {
     let s = t.shape();
     let off = out_idx.len() - s.len();
-    let idx: Vec<usize> = s
-        .iter()
-        .enumerate()
-        .map(|(d, &n)| if n == 1 { 0 } else { out_idx[off + d] })
-        .collect();
+    let idx: Vec<usize> = s.iter().enumerate().map(|(d, &n)| if n == 1 { 0 } else { out_idx[off + d] }).collect();
     t.at(&idx)
 }
 
@@ -191,57 +152,25 @@ struct BinaryCase {
 
 fn binary_cases() -> Vec<BinaryCase> {
     vec![
-        BinaryCase {
-            name: "add",
-            op: |a, b| a + b,
-            reference: |a, b| a + b,
-        },
-        BinaryCase {
-            name: "sub",
-            op: |a, b| a - b,
-            reference: |a, b| a - b,
-        },
-        BinaryCase {
-            name: "mul",
-            op: |a, b| a * b,
-            reference: |a, b| a * b,
-        },
-        BinaryCase {
-            name: "div",
-            op: |a, b| a / b,
-            reference: |a, b| a / b,
-        },
-        BinaryCase {
-            name: "atan2",
-            op: |a, b| a.atan2(b),
-            reference: f64::atan2,
-        },
-        BinaryCase {
-            name: "minimum",
-            op: |a, b| a.minimum(b),
-            reference: f64::min,
-        },
-        BinaryCase {
-            name: "maximum",
-            op: |a, b| a.maximum(b),
-            reference: f64::max,
-        },
+        BinaryCase { name: "add", op: |a, b| a + b, reference: |a, b| a + b },
+        BinaryCase { name: "sub", op: |a, b| a - b, reference: |a, b| a - b },
+        BinaryCase { name: "mul", op: |a, b| a * b, reference: |a, b| a * b },
+        BinaryCase { name: "div", op: |a, b| a / b, reference: |a, b| a / b },
+        BinaryCase { name: "atan2", op: |a, b| a.atan2(b), reference: f64::atan2 },
+        BinaryCase { name: "minimum", op: |a, b| a.minimum(b), reference: f64::min },
+        BinaryCase { name: "maximum", op: |a, b| a.maximum(b), reference: f64::max },
     ]
 }
 
 /// Inputs for a binary op: magnitudes in [0.3, 2] with random signs (no division by
 /// ~0, atan2 away from the origin and its branch cut), and for min/max no pair of
-/// broadcast-aligned elements closer than 1e-3 (away from the kink).
-fn binary_inputs(
-    r: &mut rand::rngs::StdRng,
-    sa: &[usize],
-    sb: &[usize],
-) -> (Tensor<f64>, Tensor<f64>) {
+/// broadcast-aligned elements closer than [`KINK_GAP`] (away from the kink).
+fn binary_inputs(r: &mut rand::rngs::StdRng, sa: &[usize], sb: &[usize]) -> (Tensor<f64>, Tensor<f64>) {
     loop {
         let a = signed(r, sa, 0.3, 2.0);
         let b = signed(r, sb, 0.3, 2.0);
         let gap = reference_binary(&a, &b, |x, y| (x - y).abs());
-        if gap.data().iter().all(|&d| d > 1e-3) {
+        if gap.data().iter().all(|&d| d > KINK_GAP) {
             return (a, b);
         }
     }
@@ -273,14 +202,7 @@ fn atan2_covers_all_four_quadrants() {
     let x = Tensor::new(&[6], vec![1.0, -1.0, -1.0, 1.0, 0.0, 0.0]);
     let tape = Tape::<f64>::new();
     let a = tape.constant(y.clone()).atan2(tape.constant(x.clone()));
-    let expected = [
-        FRAC_PI_4,
-        3.0 * FRAC_PI_4,
-        -3.0 * FRAC_PI_4,
-        -FRAC_PI_4,
-        PI / 2.0,
-        -PI / 2.0,
-    ];
+    let expected = [FRAC_PI_4, 3.0 * FRAC_PI_4, -3.0 * FRAC_PI_4, -FRAC_PI_4, PI / 2.0, -PI / 2.0];
     assert_close("atan2 angles", a.to_tensor().data(), &expected, 1e-15, 1.0);
     // Gradients in each quadrant, with points kept off the negative x axis (the cut).
     let mut r = rng(4);
@@ -294,11 +216,7 @@ fn atan2_covers_all_four_quadrants() {
             assert!((g[0].data()[i] - xi / r2).abs() < 1e-15);
             assert!((g[1].data()[i] + yi / r2).abs() < 1e-15);
         }
-        check(
-            &format!("atan2 quadrant ({qy}, {qx})"),
-            |_, v| v[0].atan2(v[1]),
-            &[ys, xs],
-        );
+        check(&format!("atan2 quadrant ({qy}, {qx})"), |_, v| v[0].atan2(v[1]), &[ys, xs]);
     }
 }
 
@@ -341,9 +259,7 @@ fn reference_matmul(x: &Tensor<f64>, w: &Tensor<f64>) -> Vec<f64> {
     let mut out = vec![0.0; m * n];
     for i in 0..m {
         for j in 0..n {
-            out[i * n + j] = (0..k)
-                .map(|l| x.data()[i * k + l] * w.data()[l * n + j])
-                .sum();
+            out[i * n + j] = (0..k).map(|l| x.data()[i * k + l] * w.data()[l * n + j]).sum();
         }
     }
     out
@@ -352,12 +268,9 @@ fn reference_matmul(x: &Tensor<f64>, w: &Tensor<f64>) -> Vec<f64> {
 #[test]
 fn matmul_2d_3d_and_vector_lhs() {
     let mut r = rng(6);
-    for (label, sx) in [
-        ("2-D", vec![5, 3]),
-        ("3-D lhs", vec![2, 3, 4]),
-        ("vector lhs", vec![4]),
-        ("single column", vec![6, 1]),
-    ] {
+    for (label, sx) in
+        [("2-D", vec![5, 3]), ("3-D lhs", vec![2, 3, 4]), ("vector lhs", vec![4]), ("single column", vec![6, 1])]
+    {
         let k = *sx.last().unwrap();
         let x = normal(&mut r, &sx);
         let w = normal(&mut r, &[k, 5]);
@@ -367,13 +280,7 @@ fn matmul_2d_3d_and_vector_lhs() {
         *expected_shape.last_mut().unwrap() = 5;
         assert_eq!(y.shape(), expected_shape, "matmul {label}");
         // Summation order differs from the GEMM kernel's: agree to rounding.
-        assert_close(
-            &format!("matmul {label}"),
-            y.to_tensor().data(),
-            &reference_matmul(&x, &w),
-            1e-13,
-            1.0,
-        );
+        assert_close(&format!("matmul {label}"), y.to_tensor().data(), &reference_matmul(&x, &w), 1e-13, 1.0);
         check(&format!("matmul {label}"), |_, v| v[0].matmul(v[1]), &[x, w]);
     }
 }
@@ -387,13 +294,7 @@ fn matmul_with_long_inner_dimension() {
     let w = normal(&mut r, &[600, 2]).map(|v| v * 0.05);
     let tape = Tape::<f64>::new();
     let y = tape.constant(x.clone()).matmul(tape.constant(w.clone()));
-    assert_close(
-        "long matmul",
-        y.to_tensor().data(),
-        &reference_matmul(&x, &w),
-        1e-12,
-        1.0,
-    );
+    assert_close("long matmul", y.to_tensor().data(), &reference_matmul(&x, &w), 1e-12, 1.0);
     check("long matmul", |_, v| v[0].matmul(v[1]), &[x, w]);
 }
 
@@ -405,27 +306,11 @@ fn affine_2d_and_3d() {
         let w = normal(&mut r, &[3, 4]);
         let b = normal(&mut r, &[4]);
         let tape = Tape::<f64>::new();
-        let y = tape.constant(x.clone()).affine(
-            tape.constant(w.clone()),
-            tape.constant(b.clone()),
-        );
-        let expected: Vec<f64> = reference_matmul(&x, &w)
-            .iter()
-            .enumerate()
-            .map(|(i, v)| v + b.data()[i % 4])
-            .collect();
-        assert_close(
-            &format!("affine {label}"),
-            y.to_tensor().data(),
-            &expected,
-            1e-13,
-            1.0,
-        );
-        check(
-            &format!("affine {label}"),
-            |_, v| v[0].affine(v[1], v[2]),
-            &[x, w, b],
-        );
+        let y = tape.constant(x.clone()).affine(tape.constant(w.clone()), tape.constant(b.clone()));
+        let expected: Vec<f64> =
+            reference_matmul(&x, &w).iter().enumerate().map(|(i, v)| v + b.data()[i % 4]).collect();
+        assert_close(&format!("affine {label}"), y.to_tensor().data(), &expected, 1e-13, 1.0);
+        check(&format!("affine {label}"), |_, v| v[0].affine(v[1], v[2]), &[x, w, b]);
     }
 }
 
@@ -438,9 +323,5 @@ fn composite_of_broadcast_ops_checks_out() {
     let b = normal(&mut r, &[5]);
     let s = normal(&mut r, &[5]);
     let c = normal(&mut r, &[4, 1]);
-    check(
-        "composite",
-        |_, v| (v[0].affine(v[1], v[2]).tanh() * v[3]) / (v[4].square() + 1.0),
-        &[x, w, b, s, c],
-    );
+    check("composite", |_, v| (v[0].affine(v[1], v[2]).tanh() * v[3]) / (v[4].square() + 1.0), &[x, w, b, s, c]);
 }

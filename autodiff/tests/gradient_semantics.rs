@@ -104,11 +104,7 @@ fn a_value_used_twice_accumulates_both_gradients() {
     }
     // A row used both broadcast over a matrix and on its own.
     let m = normal(&mut rng(40), &[4, 3]);
-    check(
-        "row used twice",
-        |_, v| (v[1] * v[0]).sum_axis(0, false) + v[0].exp(),
-        &[x, m],
-    );
+    check("row used twice", |_, v| (v[1] * v[0]).sum_axis(0, false) + v[0].exp(), &[x, m]);
 }
 
 #[test]
@@ -116,21 +112,9 @@ fn softplus_sigmoid_and_tanh_saturate_cleanly() {
     let x = t(&[-1000.0, -50.0, 50.0, 1000.0]);
     let e50 = (-50.0f64).exp();
     let (y, g) = grads(|_, v| v[0].softplus(), &[x.clone()]);
-    assert_close(
-        "softplus(+-50)",
-        y.data(),
-        &[0.0, e50, 50.0, 1000.0],
-        1e-15,
-        1e-300,
-    );
+    assert_close("softplus(+-50)", y.data(), &[0.0, e50, 50.0, 1000.0], 1e-15, 1e-300);
     // d softplus = sigmoid: e^-50 / (1 + e^-50) ~ 1.93e-22 at -50, 1 at +50.
-    assert_close(
-        "softplus'(+-50)",
-        g[0].data(),
-        &[0.0, e50 / (1.0 + e50), 1.0, 1.0],
-        1e-15,
-        1e-300,
-    );
+    assert_close("softplus'(+-50)", g[0].data(), &[0.0, e50 / (1.0 + e50), 1.0, 1.0], 1e-15, 1e-300);
     let (y, g) = grads(|_, v| v[0].sigmoid(), &[x.clone()]);
     assert!(y.all_finite() && g[0].all_finite());
     assert_eq!(y.data()[3], 1.0);
@@ -159,21 +143,12 @@ fn softplus_sigmoid_and_tanh_saturate_cleanly() {
 fn log_near_zero_is_accurate() {
     let x = t(&[1e-8, 2.5e-8]);
     let (y, g) = grads(|_, v| v[0].ln(), &[x.clone()]);
-    assert_close(
-        "ln(1e-8)",
-        y.data(),
-        &[(1e-8f64).ln(), (2.5e-8f64).ln()],
-        1e-15,
-        1.0,
-    );
+    assert_close("ln(1e-8)", y.data(), &[(1e-8f64).ln(), (2.5e-8f64).ln()], 1e-15, 1.0);
     assert_close("d ln(1e-8)", g[0].data(), &[1e8, 4e7], 1e-15, 1.0);
     // Finite differences need a step below x itself: h = 1e-12 perturbs x by 1e-4
     // relative, so the truncation error h^2 / (3 x^2) is ~3e-9 relative and the
     // rounding error eps * 18 / h ~ 4e-3 is 4e-11 of the 1e8 gradient.
-    let gc = GradCheck {
-        step: 1e-12,
-        ..smooth_check()
-    };
+    let gc = GradCheck { step: 1e-12, ..smooth_check() };
     check_with(&gc, "ln near 0", |_, v| v[0].ln(), &[x.clone()]);
 
     // f32 at 1e-8 (a normal f32): the fast log keeps full relative accuracy.
