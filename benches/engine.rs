@@ -31,26 +31,12 @@ struct Workload<F: Float> {
 fn workload<F: Float>() -> Workload<F> {
     let mut rng = StdRng::seed_from_u64(42);
     let mut store = ParamStore::new();
-    let mlp = Mlp::new(
-        &mut store,
-        "obs",
-        &SIZES,
-        Activation::Tanh,
-        Activation::Tanh,
-        &mut rng,
-    );
+    let mlp = Mlp::new(&mut store, "obs", &SIZES, Activation::Tanh, Activation::Tanh, &mut rng);
     let x = Tensor::new(
         &[ROWS, SIZES[0]],
-        (0..ROWS * SIZES[0])
-            .map(|_| F::from_f64(rng.random_range(-1.0..1.0)))
-            .collect(),
+        (0..ROWS * SIZES[0]).map(|_| F::from_f64(rng.random_range(-1.0..1.0))).collect(),
     );
-    let w = Tensor::new(
-        &[ROWS, 1],
-        (0..ROWS)
-            .map(|_| F::from_f64(rng.random_range(0.0..1.0)))
-            .collect(),
-    );
+    let w = Tensor::new(&[ROWS, 1], (0..ROWS).map(|_| F::from_f64(rng.random_range(0.0..1.0))).collect());
     Workload { store, mlp, x, w }
 }
 
@@ -103,10 +89,7 @@ fn report<F: Float>(reps: usize) {
     let fwd = median_seconds(&wl, Pass::ForwardNoTape, reps);
     let fwd_tape = median_seconds(&wl, Pass::ForwardTape, reps);
     let fb = median_seconds(&wl, Pass::ForwardBackward, reps);
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .expect("pool");
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
     let fb1 = one.install(|| median_seconds(&wl, Pass::ForwardBackward, reps));
     let fwd1 = one.install(|| median_seconds(&wl, Pass::ForwardNoTape, reps));
     // Backward GEMMs: weight gradients for every layer, input gradients for all but the first.
@@ -114,12 +97,7 @@ fn report<F: Float>(reps: usize) {
     let bf = 2.0 * ff - 2.0 * ROWS as f64 * (SIZES[0] * SIZES[1]) as f64;
     let lanes_factor = if F::NAME == "f32" { 1.0 } else { 0.5 };
     let peak = cores as f64 * CLOCK_GHZ * F32_FLOPS_PER_CYCLE * lanes_factor;
-    println!(
-        "\n{} ({} rows, MLP {:?} tanh, weighted sum; median of {reps}, {cores} threads)",
-        F::NAME,
-        ROWS,
-        SIZES
-    );
+    println!("\n{} ({} rows, MLP {:?} tanh, weighted sum; median of {reps}, {cores} threads)", F::NAME, ROWS, SIZES);
     println!("  forward, no tape        {:8.2} ms", fwd * 1e3);
     println!("  forward, with tape      {:8.2} ms", fwd_tape * 1e3);
     println!("  forward + backward      {:8.2} ms", fb * 1e3);
@@ -131,16 +109,19 @@ fn report<F: Float>(reps: usize) {
         peak,
         F32_FLOPS_PER_CYCLE * lanes_factor
     );
-    println!("  1 thread: fwd {:.2} ms, fwd+bwd {:.2} ms -> speed-up on {cores} threads: fwd {:.2}x, fwd+bwd {:.2}x", fwd1 * 1e3, fb1 * 1e3, fwd1 / fwd, fb1 / fb);
+    println!(
+        "  1 thread: fwd {:.2} ms, fwd+bwd {:.2} ms -> speed-up on {cores} threads: fwd {:.2}x, fwd+bwd {:.2}x",
+        fwd1 * 1e3,
+        fb1 * 1e3,
+        fwd1 / fwd,
+        fb1 / fb
+    );
 }
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let reps = if quick { 5 } else { 21 };
-    println!(
-        "autodiff engine benchmark: {}",
-        if quick { "quick" } else { "full" }
-    );
+    println!("autodiff engine benchmark: {}", if quick { "quick" } else { "full" });
     // `-- f32` or `-- f64` runs one element type only.
     let only = |name: &str| !std::env::args().any(|a| a == "f32" || a == "f64") || std::env::args().any(|a| a == name);
     if only("f32") {

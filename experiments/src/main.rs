@@ -2,7 +2,10 @@
 //! shows progress and writes files and plots; the mathematics lives in the
 //! `autodiff` and `ssm` libraries.
 
+mod birdseye;
 mod demo;
+mod evaluate;
+mod generate;
 mod import;
 mod output;
 mod plot;
@@ -55,6 +58,12 @@ enum Command {
         #[arg(long)]
         min_score: Option<f64>,
     },
+    /// Generate the paper's synthetic datasets (experiment A or B).
+    Generate(generate::GenerateArgs),
+    /// Filter and smooth a dataset with given parameters and write the metrics.
+    Eval(evaluate::EvalArgs),
+    /// Smooth a dataset with given parameters and write the estimated states.
+    Track(evaluate::TrackArgs),
 }
 
 fn main() -> ExitCode {
@@ -64,6 +73,9 @@ fn main() -> ExitCode {
         Command::ImportKitti { root, out, steps, stride, gate, min_score } => {
             import::kitti(&root, &out, steps, stride, gate, min_score)
         }
+        Command::Generate(args) => generate::run(&args),
+        Command::Eval(args) => evaluate::eval(&args),
+        Command::Track(args) => evaluate::track(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,0 +1,283 @@
+//! `sefi eval` and `sefi track`: load a dataset and a parameter file, run the
+//! particle filter and write the metrics (SPEC §5) or the estimated states.
+//!
+//! The parameter file is a [`ParamStore`] laid out as [`ssm::params`] describes:
+//! the policy under `policy` (`policy.log_sd` for the hand-crafted policy,
+//! otherwise the neural network `policy.0.w`, ...), the observation network under
+//! `obs`. The observation model follows the dataset: points -> point model,
+//! boxes -> box-detection model.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use autodiff::nn::ParamStore;
+use serde_json::{json, Value};
+use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
+use ssm::filter::FilterConfig;
+use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
+use ssm::observation::ObservationModel;
+use ssm::params::{AnyObservation, AnyPolicy, Models};
+
+use crate::birdseye;
+use crate::output::{ensure_dir, write_atomic, write_json};
+
+/// Arguments of `sefi eval`.
+#[derive(clap::Args)]
+pub struct EvalArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Parameter file (a saved ParamStore: policy under `policy`, observation network under `obs`).
+    #[arg(long)]
+    pub params: Option<PathBuf>,
+    /// Particles per object.
+    #[arg(long, default_value_t = EVAL_PARTICLES)]
+    pub particles: usize,
+    /// Fixed lag of the smoothed means (steps).
+    #[arg(long, default_value_t = EVAL_LAG)]
+    pub lag: usize,
+    /// Seed of the filter (run r uses seed + r).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Repeated filter runs (different seeds); metrics are summarised by median and IQR.
+    #[arg(long, default_value_t = 1)]
+    pub runs: usize,
+    /// Output directory (metrics.json, metrics.csv).
+    #[arg(long, default_value = "out/eval")]
+    pub out: PathBuf,
+}
+
+/// Arguments of `sefi track`.
+#[derive(clap::Args)]
+pub struct TrackArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Parameter file (a saved ParamStore: policy under `policy`, observation network under `obs`).
+    #[arg(long)]
+    pub params: Option<PathBuf>,
+    /// Output directory (smoothed.csv, filtered.csv, track.json, the bird's-eye SVG).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Fixed lag of the smoothed means (steps).
+    #[arg(long, default_value_t = EVAL_LAG)]
+    pub lag: usize,
+    /// Particles per object.
+    #[arg(long, default_value_t = EVAL_PARTICLES)]
+    pub particles: usize,
+    /// Seed of the filter.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Scene (id as in the files) drawn in the bird's-eye plot; default: the first.
+    #[arg(long)]
+    pub plot_scene: Option<i64>,
+}
+
+/// Reads the dataset and the models of the parameter file.
+fn load(data: &Path, params: Option<&Path>) -> Result<(Dataset, Models), String> {
+    let params = params.ok_or_else(|| {
+        "--params FILE is required: a parameter file (ParamStore) with the policy under `policy` \
+         (`policy.log_sd` or a neural network) and the observation network under `obs`"
+            .to_string()
+    })?;
+    if !params.is_file() {
+        return Err(format!("parameter file {} does not exist or is not a file", params.display()));
+    }
+    let dataset = Dataset::read(data).map_err(|e| format!("dataset {}: {e}", data.display()))?;
+    let store = ParamStore::<f64>::load(params).map_err(|e| format!("parameter file {}: {e}", params.display()))?;
+    let models =
+        Models::from_store(&store, dataset.kind()).map_err(|e| format!("parameter file {}: {e}", params.display()))?;
+    Ok((dataset, models))
+}
+
+fn check_particles(particles: usize) -> Result<(), String> {
+    if particles == 0 {
+        return Err("--particles must be at least 1".into());
+    }
+    Ok(())
+}
+
+fn kind_name(kind: ObservationKind) -> &'static str {
+    match kind {
+        ObservationKind::Points => "points",
+        ObservationKind::Boxes => "boxes",
+    }
+}
+
+/// Runs the filter with whichever observation model `models` holds.
+fn run_track(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<Tracks, String> {
+    let (p, params) = (&models.policy, &models.observation_params);
+    match &models.observation {
+        AnyObservation::Points(o) => metrics::track(data, p, o, params, config),
+        AnyObservation::Boxes(o) => metrics::track(data, p, o, params, config),
+    }
+}
+
+fn metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterConfig) -> Metrics {
+    fn go<O: ObservationModel>(
+        data: &Dataset,
+        policy: &AnyPolicy,
+        o: &O,
+        params: &ParamStore<f64>,
+        tracks: &Tracks,
+        config: &FilterConfig,
+    ) -> Metrics {
+        metrics::metrics_of(data, tracks, policy, o, params, config)
+    }
+    let (p, params) = (&models.policy, &models.observation_params);
+    match &models.observation {
+        AnyObservation::Points(o) => go(data, p, o, params, tracks, config),
+        AnyObservation::Boxes(o) => go(data, p, o, params, tracks, config),
+    }
+}
+
+fn fmt_opt(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".into(), |v| format!("{v:.4}"))
+}
+
+fn csv_num(v: Option<f64>) -> String {
+    v.map_or_else(String::new, |v| v.to_string())
+}
+
+/// Runs `sefi eval`.
+pub fn eval(args: &EvalArgs) -> Result<(), String> {
+    check_particles(args.particles)?;
+    if args.runs == 0 {
+        return Err("--runs must be at least 1".into());
+    }
+    let (data, models) = load(&args.data, args.params.as_deref())?;
+    ensure_dir(&args.out)?;
+    eprintln!(
+        "eval: {} objects x {} steps ({}), {} policy, {} particles, lag {}, {} run(s)",
+        data.objects().len(),
+        data.steps(),
+        kind_name(data.kind()),
+        models.policy.name(),
+        args.particles,
+        args.lag,
+        args.runs
+    );
+    let mut runs = Vec::with_capacity(args.runs);
+    for r in 0..args.runs {
+        let config = FilterConfig {
+            particles: args.particles,
+            lag: args.lag,
+            seed: args.seed.wrapping_add(r as u64),
+            ..FilterConfig::default()
+        };
+        let tracks = run_track(&data, &models, &config)?;
+        runs.push(metrics_of(&data, &models, &tracks, &config));
+    }
+    let summary = metrics::summarise_runs(&runs);
+
+    // Print: a value per metric, or median [q1, q3] over runs.
+    let mut text = String::new();
+    for (name, s) in &summary {
+        match s {
+            Some(s) if runs.len() > 1 => {
+                let _ = writeln!(text, "{name:>16}  {:.4}  [IQR {:.4} .. {:.4}]", s.median, s.q1, s.q3);
+            }
+            Some(s) => {
+                let _ = writeln!(text, "{name:>16}  {}", fmt_opt(Some(s.median)));
+            }
+            None => {
+                let _ = writeln!(text, "{name:>16}  -");
+            }
+        }
+    }
+    print!("{text}");
+
+    // metrics.csv: one row per run.
+    let names: Vec<&str> = runs[0].scalars().iter().map(|(n, _)| *n).collect();
+    let mut csv = format!("run,seed,particles,lag,{}\n", names.join(","));
+    for (r, m) in runs.iter().enumerate() {
+        let values: Vec<String> = m.scalars().iter().map(|(_, v)| csv_num(*v)).collect();
+        let _ = writeln!(csv, "{r},{},{},{},{}", m.seed, m.particles, m.lag, values.join(","));
+    }
+    write_atomic(&args.out.join("metrics.csv"), csv.as_bytes())?;
+
+    let summary_json: serde_json::Map<String, Value> =
+        summary.iter().map(|(n, s)| (n.to_string(), serde_json::to_value(s).unwrap_or(Value::Null))).collect();
+    let doc = json!({
+        "dataset": args.data.display().to_string(),
+        "params": args.params.as_ref().map(|p| p.display().to_string()),
+        "observation": kind_name(data.kind()),
+        "policy": models.policy.name(),
+        "objects": data.objects().len(),
+        "steps": data.steps(),
+        "particles": args.particles,
+        "lag": args.lag,
+        "summary": summary_json,
+        "runs": runs,
+    });
+    write_json(&args.out.join("metrics.json"), &doc)?;
+    eprintln!("wrote {} and {}", args.out.join("metrics.json").display(), args.out.join("metrics.csv").display());
+    Ok(())
+}
+
+/// The estimates as a `states.csv` table (`scene,object,t,x,y,yaw,v,kappa`).
+fn states_csv(data: &Dataset, estimates: &[Vec<State>]) -> String {
+    let mut s = STATE_COLUMNS.join(",");
+    s.push('\n');
+    for (object, rows) in estimates.iter().enumerate() {
+        let o = &data.objects()[object];
+        for (t, e) in rows.iter().enumerate() {
+            let _ = writeln!(s, "{},{},{t},{},{},{},{},{}", o.scene, o.id, e.x, e.y, e.yaw, e.v, e.kappa);
+        }
+    }
+    s
+}
+
+/// Runs `sefi track`.
+pub fn track(args: &TrackArgs) -> Result<(), String> {
+    check_particles(args.particles)?;
+    let (data, models) = load(&args.data, args.params.as_deref())?;
+    let scene = match args.plot_scene {
+        Some(id) => data.find_scene(id).ok_or_else(|| {
+            let ids: Vec<String> = data.scenes().iter().take(10).map(|s| s.id.to_string()).collect();
+            format!("--plot-scene {id}: no such scene in {} (scenes: {} ...)", args.data.display(), ids.join(", "))
+        })?,
+        None => 0,
+    };
+    ensure_dir(&args.out)?;
+    let config = FilterConfig { particles: args.particles, lag: args.lag, seed: args.seed, ..FilterConfig::default() };
+    eprintln!(
+        "track: {} objects x {} steps ({}), {} policy, {} particles, lag {}",
+        data.objects().len(),
+        data.steps(),
+        kind_name(data.kind()),
+        models.policy.name(),
+        args.particles,
+        args.lag
+    );
+    let tracks = run_track(&data, &models, &config)?;
+    write_atomic(&args.out.join("smoothed.csv"), states_csv(&data, &tracks.smoothed).as_bytes())?;
+    write_atomic(&args.out.join("filtered.csv"), states_csv(&data, &tracks.filtered).as_bytes())?;
+    let m = metrics_of(&data, &models, &tracks, &config);
+    let scene_id = data.scenes()[scene].id;
+    let svg = args.out.join(format!("birdseye_scene_{scene_id}.svg"));
+    birdseye::draw(&svg, &data, scene, &tracks, args.lag)?;
+    let doc = json!({
+        "dataset": args.data.display().to_string(),
+        "observation": kind_name(data.kind()),
+        "policy": models.policy.name(),
+        "particles": args.particles,
+        "lag": args.lag,
+        "seed": args.seed,
+        "metrics": m,
+        "files": {
+            "smoothed": "smoothed.csv",
+            "filtered": "filtered.csv",
+            "birdseye": svg.file_name().map(|n| n.to_string_lossy().into_owned()),
+        },
+    });
+    write_json(&args.out.join("track.json"), &doc)?;
+    println!(
+        "mll {}  ade smoothed {}  ade filtered {}",
+        fmt_opt(m.mll),
+        fmt_opt(m.smoothed.ade),
+        fmt_opt(m.filtered.ade)
+    );
+    eprintln!("wrote smoothed.csv, filtered.csv, track.json and {} to {}", svg.display(), args.out.display());
+    Ok(())
+}

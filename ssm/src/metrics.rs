@@ -1,0 +1,388 @@
+//! The evaluation metrics of SPEC §5, and medians with interquartile ranges over
+//! repeated runs.
+//!
+//! * **MLL**: the particle filter's `l_hat(theta)` (default [`EVAL_PARTICLES`]
+//!   particles) divided by the number of observed points or detections — nats per
+//!   point ([`mll`]).
+//! * **ADE / AYE**: mean position error (m) and mean absolute wrapped yaw error
+//!   (rad) of the fixed-lag smoothed means and of the filtering means against the
+//!   true states; steps without a true state are skipped ([`state_errors`]).
+//! * **AOTLL**: mean `log g(y_t | true x_t)` per observed item ([`aotll`]).
+//! * **APTLL**: mean `log pi(true a_t | true x_{t-1})` per step `t >= 1` where the
+//!   action and the previous state are known ([`aptll`]).
+//!
+//! [`evaluate`] computes all of them with one filter run ([`track`]); [`Summary`]
+//! and [`summarise_runs`] give the median and interquartile range of each over
+//! repeated runs (different seeds).
+//!
+//! ```
+//! use ssm::metrics::{wrapped_abs_diff, Summary};
+//! assert!((wrapped_abs_diff(3.1, -3.1) - (2.0 * std::f64::consts::PI - 6.2)).abs() < 1e-12);
+//! let s = Summary::of(&[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
+//! assert_eq!((s.median, s.q1, s.q3, s.iqr), (3.0, 2.0, 4.0, 2.0));
+//! ```
+
+use std::f64::consts::{PI, TAU};
+
+use autodiff::nn::ParamStore;
+use serde::Serialize;
+
+use crate::data::{Dataset, Pose, State, StepTable};
+use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary};
+use crate::observation::{ObsContext, ObservationModel};
+use crate::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
+use crate::vehicle_ssm::{VehicleSsm, YAW};
+
+/// Particles of an evaluation run (SPEC §5).
+pub const EVAL_PARTICLES: usize = 4096;
+/// Default fixed lag of the smoothed means (the paper's synthetic setting).
+pub const EVAL_LAG: usize = 8;
+
+/// The filter settings of an evaluation: [`EVAL_PARTICLES`] particles, systematic
+/// resampling at every step, the given lag and seed.
+pub fn eval_config(lag: usize, seed: u64) -> FilterConfig {
+    FilterConfig { particles: EVAL_PARTICLES, lag, seed, ..FilterConfig::default() }
+}
+
+/// `|a - b|` wrapped to `[0, pi]`: the absolute difference of two angles.
+pub fn wrapped_abs_diff(a: f64, b: f64) -> f64 {
+    let d = (a - b).rem_euclid(TAU);
+    if d > PI {
+        TAU - d
+    } else {
+        d
+    }
+}
+
+/// The marginal log-likelihood per observed unit (nats per point); `None` without
+/// observed units.
+pub fn mll(log_likelihood: f64, observed_units: usize) -> Option<f64> {
+    (observed_units > 0).then(|| log_likelihood / observed_units as f64)
+}
+
+/// Mean position and yaw errors of state estimates against the truth.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct StateErrors {
+    /// Mean Euclidean position error (m); `None` if nothing was compared.
+    pub ade: Option<f64>,
+    /// Mean absolute wrapped yaw error (rad); `None` if nothing was compared.
+    pub aye: Option<f64>,
+    /// Number of (object, step) pairs compared.
+    pub count: usize,
+}
+
+/// ADE and AYE of `estimates[object][t]` against `truth`, over the cells where
+/// both exist (a missing true state, or an estimate row shorter than the truth,
+/// is skipped).
+#[track_caller]
+pub fn state_errors(estimates: &[Vec<State>], truth: &StepTable<State>) -> StateErrors {
+    assert_eq!(
+        estimates.len(),
+        truth.objects(),
+        "state_errors: {} estimated objects, {} true objects",
+        estimates.len(),
+        truth.objects()
+    );
+    let (mut pos, mut yaw, mut count) = (0.0, 0.0, 0usize);
+    for (object, rows) in estimates.iter().enumerate() {
+        for (t, est) in rows.iter().enumerate().take(truth.steps()) {
+            if let Some(tr) = truth.get(object, t) {
+                pos += (est.x - tr.x).hypot(est.y - tr.y);
+                yaw += wrapped_abs_diff(est.yaw, tr.yaw);
+                count += 1;
+            }
+        }
+    }
+    let mean = |s: f64| (count > 0).then(|| s / count as f64);
+    StateErrors { ade: mean(pos), aye: mean(yaw), count }
+}
+
+/// A mean of per-item values with the number of items.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct MeanOver {
+    /// The mean; `None` if there was nothing to average.
+    pub mean: Option<f64>,
+    /// Number of items averaged.
+    pub count: usize,
+}
+
+impl MeanOver {
+    fn new(sum: f64, count: usize) -> Self {
+        MeanOver { mean: (count > 0).then(|| sum / count as f64), count }
+    }
+}
+
+/// AOTLL: the mean `log g(y_t | true x_t)` per observed item, over the steps with
+/// a true state. `None` mean if the dataset has no true states or no observation
+/// at a step with one.
+pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore<f64>) -> MeanOver {
+    let Some(truth) = data.states() else { return MeanOver::default() };
+    if data.kind() != O::KIND {
+        return MeanOver::default();
+    }
+    let (mut sum, mut count) = (0.0, 0usize);
+    let mut per_item = Vec::new();
+    for (object, obj) in data.objects().iter().enumerate() {
+        let scene = &data.scenes()[data.object_scene(object)];
+        for t in 0..data.steps() {
+            let Some(s) = truth.get(object, t) else { continue };
+            let items = O::items(data, object, t);
+            if items.is_empty() {
+                continue;
+            }
+            per_item.clear();
+            per_item.resize(items.len(), 0.0);
+            let ctx = ObsContext::of_object(scene.av[t], obj);
+            model.log_density_items(params, &ctx, Pose { x: s.x, y: s.y, yaw: s.yaw }, items, &mut per_item);
+            sum += per_item.iter().sum::<f64>();
+            count += items.len();
+        }
+    }
+    MeanOver::new(sum, count)
+}
+
+/// APTLL: the mean `log pi(true a_t | true x_{t-1})` over the steps `t >= 1` with a
+/// true action and a true previous state.
+pub fn aptll<P: GaussianPolicy>(data: &Dataset, policy: &P) -> MeanOver {
+    let (Some(states), Some(actions)) = (data.states(), data.actions()) else { return MeanOver::default() };
+    let (mut v, mut kappa, mut accel, mut pinch) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for object in 0..data.objects().len() {
+        for t in 1..data.steps() {
+            if let (Some(prev), Some(a)) = (states.get(object, t - 1), actions.get(object, t)) {
+                v.push(prev.v);
+                kappa.push(prev.kappa);
+                accel.push(a.accel);
+                pinch.push(a.pinch);
+            }
+        }
+    }
+    let mut out = vec![0.0; v.len()];
+    if !v.is_empty() {
+        let mut scratch = ActionGaussians::default();
+        policy.log_density(&v, &kappa, ActionsRef { accel: &accel, pinch: &pinch }, &mut scratch, &mut out);
+    }
+    MeanOver::new(out.iter().sum(), out.len())
+}
+
+/// The filter's estimates of every object's states.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Tracks {
+    /// Filtering means `E[x_t | y_{0:t}]`, `[object][t]`.
+    pub filtered: Vec<Vec<State>>,
+    /// Fixed-lag smoothed means `E[x_t | y_{0:min(t+L,T)}]`, `[object][t]`.
+    pub smoothed: Vec<Vec<State>>,
+    /// The filter's per-object summaries (log-likelihood, observed units, ESS).
+    pub summaries: Vec<ObjectSummary>,
+}
+
+impl Tracks {
+    /// The summed log-likelihood estimate `l_hat`.
+    pub fn log_likelihood(&self) -> f64 {
+        self.summaries.iter().map(|s| s.log_likelihood).sum()
+    }
+
+    /// Observed units (points, detections) that entered the likelihood.
+    pub fn observed_units(&self) -> usize {
+        self.summaries.iter().map(|s| s.observed_units).sum()
+    }
+
+    /// Steps at which every particle was impossible.
+    pub fn collapsed_steps(&self) -> usize {
+        self.summaries.iter().map(|s| s.collapsed_steps).sum()
+    }
+}
+
+fn to_states(rows: Vec<Vec<f64>>) -> Vec<State> {
+    rows.into_iter()
+        .map(|r| {
+            let mut a = [0.0; STATE_DIM];
+            a.copy_from_slice(&r[..STATE_DIM]);
+            State::from_array(a)
+        })
+        .collect()
+}
+
+/// Runs the particle filter over every object of `data` and returns the filtering
+/// and fixed-lag smoothed means (yaw averaged on the circle) with the filter's
+/// summaries. Fails if the dataset's kind is not the one `observation` reads.
+pub fn track<P: GaussianPolicy, O: ObservationModel>(
+    data: &Dataset,
+    policy: &P,
+    observation: &O,
+    observation_params: &ParamStore<f64>,
+    config: &FilterConfig,
+) -> Result<Tracks, String> {
+    let model = VehicleSsm::new(data, policy, observation, observation_params)?;
+    let run = run_filter(&model, config, |_| Moments::new(STATE_DIM, &[YAW]));
+    let mut tracks = Tracks { summaries: run.objects, ..Tracks::default() };
+    for m in run.observers {
+        tracks.filtered.push(to_states(m.filtered));
+        tracks.smoothed.push(to_states(m.smoothed));
+    }
+    Ok(tracks)
+}
+
+/// Every metric of SPEC §5 for one run.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Metrics {
+    /// `l_hat / observed_units` (nats per point).
+    pub mll: Option<f64>,
+    /// The filter's `l_hat` summed over objects.
+    pub log_likelihood: f64,
+    /// Observed units (points or detections) in `l_hat`.
+    pub observed_units: usize,
+    /// Position and yaw errors of the fixed-lag smoothed means.
+    pub smoothed: StateErrors,
+    /// Position and yaw errors of the filtering means.
+    pub filtered: StateErrors,
+    /// Mean observation log-density at the true states, per item.
+    pub aotll: MeanOver,
+    /// Mean policy log-density of the true actions, per step.
+    pub aptll: MeanOver,
+    /// Steps at which every particle was impossible (observation skipped).
+    pub collapsed_steps: usize,
+    /// Particles per object.
+    pub particles: usize,
+    /// Fixed lag of the smoothed means.
+    pub lag: usize,
+    /// Seed of the filter.
+    pub seed: u64,
+}
+
+impl Metrics {
+    /// The scalar metrics by name (`mll`, `ade_smoothed`, `aye_smoothed`,
+    /// `ade_filtered`, `aye_filtered`, `aotll`, `aptll`, `log_likelihood`,
+    /// `observed_units`, `collapsed_steps`); missing values are `None`.
+    pub fn scalars(&self) -> Vec<(&'static str, Option<f64>)> {
+        vec![
+            ("mll", self.mll),
+            ("ade_smoothed", self.smoothed.ade),
+            ("aye_smoothed", self.smoothed.aye),
+            ("ade_filtered", self.filtered.ade),
+            ("aye_filtered", self.filtered.aye),
+            ("aotll", self.aotll.mean),
+            ("aptll", self.aptll.mean),
+            ("log_likelihood", Some(self.log_likelihood)),
+            ("observed_units", Some(self.observed_units as f64)),
+            ("collapsed_steps", Some(self.collapsed_steps as f64)),
+        ]
+    }
+}
+
+/// Computes every metric: one filter run with `config` (MLL, ADE/AYE of smoothed
+/// and filtering means) plus AOTLL and APTLL at the true states and actions (which
+/// need no filter). Fails if the dataset's kind is not the one `observation` reads.
+pub fn evaluate<P: GaussianPolicy, O: ObservationModel>(
+    data: &Dataset,
+    policy: &P,
+    observation: &O,
+    observation_params: &ParamStore<f64>,
+    config: &FilterConfig,
+) -> Result<Metrics, String> {
+    let tracks = track(data, policy, observation, observation_params, config)?;
+    Ok(metrics_of(data, &tracks, policy, observation, observation_params, config))
+}
+
+/// The metrics of an existing filter run `tracks` (made with `config`) on `data`.
+pub fn metrics_of<P: GaussianPolicy, O: ObservationModel>(
+    data: &Dataset,
+    tracks: &Tracks,
+    policy: &P,
+    observation: &O,
+    observation_params: &ParamStore<f64>,
+    config: &FilterConfig,
+) -> Metrics {
+    let (smoothed, filtered) = match data.states() {
+        Some(truth) => (state_errors(&tracks.smoothed, truth), state_errors(&tracks.filtered, truth)),
+        None => (StateErrors::default(), StateErrors::default()),
+    };
+    Metrics {
+        mll: mll(tracks.log_likelihood(), tracks.observed_units()),
+        log_likelihood: tracks.log_likelihood(),
+        observed_units: tracks.observed_units(),
+        smoothed,
+        filtered,
+        aotll: aotll(data, observation, observation_params),
+        aptll: aptll(data, policy),
+        collapsed_steps: tracks.collapsed_steps(),
+        particles: config.particles,
+        lag: config.lag,
+        seed: config.seed,
+    }
+}
+
+/// Median and interquartile range of repeated measurements. Quartiles are by
+/// linear interpolation between order statistics (NumPy's default, "type 7").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Summary {
+    /// The median.
+    pub median: f64,
+    /// The first quartile (25th percentile).
+    pub q1: f64,
+    /// The third quartile (75th percentile).
+    pub q3: f64,
+    /// `q3 - q1`.
+    pub iqr: f64,
+    /// Number of values summarised.
+    pub n: usize,
+}
+
+impl Summary {
+    /// The summary of the finite values of `values`; `None` if there are none.
+    pub fn of(values: &[f64]) -> Option<Summary> {
+        let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let (q1, median, q3) = (quantile_sorted(&v, 0.25), quantile_sorted(&v, 0.5), quantile_sorted(&v, 0.75));
+        Some(Summary { median, q1, q3, iqr: q3 - q1, n: v.len() })
+    }
+}
+
+/// The `q`-quantile (`0 <= q <= 1`) of sorted values by linear interpolation.
+#[track_caller]
+fn quantile_sorted(v: &[f64], q: f64) -> f64 {
+    let h = q * (v.len() - 1) as f64;
+    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
+}
+
+/// The `q`-quantile of the finite values (linear interpolation); `None` if there
+/// are none. Panics unless `0 <= q <= 1`.
+#[track_caller]
+pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
+    assert!((0.0..=1.0).contains(&q), "quantile: q = {q} is outside [0, 1]");
+    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(quantile_sorted(&v, q))
+}
+
+/// The median of the finite values; `None` if there are none.
+pub fn median(values: &[f64]) -> Option<f64> {
+    quantile(values, 0.5)
+}
+
+/// The interquartile range of the finite values; `None` if there are none.
+pub fn iqr(values: &[f64]) -> Option<f64> {
+    Summary::of(values).map(|s| s.iqr)
+}
+
+/// Median and IQR of each scalar metric ([`Metrics::scalars`]) over repeated runs,
+/// in the order of [`Metrics::scalars`]; a metric missing from every run is `None`.
+pub fn summarise_runs(runs: &[Metrics]) -> Vec<(&'static str, Option<Summary>)> {
+    let Some(first) = runs.first() else { return Vec::new() };
+    let names: Vec<&'static str> = first.scalars().into_iter().map(|(n, _)| n).collect();
+    let table: Vec<Vec<(&'static str, Option<f64>)>> = runs.iter().map(|m| m.scalars()).collect();
+    names
+        .iter()
+        .enumerate()
+        .map(|(k, &name)| {
+            let values: Vec<f64> = table.iter().filter_map(|row| row[k].1).collect();
+            (name, Summary::of(&values))
+        })
+        .collect()
+}

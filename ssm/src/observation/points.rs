@@ -1,0 +1,740 @@
+//! The point observation model (SPEC §3): each observed point is, independently
+//! given the state, a mixture over the box's 4 edges of a soft uniform along the
+//! edge times a Laplace across it,
+//!
+//! ```text
+//! g(y | x) = sum_e phi_e U_soft(alpha_e; 0, len_e) Laplace(beta_e; mu_e, b_e)
+//! ```
+//!
+//! (edge coordinates in [`super::edges`]), with `phi = softmax(o[0..4])`,
+//! `mu_e = POINT_OFFSET_SCALE * o[4 + e]` and
+//! `b_e = POINT_SCALE_SCALE * softplus(o[8 + e]) + POINT_MIN_SCALE` the 12 outputs
+//! `o` of a network `7 -> 16 tanh x 4 -> 12` over the AV-relative features.
+//!
+//! This file owns the model's three evaluation kernels and its sampler:
+//!
+//! * the filter's hot loop ([`ObservationModel::log_likelihood`]): one pass per
+//!   point over the particles, branch-free so it vectorises, no allocation;
+//! * the tape path ([`ObservationModel::log_likelihood_rows`]) as one *fused*
+//!   node per row in the manner of Stan: the network runs on the tape; the sum over
+//!   a row's points of `log g` and its partial derivatives with respect to the
+//!   row's 12 mixture quantities `(ln phi, mu, b)` and its `(x, y, yaw, l, w)` are
+//!   computed in plain code, and enter the tape as `v + sum_k g_k (z_k - stop(z_k))`
+//!   — exact value, exact gradient, and a tape of `O(R)` rather than
+//!   `O(points x edges)` elements;
+//! * the per-point f64 path (AOTLL) through the same hot kernel.
+//!
+//! All work in log space: the mixture is a log-sum-exp whose shift uses an upper
+//! bound of each edge's term (the soft uniform inside an edge is at most `1 / L`),
+//! so one logarithm per point suffices and no term is ever `-inf` or NaN for
+//! finite inputs.
+
+use autodiff::nn::{Activation, BoundParams, Mlp, ParamStore};
+use autodiff::{Float, Parallelism, Tensor, Var};
+use rand::Rng;
+use rayon::prelude::*;
+
+use super::edges::{
+    edge_lengths, edge_point, from_box_frame, sample_laplace, sample_soft_uniform, SoftConsts, DEFAULT_SOFT_SCALE,
+    NUM_EDGES,
+};
+use super::features::{av_features_on_tape, features_with_trig, NUM_FEATURES};
+use super::{fit_len, net, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
+use crate::data::{Dataset, ObservationKind, Pose};
+
+/// Widths of the point network, input first (SPEC §3: 4 hidden layers of 16 tanh).
+pub const POINT_NET_LAYERS: [usize; 6] = [NUM_FEATURES, 16, 16, 16, 16, 3 * NUM_EDGES];
+/// `mu_e = POINT_OFFSET_SCALE * o[4 + e]` (m): order-one outputs give offsets of a
+/// few tens of centimetres.
+pub const POINT_OFFSET_SCALE: f64 = 0.2;
+/// `b_e = POINT_SCALE_SCALE * softplus(o[8 + e]) + POINT_MIN_SCALE` (m).
+pub const POINT_SCALE_SCALE: f64 = 0.2;
+/// Floor of the Laplace scales `b_e` (m).
+pub const POINT_MIN_SCALE: f64 = 0.01;
+
+/// Number of per-row values the fused tape kernel produces: the row's log-density,
+/// 12 partials with respect to `(ln phi, mu, b)`, and 5 with respect to
+/// `(x, y, yaw, l, w)`.
+const ROW_OUT: usize = 1 + 3 * NUM_EDGES + 5;
+/// Rows per parallel task of the fused kernel (fixed: results never depend on threads).
+const ROWS_PER_TASK: usize = 64;
+/// The fused kernel pads each row's points to a multiple of this (the f32 vector
+/// width the compiler uses with AVX2/AVX-512 at 256 bits).
+const ROW_LANES: usize = 8;
+/// Below this many (row, point) pairs the fused kernel stays on one thread.
+const PAR_MIN_PAIRS: usize = 1 << 14;
+/// Guard of `e_far = e^{-L/s} / e_near`: when `e_near` is below this, `e_far` is
+/// negligible anyway (`e_far <= e_near` always, and here `e_far < 1e-30`).
+const TINY: f64 = 1e-30;
+
+/// The per-edge mixture of one state: weights, Laplace means and scales across
+/// each edge.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeMixture {
+    /// Mixture weights `phi_e` (sum to 1).
+    pub phi: [f64; NUM_EDGES],
+    /// Laplace means `mu_e` of the outward offset (m).
+    pub mu: [f64; NUM_EDGES],
+    /// Laplace scales `b_e` (m).
+    pub b: [f64; NUM_EDGES],
+}
+
+/// The point observation model: a layout (the network's parameter ids) plus the
+/// soft-uniform scale. See the [module docs](self).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointObservationModel {
+    mlp: Mlp,
+    soft_scale: f64,
+}
+
+impl PointObservationModel {
+    /// The network layout (parameter ids into the store given to
+    /// [`ObservationModel::init_params`]).
+    pub fn mlp(&self) -> &Mlp {
+        &self.mlp
+    }
+
+    /// Laplace scale of the soft uniform along edges (m).
+    pub fn soft_scale(&self) -> f64 {
+        self.soft_scale
+    }
+
+    /// The same model with another soft-uniform scale (positive, m).
+    #[track_caller]
+    pub fn with_soft_scale(mut self, scale: f64) -> Self {
+        assert!(scale > 0.0 && scale.is_finite(), "PointObservationModel: soft scale must be positive, got {scale}");
+        self.soft_scale = scale;
+        self
+    }
+
+    /// The mixture over edges at one pose (f64).
+    pub fn edge_mixture(&self, params: &ParamStore<f64>, ctx: &ObsContext, pose: Pose) -> EdgeMixture {
+        let mut scratch = Scratch::<f64>::new();
+        let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
+        self.forward_plain(params, ctx, PosesRef::new(&x, &y, &yaw), &mut scratch);
+        let o = &scratch.outputs;
+        let mut m = EdgeMixture { phi: [0.0; 4], mu: [0.0; 4], b: [0.0; 4] };
+        let max = o[..4].iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
+        let total: f64 = o[..4].iter().map(|&l| (l - max).exp()).sum();
+        for e in 0..NUM_EDGES {
+            m.phi[e] = (o[e] - max).exp() / total;
+            m.mu[e] = POINT_OFFSET_SCALE * o[4 + e];
+            m.b[e] = POINT_SCALE_SCALE * o[8 + e].softplus() + POINT_MIN_SCALE;
+        }
+        m
+    }
+
+    /// Runs the network for the poses: trig, features and raw outputs into `scratch`.
+    fn forward_plain<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        scratch: &mut Scratch<F>,
+    ) {
+        let n = poses.len();
+        fit_len(&mut scratch.cos, n);
+        fit_len(&mut scratch.sin, n);
+        for ((c, s), &a) in scratch.cos.iter_mut().zip(scratch.sin.iter_mut()).zip(poses.yaw) {
+            *c = a.cos();
+            *s = a.sin();
+        }
+        fit_len(&mut scratch.feats, NUM_FEATURES * n);
+        features_with_trig(ctx, poses, &scratch.cos, &scratch.sin, &mut scratch.feats);
+        net::forward_feature_major(&self.mlp, params, n, &scratch.feats, &mut scratch.hidden, &mut scratch.outputs);
+    }
+
+    /// Network plus head: per particle and edge, `k_e = ln phi_e - ln(2 b_e) - ln L_e`,
+    /// `mu_e` and `1 / b_e` into `scratch.head` (feature-major, 12 rows).
+    #[allow(clippy::needless_range_loop)] // index loops over resliced arrays vectorise
+    fn prepare<F: Float>(&self, params: &ParamStore<F>, ctx: &ObsContext, poses: PosesRef<'_, F>, s: &mut Scratch<F>) {
+        let n = poses.len();
+        self.forward_plain(params, ctx, poses, s);
+        fit_len(&mut s.head, 3 * NUM_EDGES * n);
+        let lens = edge_lengths(ctx.length, ctx.width);
+        let f = F::from_f64;
+        let ln_len: [F; 4] = std::array::from_fn(|e| f(lens[e].ln()));
+        let (mu_scale, b_scale, b_min, two) = (f(POINT_OFFSET_SCALE), f(POINT_SCALE_SCALE), f(POINT_MIN_SCALE), f(2.0));
+        fit_len(&mut s.tmp, n);
+        let Scratch { outputs, head, tmp, .. } = s;
+        let o = &outputs[..3 * NUM_EDGES * n];
+        let row = |k: usize| &o[k * n..(k + 1) * n];
+        // Log-normaliser of each particle's edge logits.
+        let lse = &mut tmp[..n];
+        let (l0, l1, l2, l3) = (row(0), row(1), row(2), row(3));
+        for i in 0..n {
+            let mx = l0[i].max(l1[i]).max(l2[i].max(l3[i]));
+            let sum = (l0[i] - mx).exp() + (l1[i] - mx).exp() + (l2[i] - mx).exp() + (l3[i] - mx).exp();
+            lse[i] = mx + sum.ln();
+        }
+        let (ks, rest) = head.split_at_mut(NUM_EDGES * n);
+        let (mus, ibs) = rest.split_at_mut(NUM_EDGES * n);
+        for e in 0..NUM_EDGES {
+            let (le, me, re) = (row(e), row(4 + e), row(8 + e));
+            let (k, mu, ib) = (&mut ks[e * n..(e + 1) * n], &mut mus[e * n..(e + 1) * n], &mut ibs[e * n..(e + 1) * n]);
+            for i in 0..n {
+                let b = b_scale * re[i].softplus() + b_min;
+                k[i] = le[i] - lse[i] - (two * b).ln() - ln_len[e];
+                mu[i] = mu_scale * me[i];
+                ib[i] = F::ONE / b;
+            }
+        }
+    }
+}
+
+/// One edge's contribution to one point: the upper bound `ub` of its log-term and
+/// the factor `fac` in `(0, 1]` with `log term = ub + ln fac`; plus what the
+/// gradient kernel needs.
+#[derive(Clone, Copy)]
+struct EdgeTerm<F> {
+    ub: F,
+    fac: F,
+    inside: bool,
+    e_near: F,
+    e_far: F,
+}
+
+/// `k` is `ln phi - ln(2 b) - ln L`; the soft uniform adds `ln fac` inside the edge
+/// and `m / s + tail` outside it (`m` the signed distance to the nearer end).
+/// `FAR = false` when `e^{-L/s}` is flushed to 0 for both edge lengths (see
+/// `SoftConsts`): `e_far` is then 0 and costs no division.
+#[inline(always)]
+fn edge_term<F: Float, const FAR: bool>(alpha: F, beta: F, k: F, mu: F, invb: F, sc: &SoftConsts<F>) -> EdgeTerm<F> {
+    let m = alpha.min(sc.len - alpha);
+    let inside = m >= F::ZERO;
+    let e_near = (-(m.max(F::ZERO)) * sc.inv_s).exp();
+    let e_far = if FAR { sc.exp_neg / e_near.max(F::from_f64(TINY)) } else { F::ZERO };
+    let fac = if inside { F::ONE - F::from_f64(0.5) * (e_near + e_far) } else { F::ONE };
+    let soft = if inside { F::ZERO } else { m * sc.inv_s + sc.tail };
+    let ub = k - (beta - mu).abs() * invb + soft;
+    EdgeTerm { ub, fac, inside, e_near, e_far }
+}
+
+/// `log sum_e fac_e e^{ub_e}` over the 4 edges, stable: shift by the largest `ub`.
+#[inline(always)]
+fn mix4<F: Float>(t: &[EdgeTerm<F>; 4]) -> F {
+    let mx = t[0].ub.max(t[1].ub).max(t[2].ub.max(t[3].ub));
+    let s = t[0].fac * (t[0].ub - mx).exp()
+        + t[1].fac * (t[1].ub - mx).exp()
+        + t[2].fac * (t[2].ub - mx).exp()
+        + t[3].fac * (t[3].ub - mx).exp();
+    mx + s.ln()
+}
+
+/// Constants of one object (or row) shared by its points.
+#[derive(Clone, Copy)]
+struct BoxConsts<F> {
+    hl: F,
+    hw: F,
+    /// Soft-uniform constants of the width edges (0, 2) and the length edges (1, 3).
+    sw: SoftConsts<F>,
+    sl: SoftConsts<F>,
+}
+
+impl<F: Float> BoxConsts<F> {
+    /// Whether either edge length keeps a non-zero `e^{-L/s}`.
+    fn far(&self) -> bool {
+        self.sw.exp_neg != F::ZERO || self.sl.exp_neg != F::ZERO
+    }
+
+    fn new(length: f64, width: f64, scale: f64) -> Self {
+        BoxConsts {
+            hl: F::from_f64(0.5 * length),
+            hw: F::from_f64(0.5 * width),
+            sw: SoftConsts::new(width, scale),
+            sl: SoftConsts::new(length, scale),
+        }
+    }
+}
+
+/// The hot kernel: `log g(point | particle i)` for every particle, added to `out`
+/// (`ACC`) or written into it.
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+#[inline(never)]
+fn point_kernel<F: Float, const ACC: bool, const FAR: bool>(
+    px: F,
+    py: F,
+    bc: &BoxConsts<F>,
+    poses: PosesRef<'_, F>,
+    cos: &[F],
+    sin: &[F],
+    head: &[F],
+    out: &mut [F],
+) {
+    let n = out.len();
+    let (xs, ys, cs, ss) = (&poses.x[..n], &poses.y[..n], &cos[..n], &sin[..n]);
+    let h = |k: usize| &head[k * n..(k + 1) * n];
+    let (k0, k1, k2, k3) = (h(0), h(1), h(2), h(3));
+    let (m0, m1, m2, m3) = (h(4), h(5), h(6), h(7));
+    let (i0, i1, i2, i3) = (h(8), h(9), h(10), h(11));
+    let (hl, hw) = (bc.hl, bc.hw);
+    for i in 0..n {
+        let dx = px - xs[i];
+        let dy = py - ys[i];
+        let u = cs[i] * dx + ss[i] * dy;
+        let v = cs[i] * dy - ss[i] * dx;
+        let t = [
+            edge_term::<F, FAR>(v + hw, u - hl, k0[i], m0[i], i0[i], &bc.sw),
+            edge_term::<F, FAR>(hl - u, v - hw, k1[i], m1[i], i1[i], &bc.sl),
+            edge_term::<F, FAR>(hw - v, -u - hl, k2[i], m2[i], i2[i], &bc.sw),
+            edge_term::<F, FAR>(u + hl, -v - hw, k3[i], m3[i], i3[i], &bc.sl),
+        ];
+        let lg = mix4(&t);
+        out[i] = if ACC { out[i] + lg } else { lg };
+    }
+}
+
+/// [`point_kernel`] for one point, picking the variant for `ACC` and `bc.far()`.
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn point_pass<F: Float>(
+    acc: bool,
+    p: [f64; 2],
+    bc: &BoxConsts<F>,
+    poses: PosesRef<'_, F>,
+    cos: &[F],
+    sin: &[F],
+    head: &[F],
+    out: &mut [F],
+) {
+    let (px, py) = (F::from_f64(p[0]), F::from_f64(p[1]));
+    match (acc, bc.far()) {
+        (false, false) => point_kernel::<F, false, false>(px, py, bc, poses, cos, sin, head, out),
+        (false, true) => point_kernel::<F, false, true>(px, py, bc, poses, cos, sin, head, out),
+        (true, false) => point_kernel::<F, true, false>(px, py, bc, poses, cos, sin, head, out),
+        (true, true) => point_kernel::<F, true, true>(px, py, bc, poses, cos, sin, head, out),
+    }
+}
+
+/// Per-row inputs of the fused tape kernel, in the kernel's float type.
+struct RowInput<'a, F> {
+    /// `(ln phi, mu, b)`, 12 values.
+    head: &'a [F],
+    x: F,
+    y: F,
+    yaw: F,
+    points: &'a [[f64; 2]],
+}
+
+/// Per-row constants of the fused kernel.
+struct RowConsts<'a, F> {
+    /// `ln phi_e - ln(2 b_e) - ln L_e`.
+    k: [F; 4],
+    mu: [F; 4],
+    /// `1 / b_e`.
+    ib: [F; 4],
+    /// cos and sin of the row's heading.
+    c: F,
+    s: F,
+    x: F,
+    y: F,
+    bc: &'a BoxConsts<F>,
+}
+
+/// The fused kernel for one row: `out[0]` the sum over its points of `log g`, and
+/// (if `GRAD`) `out[1..13]` its partials with respect to `(ln phi, mu, b)` and
+/// `out[13..18]` with respect to `(x, y, yaw, l, w)`.
+///
+/// One branch-free pass over the row's points (vectorised across points) writes
+/// each point's contributions into columns of `cols`; the columns are then summed in
+/// f64, in point order.
+fn row_kernel<F: Float, const GRAD: bool>(
+    row: &RowInput<'_, F>,
+    bc: &BoxConsts<F>,
+    cols: &mut [Vec<F>; ROW_OUT + 2],
+    out: &mut [f64],
+) {
+    out.iter_mut().for_each(|o| *o = 0.0);
+    let np = row.points.len();
+    if np == 0 {
+        return;
+    }
+    let used = if GRAD { ROW_OUT } else { 1 };
+    // Rows are short (tens of points): pad to whole vectors by repeating the last
+    // point, so no point takes the scalar remainder loop; padding is not summed.
+    let padded = np.div_ceil(ROW_LANES) * ROW_LANES;
+    let (outs, xy) = cols.split_at_mut(ROW_OUT);
+    for c in outs[..used].iter_mut().chain(xy.iter_mut()) {
+        fit_len(c, padded);
+    }
+    // The points as two contiguous columns in the kernel's type (an interleaved f64
+    // input keeps the passes below from vectorising).
+    let [px, py] = xy else { unreachable!("two point columns") };
+    for (k, (x, y)) in px.iter_mut().zip(py.iter_mut()).enumerate() {
+        let p = row.points[k.min(np - 1)];
+        *x = F::from_f64(p[0]);
+        *y = F::from_f64(p[1]);
+    }
+    let (one, two) = (F::ONE, F::from_f64(2.0));
+    let h = row.head;
+    let lens = [&bc.sw, &bc.sl, &bc.sw, &bc.sl];
+    let rc = RowConsts {
+        k: std::array::from_fn(|e| h[e] - (two * h[8 + e]).ln() - lens[e].ln_len),
+        mu: std::array::from_fn(|e| h[4 + e]),
+        ib: std::array::from_fn(|e| one / h[8 + e]),
+        c: row.yaw.cos(),
+        s: row.yaw.sin(),
+        x: row.x,
+        y: row.y,
+        bc,
+    };
+    if GRAD {
+        let [lg, p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gx, gy, gyaw, gl, gw] = outs else {
+            unreachable!("{ROW_OUT} output columns")
+        };
+        row_grad_pass(&rc, px, py, lg, p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gx, gy, gyaw, gl, gw);
+    } else {
+        row_value_pass(&rc, px, py, &mut outs[0]);
+    }
+    for (o, column) in out[..used].iter_mut().zip(outs.iter()) {
+        *o = column[..np].iter().map(|v| v.to_f64()).sum();
+    }
+}
+
+/// `lg[p] = log g(point p | row)`.
+#[inline(never)]
+#[allow(clippy::needless_range_loop)]
+fn row_value_pass<F: Float>(rc: &RowConsts<'_, F>, px: &[F], py: &[F], lg: &mut [F]) {
+    let n = px.len();
+    let (px, py, lg) = (&px[..n], &py[..n], &mut lg[..n]);
+    let (bc, k, mu, ib) = (rc.bc, &rc.k, &rc.mu, &rc.ib);
+    let (hl, hw, c, s) = (bc.hl, bc.hw, rc.c, rc.s);
+    for p in 0..n {
+        let dx = px[p] - rc.x;
+        let dy = py[p] - rc.y;
+        let u = c * dx + s * dy;
+        let v = c * dy - s * dx;
+        let t = [
+            edge_term::<F, true>(v + hw, u - hl, k[0], mu[0], ib[0], &bc.sw),
+            edge_term::<F, true>(hl - u, v - hw, k[1], mu[1], ib[1], &bc.sl),
+            edge_term::<F, true>(hw - v, -u - hl, k[2], mu[2], ib[2], &bc.sw),
+            edge_term::<F, true>(u + hl, -v - hw, k[3], mu[3], ib[3], &bc.sl),
+        ];
+        lg[p] = mix4(&t);
+    }
+}
+
+/// Partials of one edge's term: d/dalpha and d/dL of `log U_soft`, and the sign and
+/// size of `beta - mu`.
+#[inline(always)]
+fn edge_partials<F: Float>(t: &EdgeTerm<F>, alpha: F, beta: F, mu: F, sc: &SoftConsts<F>) -> (F, F, F, F) {
+    let (one, half) = (F::ONE, F::from_f64(0.5));
+    let near_start = alpha <= sc.len - alpha;
+    let dir = if near_start { one } else { -one };
+    let e2 = if near_start { t.e_far } else { t.e_near };
+    let q = half * sc.inv_s / t.fac;
+    let da = if t.inside { q * dir * (t.e_near - t.e_far) } else { dir * sc.inv_s };
+    let above = if near_start { F::ZERO } else { sc.inv_s };
+    let dl = if t.inside { q * e2 - sc.inv_len } else { above + sc.dtail_dlen - sc.inv_len };
+    let diff = beta - mu;
+    let sgn = if diff > F::ZERO {
+        one
+    } else if diff < F::ZERO {
+        -one
+    } else {
+        F::ZERO
+    };
+    (da, dl, sgn, diff.abs())
+}
+
+/// Per point: `log g` and its partials with respect to `ln phi_e` (`p_e`), `mu_e`
+/// (`m_e`), `b_e` (`b_e`) and the row's `x, y, yaw, l, w`. Every output is its own
+/// argument, so the compiler knows they do not alias and vectorises across points.
+#[inline(never)]
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+fn row_grad_pass<F: Float>(
+    rc: &RowConsts<'_, F>,
+    px: &[F],
+    py: &[F],
+    lg: &mut [F],
+    p0: &mut [F],
+    p1: &mut [F],
+    p2: &mut [F],
+    p3: &mut [F],
+    m0: &mut [F],
+    m1: &mut [F],
+    m2: &mut [F],
+    m3: &mut [F],
+    b0: &mut [F],
+    b1: &mut [F],
+    b2: &mut [F],
+    b3: &mut [F],
+    gx: &mut [F],
+    gy: &mut [F],
+    gyaw: &mut [F],
+    gl: &mut [F],
+    gw: &mut [F],
+) {
+    let n = px.len();
+    let (px, py) = (&px[..n], &py[..n]);
+    let (lg, p0, p1, p2, p3) = (&mut lg[..n], &mut p0[..n], &mut p1[..n], &mut p2[..n], &mut p3[..n]);
+    let (m0, m1, m2, m3) = (&mut m0[..n], &mut m1[..n], &mut m2[..n], &mut m3[..n]);
+    let (b0, b1, b2, b3) = (&mut b0[..n], &mut b1[..n], &mut b2[..n], &mut b3[..n]);
+    let (gx, gy, gyaw, gl, gw) = (&mut gx[..n], &mut gy[..n], &mut gyaw[..n], &mut gl[..n], &mut gw[..n]);
+    let (bc, k, mu, ib) = (rc.bc, &rc.k, &rc.mu, &rc.ib);
+    let (hl, hw, c, s) = (bc.hl, bc.hw, rc.c, rc.s);
+    let (one, half) = (F::ONE, F::from_f64(0.5));
+    let (sw, sl) = (&bc.sw, &bc.sl);
+    for p in 0..n {
+        let dx = px[p] - rc.x;
+        let dy = py[p] - rc.y;
+        let u = c * dx + s * dy;
+        let v = c * dy - s * dx;
+        let (a0, be0, a1, be1, a2, be2, a3, be3) = (v + hw, u - hl, hl - u, v - hw, hw - v, -u - hl, u + hl, -v - hw);
+        let t = [
+            edge_term::<F, true>(a0, be0, k[0], mu[0], ib[0], sw),
+            edge_term::<F, true>(a1, be1, k[1], mu[1], ib[1], sl),
+            edge_term::<F, true>(a2, be2, k[2], mu[2], ib[2], sw),
+            edge_term::<F, true>(a3, be3, k[3], mu[3], ib[3], sl),
+        ];
+        let mx = t[0].ub.max(t[1].ub).max(t[2].ub.max(t[3].ub));
+        let e0 = t[0].fac * (t[0].ub - mx).exp();
+        let e1 = t[1].fac * (t[1].ub - mx).exp();
+        let e2 = t[2].fac * (t[2].ub - mx).exp();
+        let e3 = t[3].fac * (t[3].ub - mx).exp();
+        let total = e0 + e1 + e2 + e3;
+        lg[p] = mx + total.ln();
+        let inv = one / total;
+        // Responsibilities of the edges.
+        let (r0, r1, r2, r3) = (e0 * inv, e1 * inv, e2 * inv, e3 * inv);
+        let (da0, dl0, s0, ad0) = edge_partials(&t[0], a0, be0, mu[0], sw);
+        let (da1, dl1, s1, ad1) = edge_partials(&t[1], a1, be1, mu[1], sl);
+        let (da2, dl2, s2, ad2) = edge_partials(&t[2], a2, be2, mu[2], sw);
+        let (da3, dl3, s3, ad3) = edge_partials(&t[3], a3, be3, mu[3], sl);
+        p0[p] = r0;
+        p1[p] = r1;
+        p2[p] = r2;
+        p3[p] = r3;
+        // d log g / d mu_e = -d log g / d beta_e.
+        let (q0, q1, q2, q3) = (r0 * s0 * ib[0], r1 * s1 * ib[1], r2 * s2 * ib[2], r3 * s3 * ib[3]);
+        m0[p] = q0;
+        m1[p] = q1;
+        m2[p] = q2;
+        m3[p] = q3;
+        b0[p] = r0 * (ad0 * ib[0] - one) * ib[0];
+        b1[p] = r1 * (ad1 * ib[1] - one) * ib[1];
+        b2[p] = r2 * (ad2 * ib[2] - one) * ib[2];
+        b3[p] = r3 * (ad3 * ib[3] - one) * ib[3];
+        // d log g / d alpha_e.
+        let (ga0, ga1, ga2, ga3) = (r0 * da0, r1 * da1, r2 * da2, r3 * da3);
+        // Chain rule through the edge coordinates (module table of `edges`).
+        let gu = ga3 - ga1 - q0 + q2;
+        let gv = ga0 - ga2 - q1 + q3;
+        gx[p] = s * gv - c * gu;
+        gy[p] = -s * gu - c * gv;
+        gyaw[p] = v * gu - u * gv;
+        gl[p] = half * (ga1 + ga3 + q0 + q2) + r1 * dl1 + r3 * dl3;
+        gw[p] = half * (ga0 + ga2 + q1 + q3) + r0 * dl0 + r2 * dl2;
+    }
+}
+
+/// Runs the fused kernel over all rows (in parallel for large batches) into
+/// `out` (`ROW_OUT` values per row).
+#[allow(clippy::too_many_arguments)]
+fn rows_kernel<F: Float>(
+    head: &[F],
+    x: &[F],
+    y: &[F],
+    yaw: &[F],
+    length: &[F],
+    width: &[F],
+    items: &[&[[f64; 2]]],
+    scale: f64,
+    grad: bool,
+    par: Parallelism,
+    out: &mut [f64],
+) {
+    let task = |first: usize, chunk: &mut [f64]| {
+        let mut cols: [Vec<F>; ROW_OUT + 2] = std::array::from_fn(|_| Vec::new());
+        let mut cached: Option<(F, F, BoxConsts<F>)> = None;
+        for (j, o) in chunk.chunks_mut(ROW_OUT).enumerate() {
+            let r = first + j;
+            let bc = match cached {
+                Some((l, w, bc)) if l == length[r] && w == width[r] => bc,
+                _ => {
+                    let bc = BoxConsts::new(length[r].to_f64(), width[r].to_f64(), scale);
+                    cached = Some((length[r], width[r], bc));
+                    bc
+                }
+            };
+            let row = RowInput {
+                head: &head[r * 3 * NUM_EDGES..(r + 1) * 3 * NUM_EDGES],
+                x: x[r],
+                y: y[r],
+                yaw: yaw[r],
+                points: items[r],
+            };
+            if grad {
+                row_kernel::<F, true>(&row, &bc, &mut cols, o);
+            } else {
+                row_kernel::<F, false>(&row, &bc, &mut cols, o);
+            }
+        }
+    };
+    let pairs: usize = items.iter().map(|p| p.len()).sum();
+    if par == Parallelism::Rayon && pairs >= PAR_MIN_PAIRS {
+        out.par_chunks_mut(ROW_OUT * ROWS_PER_TASK).enumerate().for_each(|(c, chunk)| task(c * ROWS_PER_TASK, chunk));
+    } else {
+        task(0, out);
+    }
+}
+
+impl ObservationModel for PointObservationModel {
+    type Item = [f64; 2];
+    const KIND: ObservationKind = ObservationKind::Points;
+
+    fn init_params<R: Rng + ?Sized>(store: &mut ParamStore<f64>, prefix: &str, rng: &mut R) -> Self {
+        let mut rng = rng;
+        let mlp = Mlp::new(store, prefix, &POINT_NET_LAYERS, Activation::Tanh, Activation::Identity, &mut rng);
+        PointObservationModel { mlp, soft_scale: DEFAULT_SOFT_SCALE }
+    }
+
+    fn num_params(&self) -> usize {
+        self.mlp.num_params()
+    }
+
+    #[track_caller]
+    fn items(data: &Dataset, object: usize, t: usize) -> &[[f64; 2]] {
+        match data.points() {
+            Some(p) => p.get(object, t),
+            None => panic!("PointObservationModel::items: the dataset holds box detections, not points"),
+        }
+    }
+
+    #[track_caller]
+    fn log_likelihood<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        items: &[[f64; 2]],
+        scratch: &mut Scratch<F>,
+        out: &mut [F],
+    ) {
+        let n = poses.len();
+        assert_eq!(out.len(), n, "PointObservationModel::log_likelihood: {n} poses, room for {}", out.len());
+        if items.is_empty() || n == 0 {
+            out.fill(F::ZERO);
+            return;
+        }
+        self.prepare(params, ctx, poses, scratch);
+        let bc = BoxConsts::new(ctx.length, ctx.width, self.soft_scale);
+        for (j, p) in items.iter().enumerate() {
+            point_pass(j > 0, *p, &bc, poses, &scratch.cos, &scratch.sin, &scratch.head, out);
+        }
+    }
+
+    #[track_caller]
+    fn log_density_items(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        items: &[[f64; 2]],
+        out: &mut [f64],
+    ) {
+        assert_eq!(out.len(), items.len(), "log_density_items: {} items, room for {}", items.len(), out.len());
+        if items.is_empty() {
+            return;
+        }
+        let mut scratch = Scratch::new();
+        let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
+        let poses = PosesRef::new(&x, &y, &yaw);
+        self.prepare(params, ctx, poses, &mut scratch);
+        let bc = BoxConsts::new(ctx.length, ctx.width, self.soft_scale);
+        for (o, p) in out.iter_mut().zip(items) {
+            let mut v = [0.0];
+            point_pass(false, *p, &bc, poses, &scratch.cos, &scratch.sin, &scratch.head, &mut v);
+            *o = v[0];
+        }
+    }
+
+    #[track_caller]
+    fn log_likelihood_rows<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[[f64; 2]]],
+    ) -> Var<'t, F> {
+        let r = rows.check(av.len(), items.len(), "PointObservationModel::log_likelihood_rows");
+        let tape = rows.x.tape();
+        let feats = av_features_on_tape(rows, av);
+        let o = self.mlp.forward(params, feats);
+        let logphi = o.slice(1, 0, NUM_EDGES).log_softmax(1);
+        let mu = o.slice(1, NUM_EDGES, NUM_EDGES).mul_scalar(POINT_OFFSET_SCALE);
+        let b =
+            o.slice(1, 2 * NUM_EDGES, NUM_EDGES).softplus().mul_scalar(POINT_SCALE_SCALE).add_scalar(POINT_MIN_SCALE);
+        let head = tape.concat(&[logphi, mu, b], 1);
+        let row_vars = [rows.x, rows.y, rows.yaw, rows.length, rows.width];
+        let grad = tape.is_recording() && (head.is_tracked() || row_vars.iter().any(|v| v.is_tracked()));
+        let mut k = vec![0.0f64; r * ROW_OUT];
+        {
+            let hv = head.value();
+            let vals: Vec<Vec<F>> = row_vars.iter().map(|v| v.value().data().to_vec()).collect();
+            rows_kernel(
+                hv.data(),
+                &vals[0],
+                &vals[1],
+                &vals[2],
+                &vals[3],
+                &vals[4],
+                items,
+                self.soft_scale,
+                grad,
+                tape.parallelism(),
+                &mut k,
+            );
+        }
+        let column = |j: usize| Tensor::from_vec((0..r).map(|i| F::from_f64(k[i * ROW_OUT + j])).collect());
+        let mut total = tape.constant(column(0));
+        if !grad {
+            return total;
+        }
+        if head.is_tracked() {
+            let g: Vec<F> = (0..r)
+                .flat_map(|i| (1..1 + 3 * NUM_EDGES).map(move |j| (i, j)))
+                .map(|(i, j)| F::from_f64(k[i * ROW_OUT + j]))
+                .collect();
+            let g = tape.constant(Tensor::new(&[r, 3 * NUM_EDGES], g));
+            total = total + ((head - head.detach()) * g).sum_axis(1, false);
+        }
+        for (j, v) in row_vars.iter().enumerate() {
+            if v.is_tracked() {
+                let g = tape.constant(column(1 + 3 * NUM_EDGES + j));
+                total = total + (*v - v.detach()) * g;
+            }
+        }
+        total
+    }
+
+    fn sample<R: Rng + ?Sized>(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        n: usize,
+        rng: &mut R,
+        out: &mut Vec<[f64; 2]>,
+    ) {
+        let m = self.edge_mixture(params, ctx, pose);
+        let lens = edge_lengths(ctx.length, ctx.width);
+        let (hl, hw) = (0.5 * ctx.length, 0.5 * ctx.width);
+        out.reserve(n);
+        for _ in 0..n {
+            let mut u: f64 = rng.random();
+            let mut e = NUM_EDGES - 1;
+            for (k, &p) in m.phi.iter().enumerate() {
+                if u < p {
+                    e = k;
+                    break;
+                }
+                u -= p;
+            }
+            let alpha = sample_soft_uniform(lens[e], self.soft_scale, rng);
+            let beta = sample_laplace(m.mu[e], m.b[e], rng);
+            let (bu, bv) = edge_point(e, alpha, beta, hl, hw);
+            out.push(from_box_frame(pose, bu, bv));
+        }
+    }
+}

@@ -1,0 +1,158 @@
+//! The road-user state-space model over a dataset, as a [`ParticleModel`]: each
+//! object's known prior, a Gaussian policy with the exact motion model as the
+//! transition, and an observation model (points or boxes) seen from the AV.
+
+use autodiff::nn::ParamStore;
+use rand::rngs::SmallRng;
+use rand::Rng;
+use rand_distr::StandardNormal;
+
+use crate::data::Dataset;
+use crate::model::ParticleModel;
+use crate::observation::{ObsContext, ObservationModel, PosesRef, Scratch};
+use crate::vehicle::motion::MotionModel;
+use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
+use crate::vehicle::state::{ActionsMut, ActionsRef, StatesMut, StatesRef, ACTION_DIM, STATE_DIM};
+
+/// Index of the heading among the state components `(x, y, yaw, v, kappa)`.
+pub const YAW: usize = 2;
+
+/// A dataset's objects under a policy and an observation model with given parameters.
+pub struct VehicleSsm<'a, P: GaussianPolicy, O: ObservationModel> {
+    data: &'a Dataset,
+    motion: MotionModel,
+    policy: &'a P,
+    observation: &'a O,
+    /// The observation network's parameters in f32, the filter's precision.
+    observation_params: ParamStore<f32>,
+}
+
+/// Per-thread working memory of [`VehicleSsm`].
+pub struct VehicleScratch {
+    observation: Scratch<f32>,
+    gaussians: ActionGaussians<f32>,
+}
+
+impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
+    /// The model of `data`'s objects. The motion model's time step is the dataset's.
+    ///
+    /// Fails if the dataset's observations are not of the kind `O` reads or its time
+    /// step is not a valid motion-model step.
+    pub fn new(
+        data: &'a Dataset,
+        policy: &'a P,
+        observation: &'a O,
+        observation_params: &ParamStore<f64>,
+    ) -> Result<Self, String> {
+        if data.kind() != O::KIND {
+            return Err(format!("the dataset holds {:?} observations; the model reads {:?}", data.kind(), O::KIND));
+        }
+        let motion = MotionModel::new(data.dt(), Default::default()).map_err(|e| e.to_string())?;
+        Ok(VehicleSsm { data, motion, policy, observation, observation_params: observation_params.cast() })
+    }
+
+    /// The dataset.
+    pub fn data(&self) -> &'a Dataset {
+        self.data
+    }
+
+    /// The context of `object`'s observation at step `t`: the AV's pose and the size.
+    pub fn context(&self, object: usize, t: usize) -> ObsContext {
+        let scene = &self.data.scenes()[self.data.object_scene(object)];
+        ObsContext::of_object(scene.av[t], &self.data.objects()[object])
+    }
+}
+
+fn states_ref(s: &[f32], n: usize) -> StatesRef<'_, f32> {
+    StatesRef { x: &s[..n], y: &s[n..2 * n], yaw: &s[2 * n..3 * n], v: &s[3 * n..4 * n], kappa: &s[4 * n..5 * n] }
+}
+
+fn states_mut(s: &mut [f32], n: usize) -> StatesMut<'_, f32> {
+    let (x, rest) = s.split_at_mut(n);
+    let (y, rest) = rest.split_at_mut(n);
+    let (yaw, rest) = rest.split_at_mut(n);
+    let (v, kappa) = rest.split_at_mut(n);
+    StatesMut { x, y, yaw, v, kappa: &mut kappa[..n] }
+}
+
+impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P, O> {
+    type Scratch = VehicleScratch;
+
+    fn new_scratch(&self) -> VehicleScratch {
+        VehicleScratch { observation: Scratch::new(), gaussians: ActionGaussians::default() }
+    }
+
+    fn state_dim(&self) -> usize {
+        STATE_DIM
+    }
+
+    fn action_dim(&self) -> usize {
+        ACTION_DIM
+    }
+
+    fn angular_dims(&self) -> &[usize] {
+        &[YAW]
+    }
+
+    fn num_objects(&self) -> usize {
+        self.data.objects().len()
+    }
+
+    fn num_steps(&self) -> usize {
+        self.data.steps()
+    }
+
+    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
+        let prior = self.data.objects()[object].prior;
+        let (mean, sd) = (prior.mean.to_array(), prior.sd.to_array());
+        for k in 0..STATE_DIM {
+            for x in &mut states[k * n..(k + 1) * n] {
+                *x = (mean[k] + sd[k] * rng.sample::<f64, _>(StandardNormal)) as f32;
+            }
+        }
+    }
+
+    fn propagate(
+        &self,
+        _object: usize,
+        _t: usize,
+        n: usize,
+        prev: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        rng: &mut SmallRng,
+        scratch: &mut VehicleScratch,
+    ) {
+        let from = states_ref(prev, n);
+        let g = &mut scratch.gaussians;
+        g.resize(n);
+        self.policy.gaussians(from.v, from.kappa, g);
+        let (accel, pinch) = actions.split_at_mut(n);
+        g.sample(rng, ActionsMut { accel, pinch: &mut pinch[..n] });
+        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
+        self.motion.propagate(from, acts, states_mut(next, n));
+    }
+
+    fn observation_loglik(
+        &self,
+        object: usize,
+        t: usize,
+        n: usize,
+        states: &[f32],
+        out: &mut [f32],
+        scratch: &mut VehicleScratch,
+    ) -> bool {
+        let items = O::items(self.data, object, t);
+        if items.is_empty() {
+            return false;
+        }
+        let ctx = self.context(object, t);
+        let poses = PosesRef::from_dim_major(states, n);
+        self.observation.log_likelihood(&self.observation_params, &ctx, poses, items, &mut scratch.observation, out);
+        true
+    }
+
+    fn observation_count(&self, object: usize, t: usize) -> usize {
+        O::items(self.data, object, t).len()
+    }
+}

@@ -1,0 +1,387 @@
+//! Box-detection observation model (SPEC §3): plain kernels against an independent
+//! f64 reference (the wrapped Laplace as an explicit sum over windings), f32 against
+//! f64, the tape against the plain path, gradients against finite differences,
+//! invariance to whole turns, finiteness at extreme inputs, normalisation, and the
+//! sampler against the density.
+
+use std::f64::consts::{PI, TAU};
+
+use autodiff::gradcheck::GradCheck;
+use autodiff::nn::ParamStore;
+use autodiff::{Tape, Tensor};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use ssm::data::{BoxDetection, Pose};
+use ssm::observation::boxes::wrap_angle;
+use ssm::observation::{BoxObservationModel, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
+
+fn model(seed: u64) -> (BoxObservationModel, ParamStore<f64>) {
+    let mut store = ParamStore::new();
+    let m = BoxObservationModel::init_params(&mut store, "boxes", &mut StdRng::seed_from_u64(seed));
+    (m, store)
+}
+
+fn ctx() -> ObsContext {
+    ObsContext::new(Pose { x: -15.0, y: 8.0, yaw: 0.3 }, 4.4, 1.9)
+}
+
+/// Unit line of sight from the AV to the pose (exact normalisation).
+fn los(c: &ObsContext, pose: Pose) -> (f64, f64) {
+    let (dx, dy) = (pose.x - c.av.x, pose.y - c.av.y);
+    let r = dx.hypot(dy);
+    (dx / r, dy / r)
+}
+
+/// The detection with offsets `(along, across, dyaw)` from `pose`.
+fn detection(c: &ObsContext, pose: Pose, along: f64, across: f64, dyaw: f64) -> BoxDetection {
+    let (lx, ly) = los(c, pose);
+    BoxDetection {
+        x: pose.x + along * lx - across * ly,
+        y: pose.y + along * ly + across * lx,
+        yaw: pose.yaw + dyaw,
+        length: 4.0,
+        width: 2.0,
+        score: 0.5,
+    }
+}
+
+/// `(along, across, wrapped yaw offset)` of a detection.
+fn offsets(c: &ObsContext, pose: Pose, d: &BoxDetection) -> (f64, f64, f64) {
+    let (lx, ly) = los(c, pose);
+    let (ddx, ddy) = (d.x - pose.x, d.y - pose.y);
+    (ddx * lx + ddy * ly, ddy * lx - ddx * ly, wrap_angle(d.yaw - pose.yaw))
+}
+
+fn laplace(x: f64, mu: f64, b: f64) -> f64 {
+    -(x - mu).abs() / b - (2.0 * b).ln()
+}
+
+/// Independent reference: the network's distribution, the wrapped Laplace as the
+/// sum of Laplace densities over 200 windings.
+fn reference(
+    model: &BoxObservationModel,
+    store: &ParamStore<f64>,
+    c: &ObsContext,
+    pose: Pose,
+    d: &BoxDetection,
+) -> f64 {
+    let p = model.distribution(store, c, pose);
+    let (a, x, y) = offsets(c, pose, d);
+    let wrapped: f64 = (-100..=100).map(|k| laplace(y + TAU * k as f64, p.mu_yaw, p.b_yaw).exp()).sum();
+    laplace(a, p.mu_along, p.b_along) + laplace(x, p.mu_across, p.b_across) + wrapped.ln()
+}
+
+fn poses(n: usize, rng: &mut StdRng) -> Vec<Pose> {
+    (0..n)
+        .map(|_| Pose {
+            x: 0.3 + rng.random_range(-0.5..0.5),
+            y: -0.2 + rng.random_range(-0.5..0.5),
+            yaw: 0.4 + rng.random_range(-0.3..0.3),
+        })
+        .collect()
+}
+
+fn to32(v: &[f64]) -> Vec<f32> {
+    v.iter().map(|&x| x as f32).collect()
+}
+
+#[test]
+fn plain_kernel_matches_reference_in_f64_and_f32() {
+    let (model, store) = model(1);
+    let c = ctx();
+    let mut rng = StdRng::seed_from_u64(2);
+    let ps = poses(29, &mut rng);
+    let mut dets = Vec::new();
+    model.sample(&store, &c, ps[0], 3, &mut rng, &mut dets);
+    dets.push(detection(&c, ps[0], 1.5, -0.7, 3.0)); // a near-flipped heading
+    let (xs, ys, yaws): (Vec<f64>, Vec<f64>, Vec<f64>) =
+        (ps.iter().map(|p| p.x).collect(), ps.iter().map(|p| p.y).collect(), ps.iter().map(|p| p.yaw).collect());
+    let mut out = vec![0.0; ps.len()];
+    model.log_likelihood(&store, &c, PosesRef::new(&xs, &ys, &yaws), &dets, &mut Scratch::new(), &mut out);
+    let mut per = vec![0.0; dets.len()];
+    for (i, p) in ps.iter().enumerate() {
+        let want: Vec<f64> = dets.iter().map(|d| reference(&model, &store, &c, *p, d)).collect();
+        let total: f64 = want.iter().sum();
+        assert!((out[i] - total).abs() < 1e-9 * total.abs().max(1.0), "pose {i}: {} vs {total}", out[i]);
+        model.log_density_items(&store, &c, *p, &dets, &mut per);
+        for (a, b) in per.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-9 * b.abs().max(1.0));
+        }
+    }
+    // f32: position rounding (~2e-6 m) over scales >= 0.02 m and heading rounding
+    // (~5e-7 rad) over yaw scales >= 0.005 rad give <= 2e-4 per detection.
+    let s32 = store.cast::<f32>();
+    let mut out32 = vec![0.0f32; ps.len()];
+    model.log_likelihood(
+        &s32,
+        &c,
+        PosesRef::new(&to32(&xs), &to32(&ys), &to32(&yaws)),
+        &dets,
+        &mut Scratch::new(),
+        &mut out32,
+    );
+    for i in 0..ps.len() {
+        assert!((out32[i] as f64 - out[i]).abs() < 2e-4 * dets.len() as f64 + 1e-6 * out[i].abs());
+    }
+}
+
+#[test]
+fn whole_turns_do_not_change_the_density() {
+    let (model, store) = model(3);
+    let c = ctx();
+    let pose = Pose { x: 0.3, y: -0.2, yaw: 0.4 };
+    let d = detection(&c, pose, 0.3, 0.1, 0.05);
+    let base = reference(&model, &store, &c, pose, &d);
+    for k in [-3.0, -1.0, 1.0, 5.0] {
+        let mut per = [0.0];
+        model.log_density_items(&store, &c, pose, &[BoxDetection { yaw: d.yaw + k * TAU, ..d }], &mut per);
+        assert!((per[0] - base).abs() < 1e-9, "detection yaw + {k} turns");
+        // The state's heading enters the features too (through sin and cos only).
+        let turned = Pose { yaw: pose.yaw + k * TAU, ..pose };
+        model.log_density_items(&store, &c, turned, &[d], &mut per);
+        assert!((per[0] - base).abs() < 1e-9, "state yaw + {k} turns");
+    }
+}
+
+struct Rows {
+    poses: Vec<Pose>,
+    ctxs: Vec<ObsContext>,
+    av: Vec<Pose>,
+    dets: Vec<Vec<BoxDetection>>,
+}
+
+impl Rows {
+    fn items(&self) -> Vec<&[BoxDetection]> {
+        self.dets.iter().map(|d| d.as_slice()).collect()
+    }
+}
+
+/// Rows with detections clear of the density's kinks by `margin` (for finite
+/// differences): the Laplace modes and a zero wrapped yaw residual.
+fn rows(model: &BoxObservationModel, store: &ParamStore<f64>, r: usize, seed: u64, margin: f64) -> Rows {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let ps = poses(r, &mut rng);
+    let ctxs: Vec<ObsContext> = (0..r)
+        .map(|i| {
+            ObsContext::new(
+                Pose { x: -15.0 + i as f64, y: 8.0 - i as f64, yaw: 0.3 },
+                rng.random_range(3.5..5.0),
+                rng.random_range(1.6..2.1),
+            )
+        })
+        .collect();
+    let dets = (0..r)
+        .map(|i| loop {
+            let mut d = Vec::new();
+            model.sample(store, &ctxs[i], ps[i], 1, &mut rng, &mut d);
+            let p = model.distribution(store, &ctxs[i], ps[i]);
+            let (a, x, y) = offsets(&ctxs[i], ps[i], &d[0]);
+            let resid = wrap_angle(y - p.mu_yaw);
+            if (a - p.mu_along).abs() > margin
+                && (x - p.mu_across).abs() > margin
+                && resid.abs() > margin
+                && resid.abs() < PI - margin
+            {
+                break d;
+            }
+        })
+        .collect();
+    let av = ctxs.iter().map(|c| c.av).collect();
+    Rows { poses: ps, ctxs, av, dets }
+}
+
+#[test]
+fn tape_rows_match_plain_path() {
+    let (model, store) = model(4);
+    let mut b = rows(&model, &store, 5, 5, 0.0);
+    b.dets[1].clear(); // a step without a detection contributes 0
+    let extra = b.dets[3][0];
+    b.dets[3].push(BoxDetection { x: extra.x + 0.2, ..extra }); // two items add
+    let items = b.items();
+    let tape = Tape::<f64>::new();
+    let params = store.bind(&tape);
+    let rv = RowVars::from_poses(&tape, &b.poses, &b.ctxs);
+    let out = model.log_likelihood_rows(&params, &rv, &b.av, &items).to_tensor();
+    let s32 = store.cast::<f32>();
+    let tape32 = Tape::<f32>::new();
+    let p32 = s32.bind(&tape32);
+    let rv32 = RowVars::from_poses(&tape32, &b.poses, &b.ctxs);
+    let out32 = model.log_likelihood_rows(&p32, &rv32, &b.av, &items).to_tensor();
+    for (r, row_items) in items.iter().enumerate() {
+        let mut plain = [0.0];
+        let (x, y, yaw) = ([b.poses[r].x], [b.poses[r].y], [b.poses[r].yaw]);
+        model.log_likelihood(
+            &store,
+            &b.ctxs[r],
+            PosesRef::new(&x, &y, &yaw),
+            row_items,
+            &mut Scratch::new(),
+            &mut plain,
+        );
+        let v = out.data()[r];
+        assert!((v - plain[0]).abs() < 1e-10 * v.abs().max(1.0), "row {r}: tape {v} vs plain {}", plain[0]);
+        assert!((out32.data()[r] as f64 - v).abs() <= 2e-4 * row_items.len() as f64 + 1e-6 * v.abs());
+    }
+    assert_eq!(out.data()[1], 0.0);
+    // No detection at all: zeros, and a zero gradient.
+    let tape = Tape::<f64>::new();
+    let params = store.bind(&tape);
+    let rv = RowVars::from_poses(&tape, &b.poses[..2], &b.ctxs[..2]);
+    let z = model.log_likelihood_rows(&params, &rv, &b.av[..2], &[&[], &[]]);
+    assert_eq!(z.to_tensor().data(), &[0.0, 0.0]);
+    assert!(params.gradients(&tape.backward(z.sum())).iter().all(|g| g.data().iter().all(|&x| x == 0.0)));
+}
+
+#[test]
+fn tape_gradients_match_finite_differences() {
+    let (model, store) = model(6);
+    let b = rows(&model, &store, 4, 7, 0.02);
+    let items = b.items();
+    let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3, 0.8]);
+    let report = GradCheck::default()
+        .check_params(&store, |tape, params| {
+            let rv = RowVars::from_poses(tape, &b.poses, &b.ctxs);
+            (model.log_likelihood_rows(params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
+        })
+        .unwrap();
+    assert!(report.comparisons >= 100, "{report:?}");
+    let c = |f: &dyn Fn(usize) -> f64| Tensor::from_vec((0..4).map(f).collect());
+    let inputs = [
+        c(&|i| b.poses[i].x),
+        c(&|i| b.poses[i].y),
+        c(&|i| b.poses[i].yaw),
+        c(&|i| b.ctxs[i].length),
+        c(&|i| b.ctxs[i].width),
+    ];
+    let report = GradCheck::default()
+        .check(
+            |tape, v| {
+                let params = store.bind(tape);
+                let rv = RowVars { x: v[0], y: v[1], yaw: v[2], length: v[3], width: v[4] };
+                (model.log_likelihood_rows(&params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
+            },
+            &inputs,
+        )
+        .unwrap();
+    assert_eq!(report.comparisons, 20);
+}
+
+#[test]
+fn extreme_inputs_stay_finite() {
+    let (model, store) = model(8);
+    let c = ctx();
+    let pose = Pose { x: 0.3, y: -0.2, yaw: 0.4 };
+    let dets = [
+        detection(&c, pose, 1e4, 0.0, 0.0),
+        detection(&c, pose, 0.0, -1e4, 1e4),
+        detection(&c, pose, 0.0, 0.0, PI),
+        BoxDetection { x: c.av.x, y: c.av.y, ..detection(&c, pose, 0.0, 0.0, -1e3) },
+    ];
+    let mut per = [0.0; 4];
+    model.log_density_items(&store, &c, pose, &dets, &mut per);
+    assert!(per.iter().all(|v| v.is_finite()), "{per:?}");
+    // The state at the AV itself, far away, or with a heading of many turns.
+    let xs = [c.av.x, 1e4, 0.3];
+    let ys = [c.av.y, -1e4, -0.2];
+    let yaws = [0.0, 3.0, 1e4];
+    let mut out = [0.0; 3];
+    model.log_likelihood(&store, &c, PosesRef::new(&xs, &ys, &yaws), &dets, &mut Scratch::new(), &mut out);
+    assert!(out.iter().all(|v| v.is_finite()), "{out:?}");
+    let s32 = store.cast::<f32>();
+    let mut out32 = [0.0f32; 3];
+    model.log_likelihood(
+        &s32,
+        &c,
+        PosesRef::new(&to32(&xs), &to32(&ys), &to32(&yaws)),
+        &dets,
+        &mut Scratch::new(),
+        &mut out32,
+    );
+    assert!(out32.iter().all(|v| v.is_finite()), "{out32:?}");
+    let tape = Tape::<f32>::new();
+    let params = s32.bind(&tape);
+    let rv = RowVars {
+        x: tape.param(Tensor::from_vec(to32(&xs))),
+        y: tape.param(Tensor::from_vec(to32(&ys))),
+        yaw: tape.param(Tensor::from_vec(to32(&yaws))),
+        length: tape.param(Tensor::full(&[3], 4.4)),
+        width: tape.param(Tensor::full(&[3], 1.9)),
+    };
+    let items: Vec<&[BoxDetection]> = vec![&dets[..]; 3];
+    let v = model.log_likelihood_rows(&params, &rv, &[c.av; 3], &items);
+    assert!(v.to_tensor().all_finite(), "{:?}", v.to_tensor());
+    let g = tape.backward(v.sum());
+    assert!(params.gradients(&g).iter().all(|t| t.all_finite()));
+    for x in [rv.x, rv.y, rv.yaw, rv.length, rv.width] {
+        assert!(g.wrt(x).all_finite());
+    }
+}
+
+#[test]
+fn density_is_normalised_and_the_sampler_agrees_with_it() {
+    let (model, store) = model(9);
+    let c = ctx();
+    let pose = Pose { x: 2.0, y: 1.0, yaw: -2.8 };
+    let p = model.distribution(&store, &c, pose);
+    let lg = |a: f64, x: f64, y: f64| {
+        let mut v = [0.0];
+        model.log_density_items(&store, &c, pose, &[detection(&c, pose, a, x, y)], &mut v);
+        v[0]
+    };
+    // The density factorises over (along, across, yaw offset)...
+    let (a0, x0, y0) = (p.mu_along + 0.1, p.mu_across - 0.05, p.mu_yaw + 0.02);
+    let mut rng = StdRng::seed_from_u64(10);
+    for _ in 0..20 {
+        let (a, x, y) = (rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0), rng.random_range(-PI..PI));
+        let split = lg(a, x0, y0) + lg(a0, x, y0) + lg(a0, x0, y) - 2.0 * lg(a0, x0, y0);
+        assert!((lg(a, x, y) - split).abs() < 1e-9);
+    }
+    // ... so its integral is a product of three 1-D integrals (trapezoid rule with
+    // h = b / 500: the Laplace kinks at the modes cost ~ h^2 / (8 b^2) ~ 1e-6).
+    let n = 40_000;
+    let integrate = |lo: f64, hi: f64, det: &dyn Fn(f64) -> BoxDetection| {
+        let h = (hi - lo) / n as f64;
+        let dets: Vec<BoxDetection> = (0..=n).map(|k| det(lo + k as f64 * h)).collect();
+        let mut l = vec![0.0; dets.len()];
+        model.log_density_items(&store, &c, pose, &dets, &mut l);
+        l.iter().enumerate().map(|(k, v)| if k == 0 || k == n { 0.5 } else { 1.0 } * v.exp()).sum::<f64>() * h
+    };
+    let l0 = lg(a0, x0, y0);
+    let ia =
+        integrate(p.mu_along - 40.0 * p.b_along, p.mu_along + 40.0 * p.b_along, &|a| detection(&c, pose, a, x0, y0));
+    let ix = integrate(p.mu_across - 40.0 * p.b_across, p.mu_across + 40.0 * p.b_across, &|x| {
+        detection(&c, pose, a0, x, y0)
+    });
+    let iy = integrate(-PI, PI, &|y| detection(&c, pose, a0, x0, y));
+    let total = ia * ix * iy / l0.exp().powi(2);
+    assert!((total - 1.0).abs() < 1e-5, "integral of g: {total}");
+    // Sampler against density: for any density q, E_{y ~ g}[q(y) / g(y)] = 1. Each q
+    // is a product of normals in the same coordinates (lighter tails than g, so
+    // q / g is bounded and the mean has a finite, estimated standard error).
+    let n = 100_000;
+    let mut dets = Vec::new();
+    model.sample(&store, &c, pose, n, &mut rng, &mut dets);
+    let mut lgs = vec![0.0; n];
+    model.log_density_items(&store, &c, pose, &dets, &mut lgs);
+    let normal = |x: f64, m: f64, s: f64| -0.5 * ((x - m) / s).powi(2) - s.ln() - 0.5 * TAU.ln();
+    for (shift, widen) in [(0.0, 1.0), (1.0, 1.5), (-0.5, 0.7), (0.3, 2.0)] {
+        let ratios: Vec<f64> = dets
+            .iter()
+            .zip(&lgs)
+            .map(|(d, &l)| {
+                let (a, x, y) = offsets(&c, pose, d);
+                let y = wrap_angle(y - p.mu_yaw); // the yaw normal is centred on the mode, well inside (-pi, pi]
+                let q = normal(a, p.mu_along + shift * p.b_along, widen * p.b_along)
+                    + normal(x, p.mu_across - shift * p.b_across, widen * p.b_across)
+                    + normal(y, shift * p.b_yaw, widen * p.b_yaw);
+                (q - l).exp()
+            })
+            .collect();
+        let mean = ratios.iter().sum::<f64>() / n as f64;
+        let sd = (ratios.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / n as f64).sqrt();
+        let se = sd / (n as f64).sqrt();
+        assert!((mean - 1.0).abs() < 5.0 * se, "q (shift {shift}, widen {widen}): E[q/g] = {mean} +- {se}");
+    }
+    // And the sampled yaw offsets are wrapped into (-pi, pi].
+    assert!(dets.iter().all(|d| d.yaw > -PI && d.yaw <= PI));
+}
