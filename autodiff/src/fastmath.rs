@@ -20,6 +20,14 @@ const EXP_LO: f32 = -87.336_55;
 /// Adding and subtracting 1.5 * 2^23 rounds an f32 to the nearest integer.
 const ROUND_MAGIC: f32 = 12_582_912.0;
 
+/// The integer `n` held by `n + ROUND_MAGIC` (for |n| < 2^22), read from the bits.
+/// Unlike a saturating `as i32` cast this vectorises, and it is defined for every
+/// input (NaN and out-of-range values give garbage, never undefined behaviour).
+#[inline(always)]
+fn round_to_int(shifted: f32) -> i32 {
+    (shifted.to_bits() as i32).wrapping_sub(ROUND_MAGIC.to_bits() as i32)
+}
+
 /// exp(x) for f32: range reduction to [-ln2/2, ln2/2] and a degree-6 polynomial (Cephes expf).
 ///
 /// Returns exactly 0 for x < -87.3 (including -inf), +inf above 88.37, NaN for NaN.
@@ -27,7 +35,8 @@ const ROUND_MAGIC: f32 = 12_582_912.0;
 pub fn exp_f32(x: f32) -> f32 {
     let xc = x.clamp(EXP_LO, EXP_HI);
     // n = round(x / ln 2)
-    let n = (xc * LOG2E + ROUND_MAGIC) - ROUND_MAGIC;
+    let shifted = xc * LOG2E + ROUND_MAGIC;
+    let n = shifted - ROUND_MAGIC;
     let r = xc - n * LN2_HI - n * LN2_LO;
     let r2 = r * r;
     let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r + 1.666_666_5e-1)
@@ -35,7 +44,7 @@ pub fn exp_f32(x: f32) -> f32 {
         + 5.000_000_1e-1;
     let y = p * r2 + r + 1.0;
     // Scale by 2^n through the exponent bits; n is in [-126, 128).
-    let scale = f32::from_bits((((n as i32) + 127) as u32) << 23);
+    let scale = f32::from_bits(((round_to_int(shifted) + 127) as u32) << 23);
     let mut out = y * scale;
     out = if x < EXP_LO { 0.0 } else { out };
     out = if x > EXP_HI { f32::INFINITY } else { out };
@@ -148,12 +157,13 @@ const PIO2_3: f32 = 7.549_79e-8;
 /// reduction loses accuracy slowly beyond; vehicle headings stay far inside).
 #[inline(always)]
 pub fn sin_cos_f32(x: f32) -> (f32, f32) {
-    let k = (x * FRAC_2_PI + ROUND_MAGIC) - ROUND_MAGIC;
+    let shifted = x * FRAC_2_PI + ROUND_MAGIC;
+    let k = shifted - ROUND_MAGIC;
     let r = ((x - k * PIO2_1) - k * PIO2_2) - k * PIO2_3;
     let z = r * r;
     let s = ((-1.951_529_6e-4 * z + 8.332_161e-3) * z - 1.666_665_5e-1) * z * r + r;
     let c = ((2.443_315_7e-5 * z - 1.388_731_6e-3) * z + 4.166_664_6e-2) * z * z - 0.5 * z + 1.0;
-    let q = (k as i32) & 3;
+    let q = round_to_int(shifted) & 3;
     let (sin, cos) = (if q & 1 == 0 { s } else { c }, if q & 1 == 0 { c } else { s });
     let sin = if q & 2 == 0 { sin } else { -sin };
     let cos = if (q + 1) & 2 == 0 { cos } else { -cos };

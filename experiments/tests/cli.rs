@@ -21,9 +21,20 @@ fn quick_demo_writes_its_results() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let summary: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("demo_summary.json")).unwrap()).unwrap();
-    assert!(summary["gradient_check"]["max_rel_error"].as_f64().unwrap() < 1e-6);
+    let engine = &summary["engine"];
+    assert!(engine["gradient_check"]["max_rel_error"].as_f64().unwrap() < 1e-6);
     // The fit must have learned something: the NLL falls.
-    assert!(summary["final_nll"].as_f64().unwrap() < summary["initial_nll"].as_f64().unwrap());
+    assert!(engine["final_nll"].as_f64().unwrap() < engine["initial_nll"].as_f64().unwrap());
+    // The model stage filtered the generated scene at each particle count, with finite metrics.
+    let rows = summary["model"]["metrics_by_particles"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    for r in rows {
+        for key in ["mll", "ade_smoothed", "ade_filtered", "aotll", "aptll"] {
+            assert!(r[key].as_f64().is_some_and(f64::is_finite), "{key}: {r}");
+        }
+    }
+    assert!(std::fs::read_to_string(dir.join("demo_birdseye.svg")).unwrap().contains("<svg"));
+    assert!(std::fs::read_to_string(dir.join("demo_metrics.csv")).unwrap().lines().count() == 3);
     assert!(std::fs::read_to_string(dir.join("demo_loss.svg")).unwrap().contains("<svg"));
     let csv = std::fs::read_to_string(dir.join("demo_loss.csv")).unwrap();
     assert!(csv.starts_with("step,nll\n") && csv.lines().count() > 100);

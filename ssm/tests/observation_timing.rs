@@ -58,8 +58,8 @@ fn observation_hot_paths() {
     println!("point model, f32, {n} particles x 20 points, 1 thread: {full:?} (network + head ~{:?}, {:?} per point = {:.2} ns per particle-point)",
         one.saturating_sub(per_point), per_point, per_point.as_nanos() as f64 / n as f64);
 
-    // The network alone: hand-written feature-major loops (inside `one` above) vs the
-    // same MLP on a non-recording tape with the GEMM kernel.
+    // The network alone on a fresh non-recording tape (the alternative to the
+    // feature-major GEMM path inside `log_likelihood`).
     let mut feats = vec![0.0f32; 7 * n];
     av_features(&ctx, poses, &mut feats);
     let rows: Vec<f32> = (0..n * 7).map(|k| feats[(k % 7) * n + k / 7]).collect();
@@ -72,9 +72,10 @@ fn observation_hot_paths() {
         },
         reps,
     );
-    let hand = median(|| model.log_likelihood(&s32, &ctx, poses, &[], &mut scratch, &mut out), 3);
-    let _ = hand;
-    println!("network 7-16x4-12 for {n} particles: on a no-record tape (sgemm) {tape_net:?}; hand-written + head + 1 point {one:?}");
+    println!(
+        "network 7-16x4-12 alone for {n} particles on a no-record tape: {tape_net:?} (vs network + head + 1 point \
+         in log_likelihood: {one:?})"
+    );
 
     // Box model: one detection.
     let mut bstore = ParamStore::new();

@@ -27,7 +27,7 @@
 //!
 //! | path | use | method |
 //! |---|---|---|
-//! | plain, batched over particles, no allocation | the filter's hot loop | [`ObservationModel::log_likelihood`] |
+//! | plain, batched over particles, reused scratch | the filter's hot loop | [`ObservationModel::log_likelihood`] |
 //! | tape, batched over rows | PF-SEFI surrogate, baselines, fitting | [`ObservationModel::log_likelihood_rows`] |
 //! | plain, per item, f64 | AOTLL | [`ObservationModel::log_density_items`] |
 //! | sampler | synthetic data, posterior predictive checks | [`ObservationModel::sample`] |
@@ -208,7 +208,8 @@ impl<'t, F: Float> RowVars<'t, F> {
 }
 
 /// Working memory of the plain (no-tape) paths, reused across calls: after the
-/// first call for a given number of particles nothing is allocated. One per thread.
+/// first call for a given number of particles the only allocations are the GEMM
+/// kernel's packing buffers (one per network layer and call). One per thread.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch<F> {
     /// Network inputs then outputs, feature-major (`[k * n + i]`).
@@ -307,8 +308,9 @@ pub trait ObservationModel: Clone + Send + Sync {
     fn items(data: &Dataset, object: usize, t: usize) -> &[Self::Item];
 
     /// The filter's hot path: `out[i] = sum_items log g(item | pose i)` for the `n`
-    /// poses (`out` has length `n`). No tape, no allocation once `scratch` has
-    /// grown; single-threaded (the filter parallelises over objects).
+    /// poses (`out` has length `n`). No tape; `scratch` is reused (see [`Scratch`]);
+    /// single-threaded (the filter parallelises over objects). With no items the
+    /// network is not run and `out` is all 0.
     fn log_likelihood<F: Float>(
         &self,
         params: &ParamStore<F>,
