@@ -32,7 +32,7 @@ use autodiff::{Float, Tensor, Var};
 use rand::Rng;
 
 use super::edges::sample_laplace;
-use super::features::{av_features_on_tape, features_with_trig, NUM_FEATURES};
+use super::features::{av_features_on_tape, NUM_FEATURES};
 use super::{detection_items, fit_len, net, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::data::{BoxDetection, Dataset, ObservationKind, Pose};
 
@@ -124,7 +124,7 @@ impl BoxObservationModel {
     pub fn distribution(&self, params: &ParamStore<f64>, ctx: &ObsContext, pose: Pose) -> DetectionDistribution {
         let mut s = Scratch::<f64>::new();
         let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
-        self.forward_plain(params, ctx, PosesRef::new(&x, &y, &yaw), &mut s);
+        net::forward_plain(&self.mlp, params, ctx, PosesRef::new(&x, &y, &yaw), &mut s);
         let o = &s.outputs;
         DetectionDistribution {
             mu_along: BOX_OFFSET_SCALE * o[0],
@@ -136,30 +136,11 @@ impl BoxObservationModel {
         }
     }
 
-    fn forward_plain<F: Float>(
-        &self,
-        params: &ParamStore<F>,
-        ctx: &ObsContext,
-        poses: PosesRef<'_, F>,
-        s: &mut Scratch<F>,
-    ) {
-        let n = poses.len();
-        fit_len(&mut s.cos, n);
-        fit_len(&mut s.sin, n);
-        for ((c, si), &a) in s.cos.iter_mut().zip(s.sin.iter_mut()).zip(poses.yaw) {
-            *c = a.cos();
-            *si = a.sin();
-        }
-        fit_len(&mut s.feats, NUM_FEATURES * n);
-        features_with_trig(ctx, poses, &s.cos, &s.sin, &mut s.feats);
-        net::forward_feature_major(&self.mlp, params, n, &s.feats, &mut s.hidden, &mut s.outputs);
-    }
-
     /// Network plus head into `s.head` (`HEAD_ROWS` feature-major rows).
     #[allow(clippy::needless_range_loop)] // index loops over resliced arrays vectorise
     fn prepare<F: Float>(&self, params: &ParamStore<F>, ctx: &ObsContext, poses: PosesRef<'_, F>, s: &mut Scratch<F>) {
         let n = poses.len();
-        self.forward_plain(params, ctx, poses, s);
+        net::forward_plain(&self.mlp, params, ctx, poses, s);
         fit_len(&mut s.head, HEAD_ROWS * n);
         let f = F::from_f64;
         let (off, sc, mn) = (f(BOX_OFFSET_SCALE), f(BOX_SCALE_SCALE), f(BOX_MIN_SCALE));

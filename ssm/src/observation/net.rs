@@ -15,6 +15,9 @@
 use autodiff::nn::{Activation, Mlp, ParamStore};
 use autodiff::Float;
 
+use super::features::{features_with_trig, NUM_FEATURES};
+use super::{fit_len, ObsContext, PosesRef, Scratch};
+
 /// Runs `mlp` on the feature-major `input` (`inputs * n`), writing the outputs
 /// feature-major into `out` (resized to `outputs * n`); `hidden` holds the
 /// intermediate layers.
@@ -100,4 +103,25 @@ fn activate<F: Float>(act: Activation, y: &mut [F]) {
         Activation::Softplus => y.iter_mut().for_each(|v| *v = v.softplus()),
         Activation::Sigmoid => y.iter_mut().for_each(|v| *v = v.sigmoid()),
     }
+}
+
+/// Runs an observation network for `poses` on the plain (no-tape) path: heading
+/// trig, AV-relative features and the raw outputs, all into `scratch`.
+pub(crate) fn forward_plain<F: Float>(
+    mlp: &Mlp,
+    params: &ParamStore<F>,
+    ctx: &ObsContext,
+    poses: PosesRef<'_, F>,
+    scratch: &mut Scratch<F>,
+) {
+    let n = poses.len();
+    fit_len(&mut scratch.cos, n);
+    fit_len(&mut scratch.sin, n);
+    for ((c, s), &a) in scratch.cos.iter_mut().zip(scratch.sin.iter_mut()).zip(poses.yaw) {
+        *c = a.cos();
+        *s = a.sin();
+    }
+    fit_len(&mut scratch.feats, NUM_FEATURES * n);
+    features_with_trig(ctx, poses, &scratch.cos, &scratch.sin, &mut scratch.feats);
+    forward_feature_major(mlp, params, n, &scratch.feats, &mut scratch.hidden, &mut scratch.outputs);
 }

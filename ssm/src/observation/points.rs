@@ -38,7 +38,7 @@ use super::edges::{
     edge_lengths, edge_point, from_box_frame, sample_laplace, sample_soft_uniform, SoftConsts, DEFAULT_SOFT_SCALE,
     NUM_EDGES,
 };
-use super::features::{av_features_on_tape, features_with_trig, NUM_FEATURES};
+use super::features::{av_features_on_tape, NUM_FEATURES};
 use super::{fit_len, net, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::data::{Dataset, ObservationKind, Pose};
 
@@ -111,7 +111,7 @@ impl PointObservationModel {
     pub fn edge_mixture(&self, params: &ParamStore<f64>, ctx: &ObsContext, pose: Pose) -> EdgeMixture {
         let mut scratch = Scratch::<f64>::new();
         let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
-        self.forward_plain(params, ctx, PosesRef::new(&x, &y, &yaw), &mut scratch);
+        net::forward_plain(&self.mlp, params, ctx, PosesRef::new(&x, &y, &yaw), &mut scratch);
         let o = &scratch.outputs;
         let mut m = EdgeMixture { phi: [0.0; 4], mu: [0.0; 4], b: [0.0; 4] };
         let max = o[..4].iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
@@ -124,32 +124,12 @@ impl PointObservationModel {
         m
     }
 
-    /// Runs the network for the poses: trig, features and raw outputs into `scratch`.
-    fn forward_plain<F: Float>(
-        &self,
-        params: &ParamStore<F>,
-        ctx: &ObsContext,
-        poses: PosesRef<'_, F>,
-        scratch: &mut Scratch<F>,
-    ) {
-        let n = poses.len();
-        fit_len(&mut scratch.cos, n);
-        fit_len(&mut scratch.sin, n);
-        for ((c, s), &a) in scratch.cos.iter_mut().zip(scratch.sin.iter_mut()).zip(poses.yaw) {
-            *c = a.cos();
-            *s = a.sin();
-        }
-        fit_len(&mut scratch.feats, NUM_FEATURES * n);
-        features_with_trig(ctx, poses, &scratch.cos, &scratch.sin, &mut scratch.feats);
-        net::forward_feature_major(&self.mlp, params, n, &scratch.feats, &mut scratch.hidden, &mut scratch.outputs);
-    }
-
     /// Network plus head: per particle and edge, `k_e = ln phi_e - ln(2 b_e) - ln L_e`,
     /// `mu_e` and `1 / b_e` into `scratch.head` (feature-major, 12 rows).
     #[allow(clippy::needless_range_loop)] // index loops over resliced arrays vectorise
     fn prepare<F: Float>(&self, params: &ParamStore<F>, ctx: &ObsContext, poses: PosesRef<'_, F>, s: &mut Scratch<F>) {
         let n = poses.len();
-        self.forward_plain(params, ctx, poses, s);
+        net::forward_plain(&self.mlp, params, ctx, poses, s);
         fit_len(&mut s.head, 3 * NUM_EDGES * n);
         let lens = edge_lengths(ctx.length, ctx.width);
         let f = F::from_f64;
