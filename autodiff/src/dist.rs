@@ -5,6 +5,8 @@
 use crate::float::Float;
 use crate::tape::Var;
 
+/// ln(2 pi).
+pub const LN_2PI: f64 = 1.837_877_066_409_345_5;
 /// ln(2 pi) / 2.
 pub const HALF_LN_2PI: f64 = 0.918_938_533_204_672_8;
 

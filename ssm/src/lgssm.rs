@@ -27,13 +27,11 @@
 use std::fmt;
 
 use autodiff::dist::normal_logpdf;
+use autodiff::dist::LN_2PI;
 use autodiff::{Float, Tape, Tensor, Var};
 use rand::Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
-
-/// `ln(2 pi)`.
-const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// The learnable parameters `theta = (phi, ln s_v, ln s_w)`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -11,15 +11,13 @@
 
 use std::fmt;
 
+use autodiff::dist::LN_2PI;
 use autodiff::{Float, Tape, Tensor, Var};
 use rand::Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::state::{ActionVars, ActionsMut, ActionsRef};
-
-/// `ln(2 pi)`: the normalising constant of a bivariate standard normal.
-const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// A batch of bivariate Gaussians over actions: one per object, with mean
 /// `(mean_accel, mean_pinch)` and covariance `L L^T`,
