@@ -15,6 +15,7 @@ pub mod metrics;
 pub mod model;
 pub mod observation;
 pub mod params;
+pub mod stats;
 pub mod synthetic;
 pub mod vehicle;
 pub mod vehicle_ssm;

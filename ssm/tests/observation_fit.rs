@@ -12,25 +12,7 @@ use ssm::observation::{
     aotll, fit_network, random_point_examples, BoxObservationModel, Example, FitConfig, ObsContext, ObservationModel,
     PointGenerator, PointObservationModel, PosesRef, SceneRanges, Scratch,
 };
-
-/// Standard normal CDF (Numerical Recipes erfc, relative error < 1.2e-7).
-fn normal_cdf(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let poly = -z * z - 1.265_512_23
-        + t * (1.000_023_68
-            + t * (0.374_091_96
-                + t * (0.096_784_18
-                    + t * (-0.186_288_06
-                        + t * (0.278_868_07
-                            + t * (-1.135_203_98 + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
-    let erfc = t * poly.exp();
-    if x >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
-}
+use ssm::stats::normal_cdf;
 
 /// The generator's own log-density of a point: a mixture over the visible edges of
 /// Uniform(0, L) convolved with the along-edge jitter, times the Gaussian noise across.

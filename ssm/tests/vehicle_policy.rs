@@ -9,6 +9,7 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
+use ssm::stats::ks_distance_to_normal;
 use ssm::vehicle::{
     ActionBatch, ActionGaussianVars, ActionGaussians, ActionVars, GaussianPolicy, HandCraftedPolicy, NeuralPolicy,
     PolicyError,
@@ -57,40 +58,6 @@ impl GaussianPolicy for CorrelatedPolicy {
             l22: p.slice(0, 4, 1).exp(),
         }
     }
-}
-
-/// Standard normal CDF via erfc (W. J. Cody's rational approximations are overkill
-/// here: this Numerical Recipes erfc has relative error < 1.2e-7, far below the KS
-/// tolerance of ~1e-2).
-fn normal_cdf(x: f64) -> f64 {
-    let z = x.abs() / std::f64::consts::SQRT_2;
-    let t = 1.0 / (1.0 + 0.5 * z);
-    let poly = -z * z - 1.265_512_23
-        + t * (1.000_023_68
-            + t * (0.374_091_96
-                + t * (0.096_784_18
-                    + t * (-0.186_288_06
-                        + t * (0.278_868_07
-                            + t * (-1.135_203_98 + t * (1.488_515_87 + t * (-0.822_152_23 + t * 0.170_872_77))))))));
-    let erfc = t * poly.exp();
-    if x >= 0.0 {
-        1.0 - 0.5 * erfc
-    } else {
-        0.5 * erfc
-    }
-}
-
-/// The Kolmogorov–Smirnov distance of a sample from N(0, 1).
-fn ks_distance(mut z: Vec<f64>) -> f64 {
-    z.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    let n = z.len() as f64;
-    z.iter()
-        .enumerate()
-        .map(|(i, &x)| {
-            let f = normal_cdf(x);
-            (f - i as f64 / n).abs().max(((i + 1) as f64 / n - f).abs())
-        })
-        .fold(0.0, f64::max)
 }
 
 fn mean_var(z: &[f64]) -> (f64, f64) {
@@ -145,7 +112,7 @@ fn hand_crafted_sampler_matches_its_density() {
         assert!(m.abs() < 4.0 * se, "mean {m}");
         assert!((var - 1.0).abs() < 4.0 * 2f64.sqrt() * se, "variance {var}");
         // KS at level 0.001: critical distance 1.95 / sqrt(n) = 0.0138.
-        let d = ks_distance(z.clone());
+        let d = ks_distance_to_normal(z.clone());
         assert!(d < 1.95 * se, "KS distance {d}");
     }
     let corr = za.iter().zip(&zp).map(|(a, b)| a * b).sum::<f64>() / n as f64;
@@ -189,7 +156,7 @@ fn correlated_sampler_matches_its_covariance_and_density() {
     let mut e1 = vec![0.0; n];
     let mut e2 = vec![0.0; n];
     g.standardise(a.view(), &mut e1, &mut e2);
-    assert!(ks_distance(e1) < 1.95 * se && ks_distance(e2) < 1.95 * se);
+    assert!(ks_distance_to_normal(e1) < 1.95 * se && ks_distance_to_normal(e2) < 1.95 * se);
 
     // The log-density equals the textbook formula with Sigma^{-1} and det Sigma.
     let mut lp = vec![0.0; n];
