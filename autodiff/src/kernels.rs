@@ -220,7 +220,7 @@ pub(crate) fn broadcast_zip<F: Float>(
 }
 
 /// Sums `src` (of shape `from`) down to `to`, the shape of an input that was broadcast
-/// to `from`: the gradient rule for broadcasting.
+/// to `from`: the gradient rule for broadcasting. Accumulates in f64.
 pub(crate) fn sum_to_shape<F: Float>(par: Parallelism, src: &[F], from: &[usize], to: &[usize]) -> Vec<F> {
     let numel_to: usize = to.iter().product();
     if from == to {
@@ -234,17 +234,18 @@ pub(crate) fn sum_to_shape<F: Float>(par: Parallelism, src: &[F], from: &[usize]
     let row_len = from.last().copied().unwrap_or(1).max(1);
     let it = st.last().copied().unwrap_or(0);
     let rows = src.len() / row_len;
-    let rows_body = |first_row: usize, nrows: usize, acc: &mut [F]| {
+    // Partial sums are accumulated in f64 (gradients of broadcast inputs such as
+    // biases sum over every particle) and rounded to F once at the end.
+    let rows_body = |first_row: usize, nrows: usize, acc: &mut [f64]| {
         for r in first_row..first_row + nrows {
             let (ot, _) = row_offsets(r, from, &st, &zeros);
             let srow = &src[r * row_len..(r + 1) * row_len];
             if it == 1 {
                 for (o, &x) in acc[ot..ot + row_len].iter_mut().zip(srow) {
-                    *o += x;
+                    *o += x.to_f64();
                 }
             } else {
-                let s: F = srow.iter().copied().sum();
-                acc[ot] += s;
+                acc[ot] += srow.iter().map(|x| x.to_f64()).sum::<f64>();
             }
         }
     };
@@ -253,24 +254,21 @@ pub(crate) fn sum_to_shape<F: Float>(par: Parallelism, src: &[F], from: &[usize]
     let rows_per_task = (CHUNK_ELEMS * 4 / row_len).max(1);
     let tasks = rows.div_ceil(rows_per_task);
     let block = |t: usize| {
-        let mut acc = vec![F::ZERO; numel_to];
+        let mut acc = vec![0.0f64; numel_to];
         let first = t * rows_per_task;
         rows_body(first, rows_per_task.min(rows - first), &mut acc);
         acc
     };
-    if tasks <= 1 {
-        return block(0);
-    }
-    let partials: Vec<Vec<F>> = if par.split(src.len()) {
+    let partials: Vec<Vec<f64>> = if tasks > 1 && par.split(src.len()) {
         (0..tasks).into_par_iter().map(block).collect()
     } else {
         (0..tasks).map(block).collect()
     };
-    let mut out = vec![F::ZERO; numel_to];
+    let mut out = vec![0.0f64; numel_to];
     for p in &partials {
         add_assign(Parallelism::Serial, &mut out, p);
     }
-    out
+    out.into_iter().map(F::from_f64).collect()
 }
 
 /// Axis view of a tensor: `[outer, n, inner]` element counts around one axis.
