@@ -35,7 +35,7 @@ fn main() {
     );
     for n in [1024usize, 4096] {
         let cfg =
-            FilterConfig { particles: n, resampling: Resampling::Systematic, ess_threshold: None, lag: 8, seed: 1 };
+            FilterConfig { particles: n, lag: 8, seed: 1, ..FilterConfig::default() };
         let time = |threads: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
             pool.install(|| {

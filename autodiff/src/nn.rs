@@ -277,7 +277,7 @@ pub struct BoundParams<'t, F: Float> {
 
 impl<'t, F: Float> BoundParams<'t, F> {
     /// Wraps leaves that stand for a store's parameters, in store order.
-    pub(crate) fn from_vars(vars: Vec<Var<'t, F>>) -> Self {
+    pub fn from_vars(vars: Vec<Var<'t, F>>) -> Self {
         BoundParams { vars }
     }
 

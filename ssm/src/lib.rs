@@ -8,6 +8,7 @@
 #![deny(missing_docs)]
 
 pub mod data;
+pub mod estimators;
 pub mod filter;
 pub mod lgssm;
 pub mod linear_gaussian;

@@ -3,12 +3,18 @@
 //! likelihood and score it is the ground truth every filter and estimator is
 //! tested against.
 
+use autodiff::dist::normal_logpdf;
+use autodiff::{Float, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use crate::lgssm::Lgssm;
+use crate::estimators::{Block, DifferentiableModel};
+use crate::lgssm::{Lgssm, ThetaVars};
 use crate::model::ParticleModel;
+
+/// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
+pub const THETA_PARAM: &str = "theta";
 
 /// Independent sequences `y_{0:T}` (one per object) under one linear-Gaussian model.
 #[derive(Clone, Debug)]
@@ -26,6 +32,11 @@ impl LgssmBatch {
             return Err("LgssmBatch: sequences must be non-empty and of equal length".into());
         }
         Ok(LgssmBatch { model, sequences })
+    }
+
+    /// The same sequences under other parameters.
+    pub fn with_model(&self, model: Lgssm) -> Self {
+        LgssmBatch { model, sequences: self.sequences.clone() }
     }
 
     /// The observations of one object.
@@ -93,5 +104,53 @@ impl ParticleModel for LgssmBatch {
 
     fn observation_count(&self, _object: usize, _t: usize) -> usize {
         1
+    }
+}
+
+impl DifferentiableModel for LgssmBatch {
+    /// One tensor `[phi, ln s_v, ln s_w]` (shape `[3]`).
+    fn parameters(&self) -> Vec<Tensor<f64>> {
+        vec![Tensor::from_f64s(&[3], &self.model.theta().to_array())]
+    }
+
+    fn parameter_names(&self) -> Vec<String> {
+        vec![THETA_PARAM.to_string()]
+    }
+
+    fn observation_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        let theta = ThetaVars::from_vector(params[0]);
+        let ys: Vec<F> = blocks
+            .iter()
+            .flat_map(|b| std::iter::repeat(F::from_f64(self.sequences[b.object][b.t])).take(b.len))
+            .collect();
+        let tape = states[0].tape();
+        normal_logpdf(states[0], tape.constant(Tensor::from_vec(ys)), theta.log_sw)
+    }
+
+    fn transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        _blocks: &[Block],
+        prev: &[Var<'t, F>],
+        next: &[Var<'t, F>],
+        _actions: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        ThetaVars::from_vector(params[0]).transition_log_density(prev[0], next[0])
+    }
+
+    /// `x_t = phi x_{t-1} + s_v e_t` with the recorded noise `e_t` (the action).
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        _blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>> {
+        vec![ThetaVars::from_vector(params[0]).propagate(prev[0], actions[0])]
     }
 }

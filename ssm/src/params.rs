@@ -190,6 +190,13 @@ impl GaussianPolicy for AnyPolicy {
         }
     }
 
+    fn parameter_names(&self) -> Vec<String> {
+        match self {
+            AnyPolicy::HandCrafted(p) => p.parameter_names(),
+            AnyPolicy::Neural(p) => p.parameter_names(),
+        }
+    }
+
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {
         match self {
             AnyPolicy::HandCrafted(p) => p.set_parameters(params),

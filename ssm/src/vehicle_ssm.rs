@@ -2,17 +2,21 @@
 //! object's known prior, a Gaussian policy with the exact motion model as the
 //! transition, and an observation model (points or boxes) seen from the AV.
 
-use autodiff::nn::ParamStore;
+use autodiff::nn::{BoundParams, ParamStore};
+use autodiff::{Float, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use crate::data::Dataset;
+use crate::data::{Dataset, Pose};
+use crate::estimators::{block_rows, Block, DifferentiableModel};
 use crate::model::ParticleModel;
-use crate::observation::{ObsContext, ObservationModel, PosesRef, Scratch};
+use crate::observation::{ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::vehicle::motion::MotionModel;
 use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
-use crate::vehicle::state::{ActionsMut, ActionsRef, StatesMut, StatesRef, ACTION_DIM, STATE_DIM};
+use crate::vehicle::state::{
+    ActionVars, ActionsMut, ActionsRef, StateVars, StatesMut, StatesRef, ACTION_DIM, STATE_DIM,
+};
 
 /// Index of the heading among the state components `(x, y, yaw, v, kappa)`.
 pub const YAW: usize = 2;
@@ -25,6 +29,8 @@ pub struct VehicleSsm<'a, P: GaussianPolicy, O: ObservationModel> {
     observation: &'a O,
     /// The observation network's parameters in f32, the filter's precision.
     observation_params: ParamStore<f32>,
+    /// The same in f64, the master copy the estimators differentiate.
+    observation_params64: ParamStore<f64>,
 }
 
 /// Per-thread working memory of [`VehicleSsm`].
@@ -48,7 +54,14 @@ impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
             return Err(format!("the dataset holds {:?} observations; the model reads {:?}", data.kind(), O::KIND));
         }
         let motion = MotionModel::new(data.dt(), Default::default()).map_err(|e| e.to_string())?;
-        Ok(VehicleSsm { data, motion, policy, observation, observation_params: observation_params.cast() })
+        Ok(VehicleSsm {
+            data,
+            motion,
+            policy,
+            observation,
+            observation_params: observation_params.cast(),
+            observation_params64: observation_params.clone(),
+        })
     }
 
     /// The dataset.
@@ -154,5 +167,91 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
 
     fn observation_count(&self, object: usize, t: usize) -> usize {
         O::items(self.data, object, t).len()
+    }
+}
+
+impl<P: GaussianPolicy, O: ObservationModel> DifferentiableModel for VehicleSsm<'_, P, O> {
+    /// The policy's parameters, then the observation network's (store order).
+    fn parameters(&self) -> Vec<Tensor<f64>> {
+        let mut p = self.policy.parameters();
+        p.extend(self.observation_params64.values().iter().cloned());
+        p
+    }
+
+    fn parameter_names(&self) -> Vec<String> {
+        let mut names = self.policy.parameter_names();
+        names.extend(self.observation_params64.iter().map(|(n, _)| n.to_string()));
+        names
+    }
+
+    fn observation_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        let np = self.policy.parameters().len();
+        let obs = BoundParams::from_vars(params[np..].to_vec());
+        let rows = block_rows(blocks);
+        let tape = states[0].tape();
+        let mut av: Vec<Pose> = Vec::with_capacity(rows);
+        let mut items: Vec<&[O::Item]> = Vec::with_capacity(rows);
+        let (mut length, mut width) = (Vec::with_capacity(rows), Vec::with_capacity(rows));
+        for b in blocks {
+            let ctx = self.context(b.object, b.t);
+            let its = O::items(self.data, b.object, b.t);
+            for _ in 0..b.len {
+                av.push(ctx.av);
+                items.push(its);
+                length.push(F::from_f64(ctx.length));
+                width.push(F::from_f64(ctx.width));
+            }
+        }
+        let row_vars = RowVars {
+            x: states[0],
+            y: states[1],
+            yaw: states[YAW],
+            length: tape.constant(Tensor::from_vec(length)),
+            width: tape.constant(Tensor::from_vec(width)),
+        };
+        self.observation.log_likelihood_rows(&obs, &row_vars, &av, &items)
+    }
+
+    /// `log pi(a | x_{t-1})`: the motion model is deterministic and injective in
+    /// the action, so this has the transition density's gradient.
+    fn transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        _blocks: &[Block],
+        prev: &[Var<'t, F>],
+        _next: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        let np = self.policy.parameters().len();
+        let a = ActionVars { accel: actions[0], pinch: actions[1] };
+        self.policy.log_density_on_tape(&params[..np], prev[3], prev[4], &a)
+    }
+
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        _blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>> {
+        let np = self.policy.parameters().len();
+        let g = self.policy.gaussians_on_tape(&params[..np], prev[3], prev[4]);
+        // The recorded actions standardised at the current values, held constant.
+        let z1 = ((actions[0] - g.mean_accel) / g.l11).stop_gradient();
+        let r2 = actions[1] - g.mean_pinch;
+        let r2 = match g.l21 {
+            Some(l21) => r2 - l21 * z1,
+            None => r2,
+        };
+        let z2 = (r2 / g.l22).stop_gradient();
+        let a = g.actions_from_noise(z1, z2);
+        let s = StateVars { x: prev[0], y: prev[1], yaw: prev[YAW], v: prev[3], kappa: prev[4] };
+        let next = self.motion.propagate_on_tape(&s, &a);
+        vec![next.x, next.y, next.yaw, next.v, next.kappa]
     }
 }

@@ -28,6 +28,9 @@ impl GaussianPolicy for CorrelatedPolicy {
     fn parameters(&self) -> Vec<Tensor<f64>> {
         vec![Tensor::from_vec(self.theta.to_vec())]
     }
+    fn parameter_names(&self) -> Vec<String> {
+        vec!["policy.theta".into()]
+    }
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {
         ssm::vehicle::policy::check_parameters(&self.parameters(), params)?;
         self.theta.copy_from_slice(params[0].data());

@@ -48,11 +48,23 @@ pub struct FilterConfig {
     pub lag: usize,
     /// Seed of the random streams.
     pub seed: u64,
+    /// PFNET's soft resampling (Karkus et al. 2018): with `Some(alpha)` ancestors are
+    /// drawn from `q = alpha W + (1 - alpha) / N` and carry the weights
+    /// `W^a / q^a`, normalised. `None` is ordinary resampling.
+    #[serde(default)]
+    pub soft_resampling: Option<f64>,
 }
 
 impl Default for FilterConfig {
     fn default() -> Self {
-        FilterConfig { particles: 1024, resampling: Resampling::Systematic, ess_threshold: None, lag: 8, seed: 0 }
+        FilterConfig {
+            particles: 1024,
+            resampling: Resampling::Systematic,
+            ess_threshold: None,
+            lag: 8,
+            seed: 0,
+            soft_resampling: None,
+        }
     }
 }
 
@@ -74,8 +86,33 @@ pub struct LagView<'a> {
     pub weights: &'a [f64],
 }
 
+/// One step of the filter as it happened: what the through-filter estimators
+/// record to replay the filter on a tape.
+pub struct StepView<'a> {
+    /// The step.
+    pub t: usize,
+    /// Number of particles.
+    pub n: usize,
+    /// `x_t`, dimension-major (`state_dim * n`).
+    pub states: &'a [f32],
+    /// What was drawn to reach `x_t` (`action_dim * n`; empty at `t = 0`).
+    pub actions: &'a [f32],
+    /// The index of each particle's parent at `t - 1` (empty at `t = 0`).
+    pub parents: &'a [usize],
+    /// Whether the parents were drawn by resampling at this step (otherwise each
+    /// particle continues its own path and carries its weight).
+    pub resampled: bool,
+    /// Whether `y_t` entered the weights (false when there is none, or when every
+    /// particle was impossible and the step was skipped).
+    pub observation_used: bool,
+    /// Normalised log-weights after weighting by `y_t`.
+    pub log_weights: &'a [f64],
+}
+
 /// Receives what the filter computes for one object, as it computes it.
 pub trait Observer: Send {
+    /// Every step as it happened, before [`Observer::filtered`] for the same step.
+    fn step(&mut self, _view: &StepView<'_>) {}
     /// The particles at `t` with their normalised filtering weights.
     fn filtered(&mut self, _t: usize, _states: &[f32], _weights: &[f64]) {}
     /// The particles at `t` with their fixed-lag smoothing weights (each `t` once, in order).
@@ -240,6 +277,8 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let mut resample_scratch = Vec::with_capacity(n);
     let mut push = (vec![0.0f64; n], vec![0.0f64; n]);
     let mut ess_sum = 0.0;
+    let mut soft_q = Vec::with_capacity(if config.soft_resampling.is_some() { n } else { 0 });
+    let mut resampled = false;
 
     for t in 0..steps {
         let slot = ring.slot(t);
@@ -253,13 +292,26 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 None => true,
                 Some(frac) => effective_sample_size(&weights) < frac * n as f64,
             };
-            if resample_now {
+            if let (true, Some(alpha)) = (resample_now, config.soft_resampling) {
+                // Draw from q = alpha W + (1 - alpha) / N; carry W^a / q^a, normalised.
+                let floor = (1.0 - alpha) / n as f64;
+                soft_q.clear();
+                soft_q.extend(weights.iter().map(|&w| alpha * w + floor));
+                config.resampling.draw(&soft_q, &mut rng, &mut ancestors, &mut resample_scratch);
+                for (lw, &p) in log_w_before.iter_mut().zip(&ancestors) {
+                    *lw = log_w[p] - soft_q[p].ln();
+                }
+                let lse = log_sum_exp(&log_w_before);
+                log_w.iter_mut().zip(&log_w_before).for_each(|(lw, &b)| *lw = b - lse);
+                summary.resampled_steps += 1;
+            } else if resample_now {
                 config.resampling.draw(&weights, &mut rng, &mut ancestors, &mut resample_scratch);
                 log_w.fill(uniform);
                 summary.resampled_steps += 1;
             } else {
                 ancestors.iter_mut().enumerate().for_each(|(i, p)| *p = i);
             }
+            resampled = resample_now;
             for k in 0..d {
                 let src = &ring.states[prev][k * n..(k + 1) * n];
                 for (g, &p) in gathered[k * n..(k + 1) * n].iter_mut().zip(&ancestors) {
@@ -276,7 +328,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
 
         // Weight by the observation (if any).
         let clock = Instant::now();
-        let observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
+        let mut observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
         let mid = Instant::now();
         times.likelihood += mid - clock;
         if observed {
@@ -291,6 +343,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 // Every particle impossible: keep the previous weights, skip this observation.
                 summary.collapsed_steps += 1;
                 log_w.copy_from_slice(&log_w_before);
+                observed = false;
             } else {
                 let total: f64 = log_w.iter().map(|&lw| (lw - max).exp()).sum();
                 let lse = max + total.ln();
@@ -308,6 +361,16 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
         times.resample += mid.elapsed();
 
         let clock = Instant::now();
+        observer.step(&StepView {
+            t,
+            n,
+            states: &ring.states[slot],
+            actions: if t == 0 { &[] } else { &ring.actions[slot] },
+            parents: if t == 0 { &[] } else { &ring.parents[slot] },
+            resampled: t > 0 && resampled,
+            observation_used: observed,
+            log_weights: &log_w,
+        });
         observer.filtered(t, &ring.states[slot], &weights);
         if t >= lag {
             emit_smoothed(&ring, t - lag, t, n, &weights, &mut push, observer);
@@ -324,6 +387,15 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     times.smoothing += clock.elapsed();
     summary.mean_ess = ess_sum / steps as f64;
     (summary, times)
+}
+
+/// `ln sum_i exp(x_i)` in f64 (`-inf` for an empty or all `-inf` slice).
+fn log_sum_exp(x: &[f64]) -> f64 {
+    let max = x.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if max == f64::NEG_INFINITY {
+        return max;
+    }
+    max + x.iter().map(|&v| (v - max).exp()).sum::<f64>().ln()
 }
 
 /// Pushes the weights of step `s` back along the ancestry to step `u` (scatter-adds

@@ -116,6 +116,10 @@ impl GaussianPolicy for NeuralPolicy {
         self.store.values().to_vec()
     }
 
+    fn parameter_names(&self) -> Vec<String> {
+        self.store.iter().map(|(name, _)| name.to_string()).collect()
+    }
+
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {
         check_parameters(self.store.values(), params)?;
         self.store.values_mut().clone_from_slice(params);

@@ -246,6 +246,10 @@ pub trait GaussianPolicy: Send + Sync {
     /// The learnable parameter tensors, in the order the tape methods expect.
     fn parameters(&self) -> Vec<Tensor<f64>>;
 
+    /// A name per parameter tensor, under the `policy.` prefix of
+    /// [`crate::params`].
+    fn parameter_names(&self) -> Vec<String>;
+
     /// Replaces the parameters; the count and shapes must match
     /// [`GaussianPolicy::parameters`] and the values be finite.
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError>;
@@ -417,6 +421,10 @@ impl HandCraftedPolicy {
 impl GaussianPolicy for HandCraftedPolicy {
     fn parameters(&self) -> Vec<Tensor<f64>> {
         vec![Tensor::from_vec(vec![self.log_sd_accel, self.log_sd_pinch])]
+    }
+
+    fn parameter_names(&self) -> Vec<String> {
+        vec![crate::params::HAND_CRAFTED_PARAM.to_string()]
     }
 
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {

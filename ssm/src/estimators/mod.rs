@@ -1,0 +1,291 @@
+//! Score estimators (SPEC §2): PF-SEFI and the through-filter baselines (PF,
+//! DPF-SGR in two variants, PFNET), behind one trait, [`ScoreEstimator`], over any
+//! model that can evaluate its log-densities on a tape, [`DifferentiableModel`].
+//!
+//! Every estimator runs the same bootstrap particle filter
+//! ([`crate::filter::filter_object`]) with the same per-object random streams, so
+//! on one seed they see the same draws. They differ in what they differentiate:
+//!
+//! | estimator | gradient of | time per object | memory |
+//! |---|---|---|---|
+//! | [`PfSefi`] | the Fisher surrogate over distinct fixed-lag ancestors (one reverse pass) | filter `O(N T)` plus the surrogate over `A` distinct ancestors (`A` is a few per cent of `N T`) | filter ring `O(N L)`, surrogate tape `O(A)` |
+//! | [`ThroughFilter`] (PF, DPF-SGR, PFNET) | `l_hat` replayed on a tape through every step | filter plus a tape forward and backward over all `N T` particles | `O(N T)` tape per object in a chunk: `O(C N T)` per thread for chunks of `C` objects |
+//!
+//! Objects are independent, so all estimators sum per-object gradients; the
+//! baselines process objects in chunks of [`EstimatorConfig::chunk_objects`] (one
+//! tape per chunk, freed before the next), so their memory grows with `N`, `T` and
+//! the chunk size but not with the number of objects. Work is spread over the
+//! rayon pool by object (PF-SEFI) or by chunk (baselines); gradients are summed in
+//! a fixed order, so results do not depend on the number of threads.
+//!
+//! The estimate of each is the gradient of the total log-likelihood of the
+//! objects (the sum over objects, not a mean); `l_hat` is reported with it. The
+//! PF-SEFI score is not the gradient of `l_hat`.
+
+mod replay;
+mod sefi;
+pub mod study;
+
+use autodiff::{Float, Tape, Tensor, Var};
+use serde::{Deserialize, Serialize};
+
+use crate::filter::{FilterConfig, Resampling};
+use crate::model::ParticleModel;
+
+pub use replay::{ThroughFilter, ThroughFilterKind};
+pub use sefi::PfSefi;
+
+/// A run of consecutive rows on a tape that all belong to one object at one step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Block {
+    /// The object.
+    pub object: usize,
+    /// The step.
+    pub t: usize,
+    /// Number of rows.
+    pub len: usize,
+}
+
+/// Total rows of `blocks`.
+pub fn block_rows(blocks: &[Block]) -> usize {
+    blocks.iter().map(|b| b.len).sum()
+}
+
+/// A [`ParticleModel`] whose log-densities and transition can be evaluated on a
+/// tape as functions of its parameters `theta`.
+///
+/// States and actions on the tape are dimension-major lists of `Var`s of shape
+/// `[R]` (one per component) whose rows are laid out by `blocks`. The parameters
+/// are a list of tensors ([`DifferentiableModel::parameters`]); the tape methods
+/// take them as `Var`s in the same order, bound by the caller, so the caller
+/// decides what is tracked.
+pub trait DifferentiableModel: ParticleModel {
+    /// The parameter tensors (an f64 master copy), in the order of the tape methods.
+    fn parameters(&self) -> Vec<Tensor<f64>>;
+
+    /// A name per parameter tensor (the names of a [`autodiff::nn::ParamStore`]).
+    fn parameter_names(&self) -> Vec<String>;
+
+    /// The parameters as tracked leaves of `tape`.
+    fn bind<'t, F: Float>(&self, tape: &'t Tape<F>) -> Vec<Var<'t, F>> {
+        self.parameters().iter().map(|p| tape.param(p.cast())).collect()
+    }
+
+    /// `log g(y_t | x)` per row (shape `[R]`). Every block must be at a step with an
+    /// observation (`observation_count > 0`).
+    fn observation_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Var<'t, F>;
+
+    /// The transition's log-density per row (shape `[R]`, blocks at `t >= 1`), up
+    /// to terms that do not depend on the parameters: `log f(next | prev)`, or, for
+    /// a deterministic injective motion model driven by actions, `log pi(a | prev)`
+    /// (the paper's Lemma: same gradient).
+    fn transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        next: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Var<'t, F>;
+
+    /// The reparameterised transition: the states reached from `prev` by the
+    /// recorded `actions` (constants), as functions of the parameters and of
+    /// `prev`. The noise is the recorded actions standardised at the current
+    /// values, held constant, so the values equal the filter's.
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>>;
+}
+
+/// Floating-point type of the estimators' tapes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Precision {
+    /// Single precision: the fast path for training.
+    #[default]
+    F32,
+    /// Double precision: for checks against exact scores.
+    F64,
+}
+
+/// Settings shared by every estimator.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EstimatorConfig {
+    /// Particles per object (`N`).
+    pub particles: usize,
+    /// Resampling scheme.
+    pub resampling: Resampling,
+    /// ESS-triggered resampling threshold (fraction of `N`); `None` resamples every step.
+    pub ess_threshold: Option<f64>,
+    /// Objects per tape of the through-filter baselines.
+    pub chunk_objects: usize,
+    /// Tape precision.
+    pub precision: Precision,
+}
+
+impl Default for EstimatorConfig {
+    fn default() -> Self {
+        EstimatorConfig {
+            particles: 1024,
+            resampling: Resampling::Systematic,
+            ess_threshold: None,
+            chunk_objects: 4,
+            precision: Precision::F32,
+        }
+    }
+}
+
+impl EstimatorConfig {
+    /// The filter settings for `seed`, lag `lag` and optional soft resampling.
+    pub(crate) fn filter(&self, seed: u64, lag: usize, soft_resampling: Option<f64>) -> FilterConfig {
+        FilterConfig {
+            particles: self.particles,
+            resampling: self.resampling,
+            ess_threshold: self.ess_threshold,
+            lag,
+            seed,
+            soft_resampling,
+        }
+    }
+}
+
+/// A score estimate for a batch of objects.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScoreEstimate {
+    /// `l_hat`, summed over objects.
+    pub log_likelihood: f64,
+    /// Observed units (points, detections) that entered `l_hat`.
+    pub observed_units: usize,
+    /// The estimated score, one tensor per parameter (as
+    /// [`DifferentiableModel::parameters`]).
+    pub gradient: Vec<Tensor<f64>>,
+    /// Steps at which every particle of an object was impossible.
+    pub collapsed_steps: usize,
+    /// Particle rows the estimator evaluated on the tape (PF-SEFI: distinct
+    /// ancestors; the baselines: every particle at every step).
+    pub rows_evaluated: usize,
+    /// `N x (T + 1) x objects`: the particle slots of the filter.
+    pub particle_slots: usize,
+}
+
+impl ScoreEstimate {
+    /// Whether the log-likelihood and every gradient entry are finite.
+    pub fn is_finite(&self) -> bool {
+        self.log_likelihood.is_finite() && self.gradient.iter().all(|g| g.all_finite())
+    }
+}
+
+/// A particle-filter score estimator.
+pub trait ScoreEstimator: Send + Sync {
+    /// A short name for tables and files (e.g. `pf-sefi`).
+    fn name(&self) -> String;
+
+    /// Estimates the score of every object of `model` from the filter's draws with
+    /// `seed` (the same seed gives the same draws to every estimator).
+    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate;
+}
+
+/// Any of the estimators, chosen at run time (by a config or a command line).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Estimator {
+    /// PF-SEFI with fixed lag `L`.
+    PfSefi(PfSefi),
+    /// A through-filter baseline.
+    ThroughFilter(ThroughFilter),
+}
+
+impl Estimator {
+    /// PF-SEFI with lag `lag`.
+    pub fn pf_sefi(lag: usize) -> Self {
+        Estimator::PfSefi(PfSefi { lag })
+    }
+
+    /// PF: `l_hat` differentiated through the filter.
+    pub fn pf() -> Self {
+        Estimator::ThroughFilter(ThroughFilter { kind: ThroughFilterKind::Pf })
+    }
+
+    /// DPF-SGR as in the paper (stop-gradient on the post-resampling weights).
+    pub fn dpf_sgr() -> Self {
+        Estimator::ThroughFilter(ThroughFilter { kind: ThroughFilterKind::DpfSgr })
+    }
+
+    /// DPF-SGR with the particles stopped too.
+    pub fn dpf_sgr_stopped() -> Self {
+        Estimator::ThroughFilter(ThroughFilter { kind: ThroughFilterKind::DpfSgrStopped })
+    }
+
+    /// PFNET's soft resampling with mixing `alpha`.
+    pub fn pfnet(alpha: f64) -> Self {
+        Estimator::ThroughFilter(ThroughFilter { kind: ThroughFilterKind::Pfnet { alpha } })
+    }
+
+    /// Parses a name as written by [`ScoreEstimator::name`]: `pf-sefi`, `pf`,
+    /// `dpf-sgr`, `dpf-sgr-stopped`, `pfnet`; `lag` and `alpha` fill in the settings.
+    pub fn parse(name: &str, lag: usize, alpha: f64) -> Result<Self, String> {
+        match name {
+            "pf-sefi" | "sefi" => Ok(Self::pf_sefi(lag)),
+            "pf" => Ok(Self::pf()),
+            "dpf-sgr" | "dpf" => Ok(Self::dpf_sgr()),
+            "dpf-sgr-stopped" => Ok(Self::dpf_sgr_stopped()),
+            "pfnet" => {
+                if !(alpha > 0.0 && alpha <= 1.0) {
+                    return Err(format!("pfnet: alpha must be in (0, 1], got {alpha}"));
+                }
+                Ok(Self::pfnet(alpha))
+            }
+            other => {
+                Err(format!("unknown estimator `{other}` (expected pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet)"))
+            }
+        }
+    }
+}
+
+impl ScoreEstimator for Estimator {
+    fn name(&self) -> String {
+        match self {
+            Estimator::PfSefi(e) => e.name(),
+            Estimator::ThroughFilter(e) => e.name(),
+        }
+    }
+
+    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
+        match self {
+            Estimator::PfSefi(e) => e.estimate(model, config, seed),
+            Estimator::ThroughFilter(e) => e.estimate(model, config, seed),
+        }
+    }
+}
+
+/// Adds `from` into `into` (f64 accumulation of per-object or per-chunk gradients).
+pub(crate) fn accumulate<F: Float>(into: &mut [Tensor<f64>], from: &[Tensor<F>]) {
+    for (a, g) in into.iter_mut().zip(from) {
+        for (x, &y) in a.data_mut().iter_mut().zip(g.data()) {
+            *x += y.to_f64();
+        }
+    }
+}
+
+/// Zero tensors shaped like `params`.
+pub(crate) fn zeros_like(params: &[Tensor<f64>]) -> Vec<Tensor<f64>> {
+    params.iter().map(|p| Tensor::zeros(p.shape())).collect()
+}
+
+/// A constant `[R]` column per component from dimension-major values
+/// (`values[k * rows + r]`).
+pub(crate) fn columns<'t, F: Float>(tape: &'t Tape<F>, values: &[f32], dims: usize, rows: usize) -> Vec<Var<'t, F>> {
+    (0..dims)
+        .map(|k| {
+            let col: Vec<F> = values[k * rows..(k + 1) * rows].iter().map(|&v| F::from_f64(v as f64)).collect();
+            tape.constant(Tensor::from_vec(col))
+        })
+        .collect()
+}
