@@ -139,6 +139,25 @@ fn csv_num(v: Option<f64>) -> String {
     v.map_or_else(String::new, |v| v.to_string())
 }
 
+/// The metrics of `runs` filter runs of `models` on `data` (run `r` with seed
+/// `seed + r`).
+pub fn metric_runs(
+    data: &Dataset,
+    models: &Models,
+    particles: usize,
+    lag: usize,
+    seed: u64,
+    runs: usize,
+) -> Result<Vec<Metrics>, String> {
+    let mut out = Vec::with_capacity(runs);
+    for r in 0..runs {
+        let config = FilterConfig { particles, lag, seed: seed.wrapping_add(r as u64), ..FilterConfig::default() };
+        let tracks = run_track(data, models, &config)?;
+        out.push(metrics_of(data, models, &tracks, &config));
+    }
+    Ok(out)
+}
+
 /// Runs `sefi eval`.
 pub fn eval(args: &EvalArgs) -> Result<(), String> {
     check_particles(args.particles)?;
@@ -157,17 +176,7 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         args.lag,
         args.runs
     );
-    let mut runs = Vec::with_capacity(args.runs);
-    for r in 0..args.runs {
-        let config = FilterConfig {
-            particles: args.particles,
-            lag: args.lag,
-            seed: args.seed.wrapping_add(r as u64),
-            ..FilterConfig::default()
-        };
-        let tracks = run_track(&data, &models, &config)?;
-        runs.push(metrics_of(&data, &models, &tracks, &config));
-    }
+    let runs = metric_runs(&data, &models, args.particles, args.lag, args.seed, args.runs)?;
     let summary = metrics::summarise_runs(&runs);
 
     // Print: a value per metric, or median [q1, q3] over runs.

@@ -9,6 +9,9 @@ mod generate;
 mod import;
 mod output;
 mod plot;
+mod reproduce;
+mod score_check;
+mod train;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -64,6 +67,12 @@ enum Command {
     Eval(evaluate::EvalArgs),
     /// Smooth a dataset with given parameters and write the estimated states.
     Track(evaluate::TrackArgs),
+    /// Learn a dataset's policy and observation network with a score estimator.
+    Train(Box<train::TrainArgs>),
+    /// Reproduce the paper's synthetic experiment A or B: train every estimator, table and curves.
+    Reproduce(reproduce::ReproduceArgs),
+    /// Exact linear-Gaussian log-likelihood and score, and every estimator's bias and spread.
+    ScoreCheck(score_check::ScoreCheckArgs),
 }
 
 fn main() -> ExitCode {
@@ -76,6 +85,9 @@ fn main() -> ExitCode {
         Command::Generate(args) => generate::run(&args),
         Command::Eval(args) => evaluate::eval(&args),
         Command::Track(args) => evaluate::track(&args),
+        Command::Train(args) => train::run(&args),
+        Command::Reproduce(args) => reproduce::run(&args),
+        Command::ScoreCheck(args) => score_check::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

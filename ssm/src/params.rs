@@ -41,10 +41,11 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
-use crate::data::ObservationKind;
+use crate::data::{Dataset, ObservationKind};
 use crate::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 use crate::vehicle::{HandCraftedPolicy, NeuralPolicy};
+use crate::vehicle_ssm::VehicleSsm;
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";
@@ -251,6 +252,14 @@ impl AnyObservation {
     }
 }
 
+/// Code generic over the vehicle model of a dataset, run by [`Models::visit`].
+pub trait ModelVisitor {
+    /// What the visit returns.
+    type Output;
+    /// Runs on the model.
+    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output;
+}
+
 /// A policy and an observation model with its parameters, read from one store.
 #[derive(Clone, Debug)]
 pub struct Models {
@@ -263,6 +272,24 @@ pub struct Models {
 }
 
 impl Models {
+    /// Fresh models to learn from, for a dataset of `kind`: the given policy and an
+    /// observation network with standard initialisation drawn from `seed`.
+    pub fn initial(kind: ObservationKind, policy: AnyPolicy, seed: u64) -> Models {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut observation_params = ParamStore::new();
+        let observation = match kind {
+            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(
+                &mut observation_params,
+                OBS_PREFIX,
+                &mut rng,
+            )),
+            ObservationKind::Boxes => {
+                AnyObservation::Boxes(BoxObservationModel::init_params(&mut observation_params, OBS_PREFIX, &mut rng))
+            }
+        };
+        Models { policy, observation, observation_params }
+    }
+
     /// Reads the policy and the observation model for a dataset of `kind` from
     /// `store` (see the [module docs](self)).
     pub fn from_store(store: &ParamStore<f64>, kind: ObservationKind) -> Result<Models, ParamsError> {
@@ -289,6 +316,17 @@ impl Models {
         };
         copy_exact(&mut observation_params, store, OBS_PREFIX, model)?;
         Ok(Models { policy, observation, observation_params })
+    }
+
+    /// Builds the [`VehicleSsm`] of `data` under these models and hands it to
+    /// `visitor` (which is generic over the observation model). Fails if the
+    /// dataset's kind is not the one the observation model reads.
+    pub fn visit<V: ModelVisitor>(&self, data: &Dataset, visitor: V) -> Result<V::Output, String> {
+        let (p, params) = (&self.policy, &self.observation_params);
+        match &self.observation {
+            AnyObservation::Points(o) => Ok(visitor.visit(&VehicleSsm::new(data, p, o, params)?)),
+            AnyObservation::Boxes(o) => Ok(visitor.visit(&VehicleSsm::new(data, p, o, params)?)),
+        }
     }
 
     /// A store holding these models under the convention of the [module docs](self)

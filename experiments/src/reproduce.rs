@@ -1,0 +1,344 @@
+//! `sefi reproduce --exp A|B`: the paper's synthetic experiments end to end.
+//!
+//! 1. Generates the experiment's data into `OUT/data` (or reuses it).
+//! 2. Evaluates TRUE (the generating parameters) on the test scenes.
+//! 3. Trains PF-SEFI, DPF-SGR, PFNET and PF from the same initialisation per seed
+//!    (`OUT/runs/<method>-seed<k>`, each a `sefi train` directory; an interrupted
+//!    reproduce resumes every unfinished run from its checkpoint).
+//! 4. Evaluates each learned model on the test scenes and writes the table of SPEC
+//!    §5 metrics (median and interquartile range over seeds) as `OUT/table.csv`
+//!    and `OUT/table.md`, the test-MLL curves as `OUT/curves.svg`, and everything
+//!    (per-run metrics, learned policy sds, timings) as `OUT/reproduce.json`.
+//!
+//! Scales: `--quick` (tiny data, a few minutes: for tests), the default (paper-size
+//! data, fewer particles and epochs: about two hours for A on two cores) and
+//! `--paper` (the paper's settings: 1024 training / 4096 evaluation particles,
+//! 100 epochs, L = 8, alpha = 0.8).
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use autodiff::nn::ParamStore;
+use serde::Serialize;
+use serde_json::json;
+use ssm::data::Dataset;
+use ssm::metrics::{summarise_runs, Metrics, Summary};
+use ssm::params::{AnyPolicy, Models};
+use ssm::training::PARAMS_FILE;
+use ssm::vehicle::{GaussianPolicy, HandCraftedPolicy};
+
+use crate::evaluate::metric_runs;
+use crate::generate::{self, GenerateArgs};
+use crate::output::{ensure_dir, write_atomic, write_json};
+use crate::plot::{line_chart, Series};
+use crate::train::{self, read_eval_curve, TrainArgs};
+
+/// Arguments of `sefi reproduce`.
+#[derive(clap::Args)]
+pub struct ReproduceArgs {
+    /// Experiment: A (25 steps) or B (50 steps).
+    #[arg(long, default_value = "A")]
+    pub exp: String,
+    /// Output directory.
+    #[arg(long, default_value = "out/reproduce")]
+    pub out: PathBuf,
+    /// Tiny sizes: the whole pipeline in a few minutes.
+    #[arg(long, conflicts_with = "paper")]
+    pub quick: bool,
+    /// The paper's settings (1024 / 4096 particles, 100 epochs).
+    #[arg(long)]
+    pub paper: bool,
+    /// Seeds per method (default: 2 quick, 3 otherwise).
+    #[arg(long)]
+    pub seeds: Option<usize>,
+    /// Methods to train (comma-separated).
+    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf")]
+    pub methods: Vec<String>,
+}
+
+/// The sizes of a reproduction.
+#[derive(Clone, Debug, Serialize)]
+struct Scale {
+    name: &'static str,
+    particles: usize,
+    eval_particles: usize,
+    epochs: usize,
+    seeds: usize,
+    eval_every: usize,
+    lag: usize,
+    alpha: f64,
+}
+
+impl Scale {
+    fn of(args: &ReproduceArgs) -> Scale {
+        let mut s = if args.quick {
+            Scale {
+                name: "quick",
+                particles: 64,
+                eval_particles: 256,
+                epochs: 4,
+                seeds: 2,
+                eval_every: 2,
+                lag: 8,
+                alpha: 0.8,
+            }
+        } else if args.paper {
+            Scale {
+                name: "paper",
+                particles: 1024,
+                eval_particles: 4096,
+                epochs: 100,
+                seeds: 3,
+                eval_every: 10,
+                lag: 8,
+                alpha: 0.8,
+            }
+        } else {
+            Scale {
+                name: "default",
+                particles: 256,
+                eval_particles: 4096,
+                epochs: 10,
+                seeds: 3,
+                eval_every: 10,
+                lag: 8,
+                alpha: 0.8,
+            }
+        };
+        if let Some(k) = args.seeds {
+            s.seeds = k.max(1);
+        }
+        s
+    }
+}
+
+/// The metrics of the table, in order, with their headers.
+const COLUMNS: [(&str, &str); 7] = [
+    ("mll", "MLL"),
+    ("aotll", "AOTLL"),
+    ("aptll", "APTLL"),
+    ("ade_smoothed", "ADE sm (m)"),
+    ("aye_smoothed", "AYE sm (rad)"),
+    ("ade_filtered", "ADE filt (m)"),
+    ("aye_filtered", "AYE filt (rad)"),
+];
+
+/// One method's results over seeds.
+struct MethodResult {
+    method: String,
+    runs: Vec<Metrics>,
+    /// Learned (sd accel, sd pinch) per seed, for the hand-crafted policy.
+    sds: Vec<(f64, f64)>,
+    curves: Vec<Vec<(f64, f64)>>,
+    seconds: f64,
+}
+
+fn learned_sds(store: &ParamStore<f64>, data: &Dataset) -> Option<(f64, f64)> {
+    let models = Models::from_store(store, data.kind()).ok()?;
+    match &models.policy {
+        AnyPolicy::HandCrafted(_) => {
+            let p = models.policy.parameters();
+            Some((p[0].data()[0].exp(), p[0].data()[1].exp()))
+        }
+        AnyPolicy::Neural(_) => None,
+    }
+}
+
+fn summary_cell(s: Option<&Summary>) -> String {
+    match s {
+        Some(s) if s.n > 1 => format!("{:.3} [{:.3}, {:.3}]", s.median, s.q1, s.q3),
+        Some(s) => format!("{:.3}", s.median),
+        None => "-".into(),
+    }
+}
+
+/// Median over seeds of the curves, at the steps of the first.
+fn median_curve(curves: &[Vec<(f64, f64)>]) -> Vec<(f64, f64)> {
+    let Some(first) = curves.first() else { return Vec::new() };
+    first
+        .iter()
+        .enumerate()
+        .filter_map(|(i, &(x, _))| {
+            let ys: Vec<f64> = curves.iter().filter_map(|c| c.get(i)).map(|p| p.1).filter(|y| y.is_finite()).collect();
+            ssm::metrics::median(&ys).map(|m| (x, m))
+        })
+        .collect()
+}
+
+/// Runs `sefi reproduce`.
+pub fn run(args: &ReproduceArgs) -> Result<(), String> {
+    let started = Instant::now();
+    let scale = Scale::of(args);
+    for m in &args.methods {
+        ssm::estimators::Estimator::parse(m, scale.lag, scale.alpha)?;
+    }
+    ensure_dir(&args.out)?;
+    let data_dir = args.out.join("data");
+    if !data_dir.join("generate.json").is_file() {
+        generate::run(&GenerateArgs { exp: args.exp.clone(), out: data_dir.clone(), seed: 0, quick: args.quick })?;
+    } else {
+        eprintln!("reusing the data in {}", data_dir.display());
+    }
+    let test = Dataset::read(data_dir.join("test")).map_err(|e| e.to_string())?;
+    let train_data = Dataset::read(data_dir.join("train")).map_err(|e| e.to_string())?;
+
+    // TRUE: the generating parameters, one evaluation per seed.
+    let true_path = data_dir.join("true_params.bin");
+    let true_store = ParamStore::<f64>::load(&true_path).map_err(|e| format!("{}: {e}", true_path.display()))?;
+    let true_models = Models::from_store(&true_store, test.kind()).map_err(|e| e.to_string())?;
+    eprintln!("evaluating TRUE ({} runs, {} particles)", scale.seeds, scale.eval_particles);
+    let clock = Instant::now();
+    let true_runs = metric_runs(&test, &true_models, scale.eval_particles, scale.lag, 1000, scale.seeds)?;
+    let mut results = vec![MethodResult {
+        method: "TRUE".into(),
+        runs: true_runs,
+        sds: learned_sds(&true_store, &test).into_iter().collect(),
+        curves: Vec::new(),
+        seconds: clock.elapsed().as_secs_f64(),
+    }];
+
+    let steps_per_run = scale.epochs * train_data.scenes().len();
+    for method in &args.methods {
+        let clock = Instant::now();
+        let mut result = MethodResult {
+            method: method.clone(),
+            runs: Vec::new(),
+            sds: Vec::new(),
+            curves: Vec::new(),
+            seconds: 0.0,
+        };
+        for seed in 0..scale.seeds as u64 {
+            let dir = args.out.join("runs").join(format!("{method}-seed{seed}"));
+            let train_args = TrainArgs {
+                data: data_dir.join("train"),
+                test: data_dir.join("test"),
+                init: None,
+                policy: "hand-crafted".into(),
+                init_sd: "1.0,0.1".into(),
+                estimator: method.clone(),
+                lag: scale.lag,
+                alpha: scale.alpha,
+                particles: scale.particles,
+                eval_particles: scale.eval_particles,
+                epochs: scale.epochs,
+                lr: 0.01,
+                clip: None,
+                eval_every: scale.eval_every,
+                checkpoint_every: scale.eval_every,
+                scenes_per_step: 1,
+                chunk_objects: 4,
+                seed,
+                out: dir.clone(),
+                resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
+            };
+            let bar = train::bar(&format!("{method} s{seed}"));
+            train::train_run(&train_args, &bar)?;
+            bar.finish_and_clear();
+            let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
+            let models = Models::from_store(&store, test.kind()).map_err(|e| e.to_string())?;
+            let mut m = metric_runs(&test, &models, scale.eval_particles, scale.lag, 2000 + seed, 1)?;
+            result.runs.append(&mut m);
+            result.sds.extend(learned_sds(&store, &test));
+            result.curves.push(read_eval_curve(&dir, "test_mll")?);
+            eprintln!(
+                "{method} seed {seed}: test MLL {:.4} ({} steps)",
+                result.runs.last().and_then(|m| m.mll).unwrap_or(f64::NAN),
+                steps_per_run
+            );
+        }
+        result.seconds = clock.elapsed().as_secs_f64();
+        results.push(result);
+    }
+    write_outputs(args, &scale, &results, started.elapsed().as_secs_f64())
+}
+
+fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], seconds: f64) -> Result<(), String> {
+    let truth = HandCraftedPolicy::truth();
+    let (true_sd_a, true_sd_p) = (truth.log_sd_accel().exp(), truth.log_sd_pinch().exp());
+    let mut md = format!(
+        "Experiment {} ({} scale: {} training / {} evaluation particles, {} epochs, L = {}, alpha = {}, {} seeds; \
+         {:.0} s). Median [IQR] over seeds.\n\n| method |",
+        args.exp.to_uppercase(),
+        scale.name,
+        scale.particles,
+        scale.eval_particles,
+        scale.epochs,
+        scale.lag,
+        scale.alpha,
+        scale.seeds,
+        seconds
+    );
+    let mut csv = String::from("method,metric,median,q1,q3,n\n");
+    for (_, header) in COLUMNS {
+        let _ = write!(md, " {header} |");
+    }
+    md.push_str(" sd accel | sd pinch | train time (s) |\n|---|");
+    for _ in 0..COLUMNS.len() + 3 {
+        md.push_str("---|");
+    }
+    md.push('\n');
+    for r in results {
+        let summary = summarise_runs(&r.runs);
+        let _ = write!(md, "| {} |", r.method);
+        for (name, _) in COLUMNS {
+            let s = summary.iter().find(|(n, _)| *n == name).and_then(|(_, s)| s.as_ref());
+            let _ = write!(md, " {} |", summary_cell(s));
+            if let Some(s) = s {
+                let _ = writeln!(csv, "{},{name},{},{},{},{}", r.method, s.median, s.q1, s.q3, s.n);
+            }
+        }
+        let sd = |f: fn(&(f64, f64)) -> f64| {
+            let v: Vec<f64> = r.sds.iter().map(f).collect();
+            summary_cell(Summary::of(&v).as_ref())
+        };
+        let _ = writeln!(md, " {} | {} | {:.0} |", sd(|s| s.0), sd(|s| s.1), r.seconds);
+        for (name, f) in [("sd_accel", (|s: &(f64, f64)| s.0) as fn(&(f64, f64)) -> f64), ("sd_pinch", |s| s.1)] {
+            let v: Vec<f64> = r.sds.iter().map(f).collect();
+            if let Some(s) = Summary::of(&v) {
+                let _ = writeln!(csv, "{},{name},{},{},{},{}", r.method, s.median, s.q1, s.q3, s.n);
+            }
+        }
+    }
+    let _ = writeln!(md, "\nTrue policy sds: accel {true_sd_a}, pinch {true_sd_p}.");
+    write_atomic(&args.out.join("table.md"), md.as_bytes())?;
+    write_atomic(&args.out.join("table.csv"), csv.as_bytes())?;
+
+    let mut series: Vec<Series> = results
+        .iter()
+        .filter(|r| !r.curves.is_empty())
+        .map(|r| Series { name: r.method.clone(), points: median_curve(&r.curves) })
+        .collect();
+    if let Some(true_mll) = results[0].runs.iter().filter_map(|m| m.mll).reduce(f64::max) {
+        let last = series.iter().flat_map(|s| s.points.last()).map(|p| p.0).fold(1.0, f64::max);
+        series.push(Series { name: "TRUE".into(), points: vec![(0.0, true_mll), (last, true_mll)] });
+    }
+    line_chart(
+        &args.out.join("curves.svg"),
+        &format!("Experiment {}: test MLL during training (median over seeds)", args.exp.to_uppercase()),
+        "training step",
+        "test MLL (nats/point)",
+        &series,
+    )?;
+
+    let doc = json!({
+        "experiment": args.exp.to_uppercase(),
+        "scale": scale,
+        "seconds": seconds,
+        "true_sds": [true_sd_a, true_sd_p],
+        "methods": results.iter().map(|r| json!({
+            "method": r.method,
+            "runs": r.runs,
+            "learned_sds": r.sds,
+            "seconds": r.seconds,
+        })).collect::<Vec<_>>(),
+    });
+    write_json(&args.out.join("reproduce.json"), &doc)?;
+    println!("{md}");
+    println!("wrote {} (table.csv, table.md, curves.svg, reproduce.json)", display(&args.out));
+    Ok(())
+}
+
+fn display(p: &Path) -> String {
+    p.display().to_string()
+}

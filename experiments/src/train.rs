@@ -1,0 +1,243 @@
+//! `sefi train`: learns a dataset's policy and observation network with a score
+//! estimator (SPEC §6) through [`ssm::training::train`] and
+//! [`ssm::objective::SceneObjective`].
+//!
+//! Writes into `--out DIR`: `run.json` (every setting; a resumed run must match
+//! it), `train.csv` and `eval.csv` (the logs), `checkpoint.bin` and `params.bin`
+//! (resumable state and the learned parameters, for `sefi eval --params`), and
+//! `curve.svg` (test MLL against training step).
+
+use std::path::{Path, PathBuf};
+
+use autodiff::nn::ParamStore;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::{Deserialize, Serialize};
+use ssm::data::Dataset;
+use ssm::estimators::{Estimator, EstimatorConfig};
+use ssm::objective::{ObjectiveConfig, SceneObjective};
+use ssm::params::{AnyPolicy, Models};
+use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
+use ssm::vehicle::{HandCraftedPolicy, NeuralPolicy};
+
+use crate::output::{ensure_dir, write_json};
+use crate::plot::{line_chart, Series};
+
+/// Arguments of `sefi train`.
+#[derive(clap::Args, Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct TrainArgs {
+    /// Training dataset directory.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Test dataset directory (evaluated during training).
+    #[arg(long)]
+    pub test: PathBuf,
+    /// Start from these parameters instead of a fresh initialisation.
+    #[arg(long)]
+    pub init: Option<PathBuf>,
+    /// Policy of a fresh initialisation: `hand-crafted` or `neural`.
+    #[arg(long, default_value = "hand-crafted")]
+    pub policy: String,
+    /// Initial sds `accel,pinch` of a fresh hand-crafted policy.
+    #[arg(long, default_value = "1.0,0.1")]
+    pub init_sd: String,
+    /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet.
+    #[arg(long, default_value = "pf-sefi")]
+    pub estimator: String,
+    /// PF-SEFI's fixed lag L.
+    #[arg(long, default_value_t = 8)]
+    pub lag: usize,
+    /// PFNET's soft-resampling alpha.
+    #[arg(long, default_value_t = 0.8)]
+    pub alpha: f64,
+    /// Training particles per object.
+    #[arg(long, default_value_t = 1024)]
+    pub particles: usize,
+    /// Evaluation particles per object.
+    #[arg(long, default_value_t = 4096)]
+    pub eval_particles: usize,
+    /// Epochs (passes over the training scenes).
+    #[arg(long, default_value_t = 100)]
+    pub epochs: usize,
+    /// Adam's learning rate.
+    #[arg(long, default_value_t = 0.01)]
+    pub lr: f64,
+    /// Global gradient-norm clipping (of the per-point score).
+    #[arg(long)]
+    pub clip: Option<f64>,
+    /// Evaluate on the test data every this many steps (0: only at the start and end).
+    #[arg(long, default_value_t = 10)]
+    pub eval_every: usize,
+    /// Write a checkpoint every this many steps.
+    #[arg(long, default_value_t = 10)]
+    pub checkpoint_every: usize,
+    /// Scenes per training step.
+    #[arg(long, default_value_t = 1)]
+    pub scenes_per_step: usize,
+    /// Objects per tape of the through-filter baselines (memory against speed).
+    #[arg(long, default_value_t = 4)]
+    pub chunk_objects: usize,
+    /// Random seed (initialisation, batch order, filters).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output directory.
+    #[arg(long, default_value = "out/train")]
+    pub out: PathBuf,
+    /// Continue the run in `--out` from its last checkpoint.
+    #[arg(long)]
+    #[serde(skip)]
+    pub resume: bool,
+}
+
+/// Parses `a,b` as two positive numbers.
+fn parse_sds(text: &str) -> Result<(f64, f64), String> {
+    let v: Vec<f64> = text.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    match v[..] {
+        [a, b] if a > 0.0 && b > 0.0 && a.is_finite() && b.is_finite() => Ok((a, b)),
+        _ => Err(format!("--init-sd: expected `accel,pinch` sds > 0, got `{text}`")),
+    }
+}
+
+/// The store training starts from.
+fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, String> {
+    if let Some(path) = &args.init {
+        let store = ParamStore::load(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Models::from_store(&store, data.kind()).map_err(|e| format!("{}: {e}", path.display()))?;
+        return Ok(store);
+    }
+    let policy = match args.policy.as_str() {
+        "hand-crafted" => {
+            let (a, p) = parse_sds(&args.init_sd)?;
+            AnyPolicy::HandCrafted(HandCraftedPolicy::new(a.ln(), p.ln()).map_err(|e| e.to_string())?)
+        }
+        "neural" => {
+            use rand::SeedableRng;
+            AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(args.seed)))
+        }
+        other => return Err(format!("--policy: expected hand-crafted or neural, got `{other}`")),
+    };
+    Ok(Models::initial(data.kind(), policy, args.seed.wrapping_add(1)).to_store())
+}
+
+/// Reads `eval.csv` in `dir`: the step column and the named metric.
+pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Vec<(f64, f64)>, String> {
+    let path = dir.join(EVAL_LOG);
+    let mut reader = csv::Reader::from_path(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let headers = reader.headers().map_err(|e| format!("{}: {e}", path.display()))?.clone();
+    let col = headers.iter().position(|h| h == metric).ok_or_else(|| format!("{}: no `{metric}`", path.display()))?;
+    let mut points = Vec::new();
+    for row in reader.records() {
+        let row = row.map_err(|e| format!("{}: {e}", path.display()))?;
+        let x: f64 = row[0].parse().map_err(|_| format!("{}: bad step `{}`", path.display(), &row[0]))?;
+        let y: f64 = row[col].parse().unwrap_or(f64::NAN);
+        points.push((x, y));
+    }
+    Ok(points)
+}
+
+/// Runs one training run; `bar` shows its progress (hidden for none).
+pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, String> {
+    let estimator = Estimator::parse(&args.estimator, args.lag, args.alpha)?;
+    if args.particles == 0 || args.eval_particles == 0 {
+        return Err("--particles and --eval-particles must be at least 1".into());
+    }
+    let data = Dataset::read(&args.data).map_err(|e| e.to_string())?;
+    let test = Dataset::read(&args.test).map_err(|e| e.to_string())?;
+    ensure_dir(&args.out)?;
+    let run_file = args.out.join("run.json");
+    if args.resume {
+        let text = std::fs::read_to_string(&run_file).map_err(|e| format!("{}: {e}", run_file.display()))?;
+        let before: TrainArgs =
+            serde_json::from_str(&text).map_err(|e| format!("{}: not a run description: {e}", run_file.display()))?;
+        if before != (TrainArgs { resume: false, ..args.clone() }) {
+            return Err(format!(
+                "{}: the run was started with other settings; resume it with the same arguments",
+                run_file.display()
+            ));
+        }
+    }
+    let initial = initial_store(args, &data)?;
+    let config = ObjectiveConfig {
+        estimator,
+        estimator_config: EstimatorConfig {
+            particles: args.particles,
+            chunk_objects: args.chunk_objects.max(1),
+            ..EstimatorConfig::default()
+        },
+        scenes_per_step: args.scenes_per_step,
+        eval_particles: args.eval_particles,
+    };
+    let mut objective = SceneObjective::new(&data, test, config)?;
+    let train_config = TrainConfig {
+        lr: args.lr,
+        clip: args.clip,
+        epochs: args.epochs,
+        eval_every: args.eval_every,
+        checkpoint_every: args.checkpoint_every.max(1),
+        seed: args.seed,
+        shuffle: true,
+    };
+    let description = serde_json::to_value(args).map_err(|e| e.to_string())?;
+    if !args.resume {
+        // Refuse before writing anything if the directory holds a run.
+        if args.out.join(ssm::training::CHECKPOINT_FILE).exists() {
+            return Err(format!(
+                "{} already holds a training run: pass --resume to continue it or choose another --out",
+                args.out.display()
+            ));
+        }
+        write_json(&run_file, &description)?;
+    }
+    let mut last_mll = f64::NAN;
+    let mut on_event = |e: &TrainEvent| match e {
+        TrainEvent::Started { total_steps, first_step } => {
+            bar.set_length(*total_steps as u64);
+            bar.set_position(first_step.saturating_sub(1) as u64);
+        }
+        TrainEvent::Step { step, ll_per_unit, .. } => {
+            bar.set_position(*step as u64);
+            bar.set_message(format!("train {ll_per_unit:.3} nats/pt, test {last_mll:.3}"));
+        }
+        TrainEvent::Evaluated { metrics, .. } => {
+            if let Some((_, v)) = metrics.iter().find(|(n, _)| n == "test_mll") {
+                last_mll = *v;
+            }
+        }
+        TrainEvent::Checkpointed { .. } => {}
+    };
+    let outcome = train(&mut objective, initial, &train_config, &args.out, args.resume, &mut on_event)
+        .map_err(|e| e.to_string())?;
+    let curve = read_eval_curve(&args.out, "test_mll")?;
+    let series = [Series { name: args.estimator.clone(), points: curve }];
+    line_chart(
+        &args.out.join("curve.svg"),
+        "Test MLL during training",
+        "training step",
+        "test MLL (nats/point)",
+        &series,
+    )?;
+    Ok(outcome)
+}
+
+/// A progress bar for training.
+pub fn bar(prefix: &str) -> ProgressBar {
+    ProgressBar::new(0).with_prefix(prefix.to_string()).with_style(
+        ProgressStyle::with_template("{prefix:>16} {bar:30} {pos}/{len} steps ({elapsed}, eta {eta}) {msg}")
+            .expect("valid template"),
+    )
+}
+
+/// Runs `sefi train`.
+pub fn run(args: &TrainArgs) -> Result<(), String> {
+    let bar = bar(&args.estimator);
+    let outcome = train_run(args, &bar)?;
+    bar.finish();
+    println!(
+        "{} steps ({} skipped) in {:.1} s; final: {}",
+        outcome.steps,
+        outcome.skipped_steps,
+        outcome.seconds,
+        outcome.final_eval.iter().map(|(n, v)| format!("{n} {v:.4}")).collect::<Vec<_>>().join(", ")
+    );
+    println!("parameters: {}", args.out.join(ssm::training::PARAMS_FILE).display());
+    Ok(())
+}

@@ -1,0 +1,164 @@
+//! `sefi train`, `sefi reproduce --quick` and `sefi score-check` end to end: the
+//! files they promise, refusals that protect earlier work, and resuming.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn sefi(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sefi")).args(args).output().expect("runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sefi-train-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+fn rows(path: &Path) -> usize {
+    std::fs::read_to_string(path).unwrap().lines().count() - 1
+}
+
+#[test]
+fn train_writes_logs_and_parameters_refuses_to_overwrite_and_resumes() {
+    let dir = temp("run");
+    let data = dir.join("data");
+    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    let (train, test, out) = (data.join("train"), data.join("test"), dir.join("pf-sefi"));
+    let args = |epochs: &str| {
+        vec![
+            "train",
+            "--data",
+            s(&train),
+            "--test",
+            s(&test),
+            "--out",
+            s(&out),
+            "--epochs",
+            epochs,
+            "--particles",
+            "32",
+            "--eval-particles",
+            "64",
+            "--eval-every",
+            "2",
+            "--checkpoint-every",
+            "2",
+        ]
+        .into_iter()
+        .map(String::from)
+        .collect::<Vec<_>>()
+    };
+    let run = |a: Vec<String>| Command::new(env!("CARGO_BIN_EXE_sefi")).args(&a).output().unwrap();
+    ok(&run(args("2")));
+    // 2 training scenes x 2 epochs = 4 steps; evaluations at 0, 2, 4.
+    assert_eq!(rows(&out.join("train.csv")), 4);
+    assert_eq!(rows(&out.join("eval.csv")), 3);
+    for f in ["params.bin", "checkpoint.bin", "run.json", "curve.svg"] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let before = std::fs::read(out.join("params.bin")).unwrap();
+
+    // Starting again in the same directory is refused and changes nothing.
+    let again = run(args("2"));
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--resume"));
+    assert_eq!(std::fs::read(out.join("params.bin")).unwrap(), before);
+
+    // Resuming with other settings is refused.
+    let mut other = args("2");
+    other.extend(["--resume".into(), "--lr".into(), "0.5".into()]);
+    assert!(!run(other).status.success());
+
+    // Resuming a finished run does no more steps and keeps its result.
+    let mut same = args("2");
+    same.push("--resume".into());
+    ok(&run(same));
+    assert_eq!(rows(&out.join("train.csv")), 4);
+    assert_eq!(std::fs::read(out.join("params.bin")).unwrap(), before);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn reproduce_quick_writes_the_table_curves_and_every_method() {
+    let dir = temp("reproduce");
+    let stdout = ok(&sefi(&["reproduce", "--exp", "A", "--quick", "--out", s(&dir)]));
+    assert!(stdout.contains("| TRUE |"));
+    for f in ["table.md", "table.csv", "curves.svg", "reproduce.json"] {
+        assert!(dir.join(f).is_file(), "{f}");
+    }
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("reproduce.json")).unwrap()).unwrap();
+    let methods: Vec<&str> = doc["methods"].as_array().unwrap().iter().map(|m| m["method"].as_str().unwrap()).collect();
+    assert_eq!(methods, ["TRUE", "pf-sefi", "dpf-sgr", "pfnet", "pf"]);
+    for m in doc["methods"].as_array().unwrap() {
+        for run in m["runs"].as_array().unwrap() {
+            assert!(run["mll"].as_f64().unwrap().is_finite(), "{}", m["method"]);
+        }
+    }
+    // Every learned method reports its learned sds, moved from the initial (1.0, 0.1).
+    for m in &doc["methods"].as_array().unwrap()[1..] {
+        let sds = m["learned_sds"].as_array().unwrap();
+        assert_eq!(sds.len(), 2, "{}", m["method"]);
+        for sd in sds {
+            let (a, p) = (sd[0].as_f64().unwrap(), sd[1].as_f64().unwrap());
+            assert!(a > 0.0 && p > 0.0 && (a, p) != (1.0, 0.1), "{}: {sd}", m["method"]);
+        }
+    }
+    let csv = std::fs::read_to_string(dir.join("table.csv")).unwrap();
+    assert!(csv.lines().any(|l| l.starts_with("pf-sefi,mll,")));
+    // A second call reuses data and finished runs.
+    let again = sefi(&["reproduce", "--exp", "A", "--quick", "--out", s(&dir)]);
+    ok(&again);
+    assert!(String::from_utf8_lossy(&again.stderr).contains("reusing"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn score_check_prints_the_exact_score_and_names_bad_lines() {
+    let dir = temp("score");
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("ys.txt");
+    std::fs::write(&file, "0.5\n# a comment\n-0.25\n1.5\n").unwrap();
+    let stdout = ok(&sefi(&["score-check", "--observations", s(&file), "--params", "0.8,0.5,1.2"]));
+    let model = ssm::lgssm::Lgssm::stationary(ssm::lgssm::LgssmTheta::new(0.8, 0.5, 1.2)).unwrap();
+    let (ll, _) = model.score(&[0.5, -0.25, 1.5]);
+    assert!(stdout.contains(&format!("exact log-likelihood: {ll:.10}")), "{stdout}");
+
+    std::fs::write(&file, "0.5\nabc\n").unwrap();
+    let bad = sefi(&["score-check", "--observations", s(&file)]);
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("ys.txt:2"), "{}", String::from_utf8_lossy(&bad.stderr));
+
+    // A small table: every estimator appears for each T.
+    let out = dir.join("table");
+    let stdout = ok(&sefi(&[
+        "score-check",
+        "--observations",
+        s(&file),
+        "--simulate",
+        "21",
+        "--table",
+        "--steps",
+        "10,20",
+        "--runs",
+        "4",
+        "--particles",
+        "32",
+        "--out",
+        s(&out),
+    ]));
+    for e in ["pf-sefi L=0", "pf-sefi L=10", "pf-sefi L=20", "pf", "dpf-sgr", "dpf-sgr-stopped", "pfnet a=0.8"] {
+        assert!(stdout.contains(&format!("| 20 | {e} |")), "{e}: {stdout}");
+    }
+    assert!(out.join("score_table.csv").is_file());
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -1,0 +1,150 @@
+//! Learning the vehicle model of a dataset: the [`Objective`] that
+//! [`crate::training::train`] climbs, one batch of scenes per step, with a score
+//! estimator of [`crate::estimators`] and the test MLL as its evaluation.
+//!
+//! Parameters live in one [`ParamStore`] under the convention of
+//! [`crate::params`]; each step rebuilds the models from it
+//! ([`Models::from_store`]), estimates the score on the batch's objects and maps
+//! the gradient back onto the store by name. The gradient handed to the trainer
+//! is the score divided by the batch's observed units (the gradient of the
+//! per-point log-likelihood), so learning rates and clipping thresholds do not
+//! depend on how many points a scene has.
+
+use autodiff::nn::ParamStore;
+use autodiff::Tensor;
+use serde::{Deserialize, Serialize};
+
+use crate::data::Dataset;
+use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
+use crate::filter::{run_filter, FilterConfig};
+use crate::observation::ObservationModel;
+use crate::params::{AnyPolicy, ModelVisitor, Models};
+use crate::training::{non_finite, BatchEstimate, Objective};
+use crate::vehicle::GaussianPolicy;
+use crate::vehicle_ssm::VehicleSsm;
+
+/// How the objective estimates and evaluates.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ObjectiveConfig {
+    /// The score estimator.
+    pub estimator: Estimator,
+    /// Particles, resampling and chunking of the estimator.
+    pub estimator_config: EstimatorConfig,
+    /// Scenes per training step (SPEC §6: one).
+    pub scenes_per_step: usize,
+    /// Particles of the test evaluation (SPEC §5: 4096).
+    pub eval_particles: usize,
+}
+
+/// Training scenes in batches, test data, and an estimator.
+pub struct SceneObjective {
+    batches: Vec<Dataset>,
+    test: Dataset,
+    config: ObjectiveConfig,
+}
+
+impl SceneObjective {
+    /// Batches of `scenes_per_step` consecutive scenes of `train` (the last may be
+    /// smaller) and the test data. Fails on an empty dataset or different kinds.
+    pub fn new(train: &Dataset, test: Dataset, config: ObjectiveConfig) -> Result<Self, String> {
+        if train.scenes().is_empty() || test.scenes().is_empty() {
+            return Err("training and test data need at least one scene each".into());
+        }
+        if train.kind() != test.kind() {
+            return Err(format!("training data holds {:?}, test data {:?}", train.kind(), test.kind()));
+        }
+        let per = config.scenes_per_step.max(1);
+        let scenes: Vec<usize> = (0..train.scenes().len()).collect();
+        let batches = scenes.chunks(per).map(|c| train.select_scenes(c)).collect();
+        Ok(SceneObjective { batches, test, config })
+    }
+
+    /// The models a store describes for this data's kind.
+    fn models(&self, params: &ParamStore<f64>) -> Result<Models, String> {
+        Models::from_store(params, self.test.kind()).map_err(|e| e.to_string())
+    }
+}
+
+struct Estimate<'a> {
+    estimator: &'a Estimator,
+    config: &'a EstimatorConfig,
+    seed: u64,
+}
+
+impl ModelVisitor for Estimate<'_> {
+    type Output = (ScoreEstimate, Vec<String>);
+    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        (self.estimator.estimate(model, self.config, self.seed), model.parameter_names())
+    }
+}
+
+struct LogLikelihood<'a> {
+    config: &'a FilterConfig,
+}
+
+impl ModelVisitor for LogLikelihood<'_> {
+    type Output = (f64, usize, usize);
+    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let run = run_filter(model, self.config, |_| ());
+        (run.log_likelihood(), run.observed_units(), run.collapsed_steps())
+    }
+}
+
+/// Places per-tensor gradients named `names` into the order of `store`; names
+/// the model does not have get zeros. Fails if a model name is not in the store.
+pub fn gradient_in_store_order(
+    store: &ParamStore<f64>,
+    names: &[String],
+    gradient: Vec<Tensor<f64>>,
+) -> Result<Vec<Tensor<f64>>, String> {
+    let mut out: Vec<Tensor<f64>> = store.values().iter().map(|v| Tensor::zeros(v.shape())).collect();
+    for (name, g) in names.iter().zip(gradient) {
+        let id = store.id(name).ok_or_else(|| format!("the model's parameter `{name}` is not in the store"))?;
+        out[id.0] = g;
+    }
+    Ok(out)
+}
+
+impl Objective for SceneObjective {
+    fn batches(&self) -> usize {
+        self.batches.len()
+    }
+
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String> {
+        let models = self.models(params)?;
+        let visit = Estimate { estimator: &self.config.estimator, config: &self.config.estimator_config, seed };
+        let (estimate, names) = models.visit(&self.batches[batch], visit)?;
+        if !estimate.is_finite() {
+            return Err(non_finite(format!("score estimate on batch {batch}")));
+        }
+        let units = estimate.observed_units.max(1) as f64;
+        let mut gradient = gradient_in_store_order(params, &names, estimate.gradient)?;
+        for g in &mut gradient {
+            g.data_mut().iter_mut().for_each(|x| *x /= units);
+        }
+        Ok(BatchEstimate {
+            log_likelihood: estimate.log_likelihood,
+            observed_units: estimate.observed_units,
+            gradient,
+            collapsed_steps: estimate.collapsed_steps,
+        })
+    }
+
+    /// `test_mll` (nats per point, one filter run with `eval_particles`), the
+    /// test's collapsed steps and, for the hand-crafted policy, its sds.
+    fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
+        let models = self.models(params)?;
+        let config = FilterConfig { particles: self.config.eval_particles, lag: 0, seed, ..FilterConfig::default() };
+        let (ll, units, collapsed) = models.visit(&self.test, LogLikelihood { config: &config })?;
+        let mut metrics = vec![
+            ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),
+            ("test_collapsed_steps".to_string(), collapsed as f64),
+        ];
+        if let AnyPolicy::HandCrafted(_) = &models.policy {
+            let p = models.policy.parameters();
+            metrics.push(("sd_accel".into(), p[0].data()[0].exp()));
+            metrics.push(("sd_pinch".into(), p[0].data()[1].exp()));
+        }
+        Ok(metrics)
+    }
+}
