@@ -52,6 +52,12 @@ pub struct ReproduceArgs {
     /// Seeds per method (default: 2 quick, 3 otherwise).
     #[arg(long)]
     pub seeds: Option<usize>,
+    /// Override the scale's training epochs.
+    #[arg(long)]
+    pub epochs: Option<usize>,
+    /// Override the scale's training particles.
+    #[arg(long)]
+    pub particles: Option<usize>,
     /// Methods to train (comma-separated).
     #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf")]
     pub methods: Vec<String>,
@@ -108,6 +114,12 @@ impl Scale {
         };
         if let Some(k) = args.seeds {
             s.seeds = k.max(1);
+        }
+        if let Some(e) = args.epochs {
+            s.epochs = e.max(1);
+        }
+        if let Some(n) = args.particles {
+            s.particles = n.max(1);
         }
         s
     }
