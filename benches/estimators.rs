@@ -1,0 +1,688 @@
+//! Score-estimator cost on the vehicle model with point observations, f32, at the
+//! sizes of SPEC §10: A (100 objects, T = 25) and B (100 objects, T = 50), both with
+//! N = 1024 particles and lag L = 8, systematic resampling at every step.
+//!
+//! Workloads, each one call on the whole batch of 100 objects:
+//! - **filter**: `run_filter` alone (lag 8, observer `()`), the floor under PF-SEFI;
+//! - **pf-sefi** (L = 8), **pf**, **dpf-sgr** and **pfnet** (alpha 0.8): one
+//!   `ScoreEstimator::estimate` call, i.e. one training step's gradient.
+//!
+//! The data and model are built as in `benches/filter.rs`: one synthetic scene
+//! (seed 3) with the hand-crafted policy and an *unfitted* observation network (its
+//! weights do not change the cost of a step; they do change how fast the particle
+//! paths coalesce, hence PF-SEFI's count of distinct ancestors).
+//!
+//! **Time**: measured in this process on the default rayon pool (2 threads on this
+//! machine); the median and the best of 5 repetitions after one warm-up run for
+//! the cheap workloads (filter, PF-SEFI, whose repetitions alternate so their
+//! ratio compares like with like), of 3 without a warm-up for the slow baselines,
+//! so the whole bench takes five to ten minutes. Every repetition uses the same
+//! seed, hence the same draws and the same work. The machine is shared:
+//! before each timed workload the bench waits (up to 15 s) until other processes
+//! use under a quarter of a core, and for every run it also records this
+//! process's CPU time (`/proc/self/stat`) and the CPU time the rest of the machine
+//! used meanwhile (`/proc/stat`), printed as "others' load" in cores, so a reader
+//! can tell a slow figure from a contended one.
+//!
+//! **Peak memory**: each (workload, size) is run once in a fresh child process (the
+//! bench re-executes itself, `std::env::current_exe()`, with `--child WORKLOAD SIZE
+//! CHUNK`). The child builds the data and model, reads its resident set `VmRSS`
+//! from `/proc/self/status`, resets the kernel's high-water mark by writing `5` to
+//! `/proc/self/clear_refs` (so `VmHWM` restarts from the current RSS and excludes
+//! the peak of data generation), runs one estimate, and reads `VmHWM`. The table
+//! reports the RSS before, the peak, and peak minus before (what the estimate
+//! itself added). If the reset is refused, the peak includes the setup and is
+//! flagged. Children run one at a time, so they do not disturb each other or the
+//! timings.
+//!
+//! The baselines process objects in chunks of `EstimatorConfig::chunk_objects`
+//! (default 4; two chunks are in flight at once on two threads). DPF-SGR at B is
+//! also measured with chunks of 1 and 8 to show the memory/time trade-off.
+//!
+//! Run: `cargo bench --bench estimators` (add `-- --quick` for one repetition of
+//! everything and no chunk sweep). A single child run, e.g. for `perf record`:
+//! `.../estimators --child pf-sefi A 4` (workloads: filter, pf-sefi, pf, dpf-sgr,
+//! pfnet; sizes A, B).
+
+use std::process::Command;
+use std::time::Instant;
+
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use ssm::data::Dataset;
+use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
+use ssm::filter::{run_filter, FilterConfig};
+use ssm::model::ParticleModel;
+use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
+use ssm::vehicle::policy::HandCraftedPolicy;
+use ssm::vehicle_ssm::VehicleSsm;
+
+/// Particles per object.
+const PARTICLES: usize = 1024;
+/// The fixed lag of PF-SEFI and of the filter-alone run.
+const LAG: usize = 8;
+/// PFNET's mixing weight (the paper's default).
+const PFNET_ALPHA: f64 = 0.8;
+/// Seed of the synthetic scene (as `benches/filter.rs`).
+const DATA_SEED: u64 = 3;
+/// Seed of the filter's random streams: every repetition sees the same draws.
+const FILTER_SEED: u64 = 1;
+/// Chunk sizes of the DPF-SGR sweep at B.
+const SWEEP_CHUNKS: [usize; 3] = [1, 4, 8];
+/// Tag of the line a child prints for its parent.
+const CHILD_TAG: &str = "ESTIMATORS-CHILD";
+const MIB: f64 = 1024.0 * 1024.0;
+/// Other processes' load (cores) under which the machine counts as quiet.
+const QUIET_LOAD: f64 = 0.25;
+/// Longest wait for a quiet machine before each timed workload, seconds.
+const QUIET_WAIT_MAX_S: f64 = 15.0;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Size {
+    A,
+    B,
+}
+
+impl Size {
+    fn name(self) -> &'static str {
+        match self {
+            Size::A => "A",
+            Size::B => "B",
+        }
+    }
+
+    fn parse(s: &str) -> Option<Self> {
+        match s {
+            "A" | "a" => Some(Size::A),
+            "B" | "b" => Some(Size::B),
+            _ => None,
+        }
+    }
+
+    /// Transitions `T`.
+    fn transitions(self) -> usize {
+        match self {
+            Size::A => 25,
+            Size::B => 50,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Workload {
+    Filter,
+    PfSefi,
+    Pf,
+    DpfSgr,
+    Pfnet,
+}
+
+const WORKLOADS: [Workload; 5] = [Workload::Filter, Workload::PfSefi, Workload::Pf, Workload::DpfSgr, Workload::Pfnet];
+
+impl Workload {
+    fn name(self) -> &'static str {
+        match self {
+            Workload::Filter => "filter",
+            Workload::PfSefi => "pf-sefi",
+            Workload::Pf => "pf",
+            Workload::DpfSgr => "dpf-sgr",
+            Workload::Pfnet => "pfnet",
+        }
+    }
+
+    fn parse(s: &str) -> Option<Self> {
+        WORKLOADS.iter().copied().find(|w| w.name() == s)
+    }
+
+    fn estimator(self) -> Option<Estimator> {
+        match self {
+            Workload::Filter => None,
+            Workload::PfSefi => Some(Estimator::pf_sefi(LAG)),
+            Workload::Pf => Some(Estimator::pf()),
+            Workload::DpfSgr => Some(Estimator::dpf_sgr()),
+            Workload::Pfnet => Some(Estimator::pfnet(PFNET_ALPHA)),
+        }
+    }
+
+    /// Whether the workload back-propagates through the whole filter (slow).
+    fn is_baseline(self) -> bool {
+        matches!(self, Workload::Pf | Workload::DpfSgr | Workload::Pfnet)
+    }
+
+    /// The SPEC §10 time target, seconds.
+    fn time_target(self, size: Size) -> Option<f64> {
+        match (self, size) {
+            (Workload::Filter, Size::A) => Some(0.4),
+            (Workload::PfSefi, Size::A) => Some(0.5),
+            (Workload::PfSefi, Size::B) => Some(1.0),
+            (Workload::DpfSgr, Size::A) => Some(1.8),
+            _ => None,
+        }
+    }
+
+    /// The SPEC §10 peak-memory target, bytes.
+    fn memory_target(self, size: Size) -> Option<f64> {
+        match (self, size) {
+            (Workload::DpfSgr, Size::B) => Some(4.0 * 1024.0 * MIB),
+            _ => None,
+        }
+    }
+}
+
+/// The synthetic scene of a size and the true model that drives it.
+struct Problem {
+    truth: TrueModel,
+    data: Dataset,
+}
+
+impl Problem {
+    fn new(size: Size) -> Self {
+        let mut rng = StdRng::seed_from_u64(DATA_SEED);
+        // The network's weights do not change the cost; an unfitted one avoids the fit.
+        let truth = TrueModel::init(HandCraftedPolicy::truth(), &mut rng);
+        let scene = SceneConfig::paper(size.transitions() + 1);
+        let data = generate_dataset(&scene, &truth, &[0], &mut rng).expect("synthetic scene");
+        Problem { truth, data }
+    }
+
+    fn model(&self) -> VehicleSsm<'_, HandCraftedPolicy, ssm::observation::PointObservationModel> {
+        VehicleSsm::new(&self.data, &self.truth.policy, &self.truth.obs, &self.truth.params).expect("model")
+    }
+}
+
+/// What one run of a workload reports besides its time.
+#[derive(Clone, Copy, Debug, Default)]
+struct Outcome {
+    log_likelihood: f64,
+    rows_evaluated: usize,
+    particle_slots: usize,
+}
+
+fn estimator_config(chunk: usize) -> EstimatorConfig {
+    EstimatorConfig { particles: PARTICLES, chunk_objects: chunk, ..EstimatorConfig::default() }
+}
+
+/// Runs `workload` once on the whole batch of objects.
+fn run_once<M: ssm::estimators::DifferentiableModel>(model: &M, workload: Workload, chunk: usize) -> Outcome {
+    let config = estimator_config(chunk);
+    match workload.estimator() {
+        None => {
+            let filter = FilterConfig {
+                particles: config.particles,
+                resampling: config.resampling,
+                ess_threshold: config.ess_threshold,
+                lag: LAG,
+                seed: FILTER_SEED,
+                soft_resampling: None,
+            };
+            let run = run_filter(model, &filter, |_| ());
+            Outcome {
+                log_likelihood: run.log_likelihood(),
+                rows_evaluated: 0,
+                particle_slots: PARTICLES * model.num_steps() * model.num_objects(),
+            }
+        }
+        Some(estimator) => {
+            let estimate = estimator.estimate(model, &config, FILTER_SEED);
+            assert!(estimate.is_finite(), "{}: non-finite estimate", workload.name());
+            Outcome {
+                log_likelihood: estimate.log_likelihood,
+                rows_evaluated: estimate.rows_evaluated,
+                particle_slots: estimate.particle_slots,
+            }
+        }
+    }
+}
+
+/// CPU-time counters, in clock ticks.
+#[derive(Clone, Copy, Debug)]
+struct CpuTicks {
+    /// Busy time of the whole machine (every process, every core).
+    machine_busy: u64,
+    /// Time of this process (user + system, all threads).
+    this_process: u64,
+}
+
+/// Reads the machine's busy ticks (`/proc/stat`) and this process's (`/proc/self/stat`).
+fn cpu_ticks() -> Option<CpuTicks> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let cpu: Vec<u64> = stat.lines().next()?.split_whitespace().skip(1).map(|v| v.parse().unwrap_or(0)).collect();
+    // user nice system idle iowait irq softirq steal (guest time is inside user).
+    let machine_busy = cpu.iter().take(8).enumerate().filter(|&(i, _)| i != 3 && i != 4).map(|(_, v)| v).sum();
+    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name `(...)`: state is field 3, utime 14, stime 15.
+    let rest: Vec<&str> = own[own.rfind(')')? + 1..].split_whitespace().collect();
+    let this_process = rest.get(11)?.parse::<u64>().ok()? + rest.get(12)?.parse::<u64>().ok()?;
+    Some(CpuTicks { machine_busy, this_process })
+}
+
+/// Clock ticks per second of the `/proc` counters.
+fn ticks_per_second() -> f64 {
+    Command::new("getconf")
+        .arg("CLK_TCK")
+        .output()
+        .ok()
+        .and_then(|o| String::from_utf8_lossy(&o.stdout).trim().parse().ok())
+        .unwrap_or(100.0)
+}
+
+/// Waits (at most [`QUIET_WAIT_MAX_S`]) until other processes use less than
+/// [`QUIET_LOAD`] cores over a one-second window; returns the seconds waited and
+/// whether the machine became quiet.
+fn wait_for_quiet(tick_rate: f64) -> (f64, bool) {
+    let start = Instant::now();
+    while start.elapsed().as_secs_f64() < QUIET_WAIT_MAX_S {
+        let (Some(a), t) = (cpu_ticks(), Instant::now()) else { return (0.0, false) };
+        std::thread::sleep(std::time::Duration::from_secs(1));
+        let Some(b) = cpu_ticks() else { return (0.0, false) };
+        let others = (b.machine_busy - a.machine_busy).saturating_sub(b.this_process - a.this_process);
+        if others as f64 / tick_rate / t.elapsed().as_secs_f64() < QUIET_LOAD {
+            return (start.elapsed().as_secs_f64(), true);
+        }
+    }
+    (start.elapsed().as_secs_f64(), false)
+}
+
+/// Times of repeated runs.
+#[derive(Clone, Debug)]
+struct Timing {
+    /// Wall time per run.
+    seconds: Vec<f64>,
+    /// This process's CPU time per run (both threads).
+    cpu_seconds: Vec<f64>,
+    /// CPU time used by other processes on the machine during each run.
+    others_seconds: Vec<f64>,
+}
+
+fn median(values: &[f64]) -> f64 {
+    let mut s = values.to_vec();
+    s.sort_by(f64::total_cmp);
+    let m = s.len() / 2;
+    if s.len() % 2 == 1 {
+        s[m]
+    } else {
+        0.5 * (s[m - 1] + s[m])
+    }
+}
+
+impl Timing {
+    fn median(&self) -> f64 {
+        median(&self.seconds)
+    }
+
+    fn best(&self) -> f64 {
+        self.seconds.iter().copied().fold(f64::INFINITY, f64::min)
+    }
+
+    fn cpu_median(&self) -> f64 {
+        median(&self.cpu_seconds)
+    }
+
+    /// Mean number of cores other processes kept busy while this ran.
+    fn others_load(&self) -> f64 {
+        self.others_seconds.iter().sum::<f64>() / self.seconds.iter().sum::<f64>()
+    }
+}
+
+/// Times `workloads` after waiting for a quiet machine, their repetitions
+/// interleaved (`a b a b ...`) so that a change in other processes' load falls on
+/// all of them alike.
+fn time_workloads<M: ssm::estimators::DifferentiableModel>(
+    model: &M,
+    workloads: &[Workload],
+    chunk: usize,
+    warm_up: bool,
+    reps: usize,
+    tick_rate: f64,
+) -> Vec<(Timing, Outcome)> {
+    let (waited, quiet) = wait_for_quiet(tick_rate);
+    if waited > 1.5 || !quiet {
+        println!(
+            "  (waited {waited:.0} s for other processes to go below {QUIET_LOAD} cores{})",
+            if quiet { "" } else { "; they did not" }
+        );
+    }
+    if warm_up {
+        for &w in workloads {
+            run_once(model, w, chunk);
+        }
+    }
+    let mut out: Vec<(Timing, Outcome)> = workloads
+        .iter()
+        .map(|_| {
+            (Timing { seconds: Vec::new(), cpu_seconds: Vec::new(), others_seconds: Vec::new() }, Outcome::default())
+        })
+        .collect();
+    for _ in 0..reps {
+        for (&w, (timing, outcome)) in workloads.iter().zip(out.iter_mut()) {
+            let before = cpu_ticks();
+            let t = Instant::now();
+            *outcome = run_once(model, w, chunk);
+            timing.seconds.push(t.elapsed().as_secs_f64());
+            if let (Some(a), Some(b)) = (before, cpu_ticks()) {
+                let own = b.this_process - a.this_process;
+                let others = (b.machine_busy - a.machine_busy).saturating_sub(own);
+                timing.cpu_seconds.push(own as f64 / tick_rate);
+                timing.others_seconds.push(others as f64 / tick_rate);
+            }
+        }
+    }
+    out
+}
+
+/// A field of `/proc/self/status` in bytes (`VmRSS`, `VmHWM`).
+fn proc_status_bytes(field: &str) -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with(field) && l[field.len()..].starts_with(':'))?;
+    let kib: u64 = line[field.len() + 1..].trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kib * 1024)
+}
+
+/// Resets `VmHWM` to the current RSS (Linux >= 4.0).
+fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// The child: one run of one workload, then a line for the parent.
+fn child(args: &[String]) {
+    let usage = "usage: estimators --child WORKLOAD SIZE CHUNK";
+    let workload = Workload::parse(args.first().expect(usage)).expect("unknown workload");
+    let size = Size::parse(args.get(1).expect(usage)).expect("unknown size (A or B)");
+    let chunk: usize = args.get(2).map_or(EstimatorConfig::default().chunk_objects, |c| c.parse().expect(usage));
+    let problem = Problem::new(size);
+    let model = problem.model();
+    let before = proc_status_bytes("VmRSS").expect("VmRSS");
+    let reset = reset_peak_rss();
+    let t = Instant::now();
+    let outcome = run_once(&model, workload, chunk);
+    let seconds = t.elapsed().as_secs_f64();
+    let peak = proc_status_bytes("VmHWM").expect("VmHWM");
+    println!(
+        "{CHILD_TAG} {before} {peak} {} {seconds} {} {} {}",
+        reset as u8, outcome.rows_evaluated, outcome.particle_slots, outcome.log_likelihood
+    );
+}
+
+/// Peak memory of one child run.
+#[derive(Clone, Copy, Debug)]
+struct Memory {
+    before: f64,
+    peak: f64,
+    reset: bool,
+    seconds: f64,
+}
+
+impl Memory {
+    fn added(&self) -> f64 {
+        self.peak - self.before
+    }
+}
+
+fn measure_memory(workload: Workload, size: Size, chunk: usize) -> Option<Memory> {
+    let exe = std::env::current_exe().ok()?;
+    let out = Command::new(exe).args(["--child", workload.name(), size.name(), &chunk.to_string()]).output().ok()?;
+    if !out.status.success() {
+        eprintln!(
+            "child {} {} {chunk} failed: {}\n{}",
+            workload.name(),
+            size.name(),
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+        );
+        return None;
+    }
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let line = stdout.lines().find(|l| l.starts_with(CHILD_TAG))?;
+    let f: Vec<&str> = line.split_whitespace().collect();
+    Some(Memory {
+        before: f.get(1)?.parse().ok()?,
+        peak: f.get(2)?.parse().ok()?,
+        reset: *f.get(3)? == "1",
+        seconds: f.get(4)?.parse().ok()?,
+    })
+}
+
+/// One row of the final table.
+struct Row {
+    size: Size,
+    workload: Workload,
+    chunk: Option<usize>,
+    timing: Timing,
+    outcome: Outcome,
+    memory: Option<Memory>,
+}
+
+fn mib(bytes: f64) -> String {
+    format!("{:.0}", bytes / MIB)
+}
+
+fn verdict(value: f64, target: Option<f64>) -> &'static str {
+    match target {
+        None => "",
+        Some(t) if value <= t => "yes",
+        Some(_) => "NO",
+    }
+}
+
+fn reps_for(workload: Workload, quick: bool) -> usize {
+    match (quick, workload.is_baseline()) {
+        (true, _) => 1,
+        (false, false) => 5,
+        (false, true) => 3,
+    }
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    if let Some(pos) = args.iter().position(|a| a == "--child") {
+        child(&args[pos + 1..]);
+        return;
+    }
+    let quick = args.iter().any(|a| a == "--quick");
+    let default_chunk = EstimatorConfig::default().chunk_objects;
+    let threads = rayon::current_num_threads();
+    let tick_rate = ticks_per_second();
+    let started = Instant::now();
+    println!(
+        "score-estimator benchmark: N = {PARTICLES}, L = {LAG}, pfnet alpha = {PFNET_ALPHA}, f32, systematic \
+         resampling, {threads} rayon threads, baselines in chunks of {default_chunk} objects"
+    );
+
+    let mut rows: Vec<Row> = Vec::new();
+    for size in [Size::A, Size::B] {
+        let problem = Problem::new(size);
+        let model = problem.model();
+        let points: usize = problem.data.points().map(|p| p.len()).unwrap_or(0);
+        println!(
+            "\nsize {}: {} objects, T = {} ({} steps), {:.1} points per object-step",
+            size.name(),
+            model.num_objects(),
+            size.transitions(),
+            model.num_steps(),
+            points as f64 / (model.num_objects() * model.num_steps()) as f64
+        );
+        // Filter and PF-SEFI interleaved (their ratio is a target), then each baseline.
+        let groups: [&[Workload]; 4] =
+            [&[Workload::Filter, Workload::PfSefi], &[Workload::Pf], &[Workload::DpfSgr], &[Workload::Pfnet]];
+        for group in groups {
+            let reps = reps_for(group[0], quick);
+            let warm_up = !group[0].is_baseline();
+            let timed = time_workloads(&model, group, default_chunk, warm_up, reps, tick_rate);
+            for (&workload, (timing, outcome)) in group.iter().zip(timed) {
+                let memory = measure_memory(workload, size, default_chunk);
+                println!(
+                    "  {:<8} median {:7.3} s  best {:7.3} s  cpu {:7.3} s  others {:.2} cores  ({} reps{})  \
+                     peak +{} MiB  l_hat {:.1}",
+                    workload.name(),
+                    timing.median(),
+                    timing.best(),
+                    timing.cpu_median(),
+                    timing.others_load(),
+                    reps,
+                    if warm_up { " after a warm-up" } else { "" },
+                    memory.map_or("?".into(), |m| mib(m.added())),
+                    outcome.log_likelihood
+                );
+                let chunk = workload.is_baseline().then_some(default_chunk);
+                rows.push(Row { size, workload, chunk, timing, outcome, memory });
+            }
+        }
+    }
+
+    // DPF-SGR at B: the memory/time trade-off of the chunk size.
+    let mut sweep: Vec<Row> = Vec::new();
+    if !quick {
+        let problem = Problem::new(Size::B);
+        let model = problem.model();
+        println!("\nDPF-SGR at B, chunk sweep");
+        for chunk in SWEEP_CHUNKS {
+            if chunk == default_chunk {
+                if let Some(r) = rows.iter().find(|r| r.size == Size::B && r.workload == Workload::DpfSgr) {
+                    sweep.push(Row { chunk: Some(chunk), timing: r.timing.clone(), ..*r });
+                    continue;
+                }
+            }
+            let (timing, outcome) = time_workloads(&model, &[Workload::DpfSgr], chunk, false, 1, tick_rate).remove(0);
+            let memory = measure_memory(Workload::DpfSgr, Size::B, chunk);
+            println!(
+                "  chunk {chunk}: {:7.3} s (cpu {:.3} s, others {:.2} cores), peak +{} MiB",
+                timing.median(),
+                timing.cpu_median(),
+                timing.others_load(),
+                memory.map_or("?".into(), |m| mib(m.added()))
+            );
+            sweep.push(Row { size: Size::B, workload: Workload::DpfSgr, chunk: Some(chunk), timing, outcome, memory });
+        }
+    }
+
+    println!("\n## Time per training step (one estimate on all 100 objects) and peak memory\n");
+    println!(
+        "| size | workload | chunk | median s | best s | reps | cpu s | others' load | time target | met | \
+         RSS before MiB | peak MiB | peak - before MiB | memory target | met | child run s |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in &rows {
+        let target = r.workload.time_target(r.size);
+        let mem_target = r.workload.memory_target(r.size);
+        let (before, peak, added, mem_ok, child_s) = match r.memory {
+            Some(m) => (
+                mib(m.before),
+                format!("{}{}", mib(m.peak), if m.reset { "" } else { " (incl. setup)" }),
+                mib(m.added()),
+                verdict(m.peak, mem_target).to_string(),
+                format!("{:.2}", m.seconds),
+            ),
+            None => ("?".into(), "?".into(), "?".into(), "?".into(), "?".into()),
+        };
+        println!(
+            "| {} | {} | {} | {:.3} | {:.3} | {} | {:.3} | {:.2} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            r.size.name(),
+            r.workload.name(),
+            r.chunk.map_or("-".into(), |c| c.to_string()),
+            r.timing.median(),
+            r.timing.best(),
+            r.timing.seconds.len(),
+            r.timing.cpu_median(),
+            r.timing.others_load(),
+            target.map_or(String::new(), |t| format!("<= {t} s")),
+            verdict(r.timing.median(), target),
+            before,
+            peak,
+            added,
+            mem_target.map_or(String::new(), |t| format!("<= {} GiB", t / (1024.0 * MIB))),
+            mem_ok,
+            child_s
+        );
+    }
+
+    println!("\n## PF-SEFI against the filter alone (medians of interleaved runs)\n");
+    println!(
+        "| size | filter s | pf-sefi s | surrogate s (difference) | ratio | target | met | filter cpu s | pf-sefi cpu s | \
+         cpu ratio |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for size in [Size::A, Size::B] {
+        let find = |w: Workload| rows.iter().find(|r| r.size == size && r.workload == w);
+        if let (Some(f), Some(s)) = (find(Workload::Filter), find(Workload::PfSefi)) {
+            let ratio = s.timing.median() / f.timing.median();
+            println!(
+                "| {} | {:.3} | {:.3} | {:.3} | {:.2} | <= 1.5 | {} | {:.3} | {:.3} | {:.2} |",
+                size.name(),
+                f.timing.median(),
+                s.timing.median(),
+                s.timing.median() - f.timing.median(),
+                ratio,
+                verdict(ratio, Some(1.5)),
+                f.timing.cpu_median(),
+                s.timing.cpu_median(),
+                s.timing.cpu_median() / f.timing.cpu_median()
+            );
+        }
+    }
+
+    println!("\n## Baselines against PF-SEFI: ratio of median wall times (of median CPU times)\n");
+    println!("| size | pf / pf-sefi | dpf-sgr / pf-sefi | pfnet / pf-sefi |");
+    println!("|---|---|---|---|");
+    for size in [Size::A, Size::B] {
+        let timing = |w: Workload| rows.iter().find(|r| r.size == size && r.workload == w).map(|r| &r.timing);
+        if let Some(s) = timing(Workload::PfSefi) {
+            let ratio = |w| {
+                timing(w).map_or("?".into(), |t| {
+                    format!("{:.1} ({:.1})", t.median() / s.median(), t.cpu_median() / s.cpu_median())
+                })
+            };
+            println!(
+                "| {} | {} | {} | {} |",
+                size.name(),
+                ratio(Workload::Pf),
+                ratio(Workload::DpfSgr),
+                ratio(Workload::Pfnet)
+            );
+        }
+    }
+
+    println!("\n## PF-SEFI distinct ancestors (rows evaluated on the tape)\n");
+    println!("| size | rows_evaluated | particle_slots = N x (T+1) x objects | share |");
+    println!("|---|---|---|---|");
+    for r in rows.iter().filter(|r| r.workload == Workload::PfSefi) {
+        println!(
+            "| {} | {} | {} | {:.2}% |",
+            r.size.name(),
+            r.outcome.rows_evaluated,
+            r.outcome.particle_slots,
+            100.0 * r.outcome.rows_evaluated as f64 / r.outcome.particle_slots as f64
+        );
+    }
+    println!("(SPEC §10 expects about 7% at A)");
+
+    if !sweep.is_empty() {
+        println!("\n## DPF-SGR at B: objects per tape chunk (time: one run each, chunk {default_chunk} from above)\n");
+        println!(
+            "| chunk | time s | cpu s | others' load | RSS before MiB | peak MiB | peak - before MiB | under 4 GiB |"
+        );
+        println!("|---|---|---|---|---|---|---|---|");
+        for r in &sweep {
+            let (before, peak, added, ok) = match r.memory {
+                Some(m) => (
+                    mib(m.before),
+                    mib(m.peak),
+                    mib(m.added()),
+                    verdict(m.peak, Workload::DpfSgr.memory_target(Size::B)),
+                ),
+                None => ("?".into(), "?".into(), "?".into(), "?"),
+            };
+            println!(
+                "| {} | {:.3} | {:.3} | {:.2} | {} | {} | {} | {} |",
+                r.chunk.unwrap_or(default_chunk),
+                r.timing.median(),
+                r.timing.cpu_median(),
+                r.timing.others_load(),
+                before,
+                peak,
+                added,
+                ok
+            );
+        }
+    }
+    println!("\nbench wall time {:.0} s", started.elapsed().as_secs_f64());
+}
