@@ -385,3 +385,24 @@ fn density_is_normalised_and_the_sampler_agrees_with_it() {
     // And the sampled yaw offsets are wrapped into (-pi, pi].
     assert!(dets.iter().all(|d| d.yaw > -PI && d.yaw <= PI));
 }
+
+/// A diverged particle whose heading is far beyond the range where f32 can wrap an
+/// angle gets no more density than the worst wrapped offset (pi) allows: the
+/// wrapped-Laplace term never rewards it (it once grew with the unwrapped offset).
+#[test]
+fn huge_headings_get_a_bounded_density() {
+    let (m, store) = model(4);
+    let c = ctx();
+    let pose = Pose { x: 6.0, y: -3.0, yaw: 0.2 };
+    let det = detection(&c, pose, 0.1, -0.05, 0.0);
+    let store32 = store.cast::<f32>();
+    let yaws: Vec<f32> = (0..=64).map(|k| (-PI + TAU * k as f64 / 64.0) as f32).chain([3e8, -7e9, 1e12]).collect();
+    let xs = vec![pose.x as f32; yaws.len()];
+    let ys = vec![pose.y as f32; yaws.len()];
+    let mut out = vec![0.0f32; yaws.len()];
+    m.log_likelihood(&store32, &c, PosesRef::new(&xs, &ys, &yaws), &[det], &mut Scratch::new(), &mut out);
+    let best = out[..65].iter().copied().fold(f32::MIN, f32::max);
+    for (&yaw, &l) in yaws[65..].iter().zip(&out[65..]) {
+        assert!(l.is_finite() && l <= best + 1e-3, "yaw {yaw}: {l} above the best wrapped value {best}");
+    }
+}

@@ -92,10 +92,13 @@ fn round_nearest<F: Float>(x: F) -> F {
     (x + magic) - magic
 }
 
-/// `a` wrapped to `[-pi, pi]`.
+/// `a` wrapped to `[-pi, pi]`. Beyond the range where [`round_nearest`] is exact
+/// (|a| > 2^22 * 2 pi in f32, where the angle has no meaningful residue anyway) the
+/// result is clamped, so the density stays bounded for diverged states.
 #[inline(always)]
 fn wrap<F: Float>(a: F) -> F {
-    a - F::from_f64(TAU) * round_nearest(a * F::from_f64(1.0 / TAU))
+    let pi = F::from_f64(PI);
+    (a - F::from_f64(TAU) * round_nearest(a * F::from_f64(1.0 / TAU))).max(-pi).min(pi)
 }
 
 /// Along- and across-line-of-sight offsets of `(ddx, ddy)` for an object at
@@ -306,7 +309,7 @@ impl ObservationModel for BoxObservationModel {
         let b_yaw = col(5).softplus().mul_scalar(BOX_YAW_SCALE_SCALE).add_scalar(BOX_MIN_YAW_SCALE);
         let d = c(&|k| dets[k].yaw) - yaw - col(4).mul_scalar(BOX_YAW_OFFSET_SCALE);
         let turns: Vec<f64> = d.value().data().iter().map(|v| (v.to_f64() / TAU).round()).collect();
-        let a = (d - c(&|k| TAU * turns[k])).abs();
+        let a = (d - c(&|k| TAU * turns[k])).abs().clamp(0.0, PI);
         let inv_by = b_yaw.powf(-1.0);
         let z = inv_by.mul_scalar(TAU);
         let wrapped = -(a * inv_by) - b_yaw.mul_scalar(2.0).ln()
