@@ -5,6 +5,7 @@
 mod birdseye;
 mod demo;
 mod evaluate;
+mod experiment_c;
 mod generate;
 mod import;
 mod output;
@@ -73,6 +74,9 @@ enum Command {
     Reproduce(reproduce::ReproduceArgs),
     /// Exact linear-Gaussian log-likelihood and score, and every estimator's bias and spread.
     ScoreCheck(score_check::ScoreCheckArgs),
+    /// The paper's experiment C on KITTI: train every estimator on the train sequences, evaluate on val,
+    /// compare with a supervised observation model.
+    ExperimentC(experiment_c::ExperimentCArgs),
 }
 
 fn main() -> ExitCode {
@@ -88,6 +92,7 @@ fn main() -> ExitCode {
         Command::Train(args) => train::run(&args),
         Command::Reproduce(args) => reproduce::run(&args),
         Command::ScoreCheck(args) => score_check::run(&args),
+        Command::ExperimentC(args) => experiment_c::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -18,6 +18,7 @@ pub mod objective;
 pub mod observation;
 pub mod params;
 pub mod stats;
+pub mod supervised;
 pub mod synthetic;
 pub mod training;
 pub mod vehicle;

@@ -1,0 +1,121 @@
+//! `sefi experiment-c --quick` end to end on the real KITTI data: the files it
+//! promises, a row per method plus INIT and the supervised model, and a rerun that
+//! reuses the import, resumes the finished runs and reproduces the table exactly.
+//! The KITTI folder lives outside the repository (`../shared/data/kitti-tracking`
+//! from the workspace root); where it is absent the KITTI test is skipped with a
+//! note.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use autodiff::nn::ParamStore;
+use ssm::data::ObservationKind;
+use ssm::params::Models;
+
+const METHODS: [&str; 4] = ["pf-sefi", "dpf-sgr", "pfnet", "pf"];
+
+fn sefi(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_sefi")).args(args).output().expect("runs")
+}
+
+fn ok(out: &Output) -> String {
+    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("sefi-experiment-c-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// The KITTI folder, resolved from the workspace root as the `import-kitti`
+/// default is from the working directory.
+fn kitti() -> Option<PathBuf> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("../shared/data/kitti-tracking");
+    root.join("label_02").is_dir().then_some(root)
+}
+
+#[test]
+fn quick_experiment_c_writes_the_table_and_reruns_identically() {
+    let Some(kitti) = kitti() else {
+        eprintln!("skipped: the KITTI data (../shared/data/kitti-tracking from the workspace root) is not present");
+        return;
+    };
+    let out = temp("quick");
+    let args = ["experiment-c", "--quick", "--kitti", s(&kitti), "--out", s(&out)];
+    let clock = std::time::Instant::now();
+    let stdout = ok(&sefi(&args));
+    let first_seconds = clock.elapsed().as_secs_f64();
+
+    for f in ["table.md", "table.csv", "curves.svg", "experiment_c.json", "data/import_report.md"] {
+        assert!(out.join(f).is_file(), "missing {f}");
+    }
+    for split in ["train", "val"] {
+        let d = ssm::data::Dataset::read(out.join("data").join(split)).unwrap();
+        assert!(d.boxes().is_some() && d.states().is_some(), "{split}");
+    }
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(stdout.contains(table.lines().next().unwrap()), "the table is printed");
+    for row in METHODS.iter().map(|m| format!("| {m} |")).chain(["| INIT |".into()]) {
+        assert!(table.contains(&row), "no row `{row}` in\n{table}");
+    }
+    assert!(table.contains("| SUPERVISED obs + pf-sefi policy |"), "{table}");
+
+    // Every run trained its steps and left a parameter file for `sefi eval`.
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("experiment_c.json")).unwrap()).unwrap();
+    let rows = doc["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), METHODS.len() + 2);
+    let steps = doc["steps_per_epoch"].as_u64().unwrap() * doc["scale"]["epochs"].as_u64().unwrap();
+    for (row, method) in rows[1..=METHODS.len()].iter().zip(METHODS) {
+        assert_eq!(row["method"], method);
+        assert_eq!(row["steps"].as_u64(), Some(steps), "{method}");
+        let mll = row["runs"][0]["mll"].as_f64().unwrap();
+        assert!(mll.is_finite(), "{method}: val MLL {mll}");
+        assert!(out.join("runs").join(method).join("params.bin").is_file());
+    }
+
+    // The supervised network: fitted to the train labels, loadable as a box model.
+    let report = &doc["supervised"]["report"];
+    let (before, after) = (report["initial_aotll"].as_f64().unwrap(), report["final_aotll"].as_f64().unwrap());
+    assert!(after > before, "supervised train AOTLL {before} -> {after}");
+    let store = ParamStore::<f64>::load(&out.join("supervised/params.bin")).unwrap();
+    Models::from_store(&store, ObservationKind::Boxes).unwrap();
+    let sup_train_aotll = rows.last().unwrap()["train_aotll"].as_f64().unwrap();
+    assert!((sup_train_aotll - after).abs() < 1e-9, "{sup_train_aotll} vs {after}");
+
+    // Rerun: the import is reused, every finished run resumes at its end, and the
+    // evaluation (fixed seeds) gives the same table values.
+    let csv_before = std::fs::read_to_string(out.join("table.csv")).unwrap();
+    let rerun = sefi(&args);
+    ok(&rerun);
+    assert!(String::from_utf8_lossy(&rerun.stderr).contains("reusing the KITTI import"));
+    assert_eq!(std::fs::read_to_string(out.join("table.csv")).unwrap(), csv_before);
+    eprintln!("quick experiment C: {first_seconds:.1} s");
+    assert!(first_seconds < 60.0, "the quick scale took {first_seconds:.0} s");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
+fn a_missing_kitti_folder_is_named() {
+    let out = temp("missing");
+    let r = sefi(&["experiment-c", "--quick", "--kitti", "/nonexistent/kitti", "--out", s(&out)]);
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("/nonexistent/kitti"));
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
+fn an_unknown_method_is_refused_before_any_work() {
+    let out = temp("method");
+    let r = sefi(&["experiment-c", "--quick", "--methods", "pf-sefi,nonsense", "--out", s(&out)]);
+    assert!(!r.status.success());
+    assert!(String::from_utf8_lossy(&r.stderr).contains("nonsense"));
+    assert!(!out.join("data").exists(), "nothing imported");
+    std::fs::remove_dir_all(&out).ok();
+}
