@@ -54,22 +54,21 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use autodiff::nn::ParamStore;
-use rand::SeedableRng;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::{Dataset, ObservationKind};
-use ssm::metrics::{summarise_runs, Metrics, Summary};
+use ssm::metrics::{Metrics, Summary};
 use ssm::observation::boxes::{BOX_MIN_SCALE, BOX_MIN_YAW_SCALE};
 use ssm::observation::FitConfig;
-use ssm::params::{AnyObservation, AnyPolicy, Models};
+use ssm::params::{AnyObservation, Models};
 use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
-use ssm::vehicle::NeuralPolicy;
 
 use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
+use crate::table::{csv_row, header, metric_cells, CSV_HEADER};
 use crate::train::{self, read_eval_curve, TrainArgs};
 
 /// Arguments of `sefi experiment-c`.
@@ -234,17 +233,6 @@ struct Row {
     curve: Vec<(f64, f64)>,
 }
 
-/// The metrics of the table, in order, with their headers.
-const COLUMNS: [(&str, &str); 7] = [
-    ("mll", "MLL"),
-    ("aotll", "AOTLL"),
-    ("aptll", "APTLL"),
-    ("ade_smoothed", "ADE sm (m)"),
-    ("aye_smoothed", "AYE sm (rad)"),
-    ("ade_filtered", "ADE filt (m)"),
-    ("aye_filtered", "AYE filt (rad)"),
-];
-
 /// Imports KITTI into `OUT/data` unless an import is there, then returns the
 /// train and val directories the scale uses (evenly spaced subsets for `--quick`).
 fn prepare_data(args: &ExperimentCArgs, scale: &Scale) -> Result<(PathBuf, PathBuf), String> {
@@ -291,8 +279,7 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
 /// `seed + 1`.
 fn initial_models(seed: u64) -> Models {
-    let policy = AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(seed)));
-    Models::initial(ObservationKind::Boxes, policy, seed.wrapping_add(1))
+    train::fresh_models("neural", "", ObservationKind::Boxes, seed).expect("the neural policy needs no settings")
 }
 
 /// AOTLL of `models`' observation network on `data`.
@@ -531,14 +518,6 @@ fn validity_notes(rows: &[Row]) -> String {
     notes
 }
 
-fn summary_cell(s: Option<&Summary>) -> String {
-    match s {
-        Some(s) if s.n > 1 => format!("{:.3} [{:.3}, {:.3}]", s.median, s.q1, s.q3),
-        Some(s) => format!("{:.3}", s.median),
-        None => "-".into(),
-    }
-}
-
 /// A count's median [IQR] over runs, as whole numbers.
 fn count_summary_cell(s: Option<&Summary>) -> String {
     match s {
@@ -561,7 +540,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
          policy, box-detection observation network; this session took {:.0} s).\n\
          Train: {} scenes, {} objects, {} detections. Val: {} scenes, {} objects, {} detections.\n\
          Metrics on val, median [IQR] over {} filter runs ({} particles, smoothing lag {}); AOTLL train is the \
-         observation network's AOTLL on the train split.\n\n| method |",
+         observation network's AOTLL on the train split.\n\n",
         s.name,
         s.particles,
         s.eval_particles,
@@ -583,25 +562,18 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         s.eval_particles,
         s.lag,
     );
-    let mut csv = String::from("method,metric,median,q1,q3,n\n");
-    for (_, header) in COLUMNS {
-        let _ = write!(md, " {header} |");
-    }
-    md.push_str(" AOTLL train | steps | skipped | collapsed (train) | collapsed (val) | train (s) | eval (s) |\n|---|");
-    for _ in 0..COLUMNS.len() + 7 {
-        md.push_str("---|");
-    }
-    md.push('\n');
+    let mut csv = String::from(CSV_HEADER);
+    md.push_str(&header(&[
+        "AOTLL train",
+        "steps",
+        "skipped",
+        "collapsed (train)",
+        "collapsed (val)",
+        "train (s)",
+        "eval (s)",
+    ]));
     for r in rows {
-        let summary = summarise_runs(&r.runs);
-        let _ = write!(md, "| {} |", r.method);
-        for (name, _) in COLUMNS {
-            let cell = summary.iter().find(|(n, _)| *n == name).and_then(|(_, s)| s.as_ref());
-            let _ = write!(md, " {} |", summary_cell(cell));
-            if let Some(v) = cell {
-                let _ = writeln!(csv, "{},{name},{},{},{},{}", r.method, v.median, v.q1, v.q3, v.n);
-            }
-        }
+        let summary = metric_cells(&r.method, &r.runs, &mut md, &mut csv);
         let val_collapsed = summary.iter().find(|(n, _)| *n == "collapsed_steps").and_then(|(_, s)| s.as_ref());
         let _ = writeln!(
             md,
@@ -618,7 +590,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
             let _ = writeln!(csv, "{},train_aotll,{v},{v},{v},1", r.method);
         }
         if let Some(v) = val_collapsed {
-            let _ = writeln!(csv, "{},collapsed_steps,{},{},{},{}", r.method, v.median, v.q1, v.q3, v.n);
+            csv_row(&mut csv, &r.method, "collapsed_steps", v);
         }
     }
     let rep = c.supervised;

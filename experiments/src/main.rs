@@ -12,6 +12,7 @@ mod output;
 mod plot;
 mod reproduce;
 mod score_check;
+mod table;
 mod train;
 
 use std::path::PathBuf;

@@ -23,7 +23,7 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::Dataset;
-use ssm::metrics::{summarise_runs, Metrics, Summary};
+use ssm::metrics::{Metrics, Summary};
 use ssm::params::{AnyPolicy, Models};
 use ssm::training::PARAMS_FILE;
 use ssm::vehicle::{GaussianPolicy, HandCraftedPolicy};
@@ -32,6 +32,7 @@ use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
+use crate::table::{csv_row, header, metric_cells, summary_cell, CSV_HEADER};
 use crate::train::{self, read_eval_curve, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
@@ -125,17 +126,6 @@ impl Scale {
     }
 }
 
-/// The metrics of the table, in order, with their headers.
-const COLUMNS: [(&str, &str); 7] = [
-    ("mll", "MLL"),
-    ("aotll", "AOTLL"),
-    ("aptll", "APTLL"),
-    ("ade_smoothed", "ADE sm (m)"),
-    ("aye_smoothed", "AYE sm (rad)"),
-    ("ade_filtered", "ADE filt (m)"),
-    ("aye_filtered", "AYE filt (rad)"),
-];
-
 /// One method's results over seeds.
 struct MethodResult {
     method: String,
@@ -154,14 +144,6 @@ fn learned_sds(store: &ParamStore<f64>, data: &Dataset) -> Option<(f64, f64)> {
             Some((p[0].data()[0].exp(), p[0].data()[1].exp()))
         }
         AnyPolicy::Neural(_) => None,
-    }
-}
-
-fn summary_cell(s: Option<&Summary>) -> String {
-    match s {
-        Some(s) if s.n > 1 => format!("{:.3} [{:.3}, {:.3}]", s.median, s.q1, s.q3),
-        Some(s) => format!("{:.3}", s.median),
-        None => "-".into(),
     }
 }
 
@@ -270,7 +252,7 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
     let (true_sd_a, true_sd_p) = (truth.log_sd_accel().exp(), truth.log_sd_pinch().exp());
     let mut md = format!(
         "Experiment {} ({} scale: {} training / {} evaluation particles, {} epochs, L = {}, alpha = {}, {} seeds; \
-         {:.0} s). Median [IQR] over seeds.\n\n| method |",
+         {:.0} s). Median [IQR] over seeds.\n\n",
         args.exp.to_uppercase(),
         scale.name,
         scale.particles,
@@ -281,25 +263,10 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
         scale.seeds,
         seconds
     );
-    let mut csv = String::from("method,metric,median,q1,q3,n\n");
-    for (_, header) in COLUMNS {
-        let _ = write!(md, " {header} |");
-    }
-    md.push_str(" sd accel | sd pinch | train time (s) |\n|---|");
-    for _ in 0..COLUMNS.len() + 3 {
-        md.push_str("---|");
-    }
-    md.push('\n');
+    let mut csv = String::from(CSV_HEADER);
+    md.push_str(&header(&["sd accel", "sd pinch", "train time (s)"]));
     for r in results {
-        let summary = summarise_runs(&r.runs);
-        let _ = write!(md, "| {} |", r.method);
-        for (name, _) in COLUMNS {
-            let s = summary.iter().find(|(n, _)| *n == name).and_then(|(_, s)| s.as_ref());
-            let _ = write!(md, " {} |", summary_cell(s));
-            if let Some(s) = s {
-                let _ = writeln!(csv, "{},{name},{},{},{},{}", r.method, s.median, s.q1, s.q3, s.n);
-            }
-        }
+        metric_cells(&r.method, &r.runs, &mut md, &mut csv);
         let sd = |f: fn(&(f64, f64)) -> f64| {
             let v: Vec<f64> = r.sds.iter().map(f).collect();
             summary_cell(Summary::of(&v).as_ref())
@@ -308,7 +275,7 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
         for (name, f) in [("sd_accel", (|s: &(f64, f64)| s.0) as fn(&(f64, f64)) -> f64), ("sd_pinch", |s| s.1)] {
             let v: Vec<f64> = r.sds.iter().map(f).collect();
             if let Some(s) = Summary::of(&v) {
-                let _ = writeln!(csv, "{},{name},{},{},{},{}", r.method, s.median, s.q1, s.q3, s.n);
+                csv_row(&mut csv, &r.method, name, &s);
             }
         }
     }

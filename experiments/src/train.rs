@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
-use ssm::data::Dataset;
+use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::objective::{ObjectiveConfig, SceneObjective};
 use ssm::params::{AnyPolicy, Models};
@@ -97,6 +97,24 @@ fn parse_sds(text: &str) -> Result<(f64, f64), String> {
     }
 }
 
+/// The models a fresh run starts from: the policy named `policy` (`hand-crafted`
+/// with sds `init_sd` = `accel,pinch`, or `neural` drawn from `seed`) and an
+/// observation network for `kind` drawn from `seed + 1`.
+pub fn fresh_models(policy: &str, init_sd: &str, kind: ObservationKind, seed: u64) -> Result<Models, String> {
+    let policy = match policy {
+        "hand-crafted" => {
+            let (a, p) = parse_sds(init_sd)?;
+            AnyPolicy::HandCrafted(HandCraftedPolicy::new(a.ln(), p.ln()).map_err(|e| e.to_string())?)
+        }
+        "neural" => {
+            use rand::SeedableRng;
+            AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(seed)))
+        }
+        other => return Err(format!("--policy: expected hand-crafted or neural, got `{other}`")),
+    };
+    Ok(Models::initial(kind, policy, seed.wrapping_add(1)))
+}
+
 /// The store training starts from.
 fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, String> {
     if let Some(path) = &args.init {
@@ -104,18 +122,7 @@ fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, St
         Models::from_store(&store, data.kind()).map_err(|e| format!("{}: {e}", path.display()))?;
         return Ok(store);
     }
-    let policy = match args.policy.as_str() {
-        "hand-crafted" => {
-            let (a, p) = parse_sds(&args.init_sd)?;
-            AnyPolicy::HandCrafted(HandCraftedPolicy::new(a.ln(), p.ln()).map_err(|e| e.to_string())?)
-        }
-        "neural" => {
-            use rand::SeedableRng;
-            AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(args.seed)))
-        }
-        other => return Err(format!("--policy: expected hand-crafted or neural, got `{other}`")),
-    };
-    Ok(Models::initial(data.kind(), policy, args.seed.wrapping_add(1)).to_store())
+    Ok(fresh_models(&args.policy, &args.init_sd, data.kind(), args.seed)?.to_store())
 }
 
 /// Reads `eval.csv` in `dir`: the step column and the named metric.
