@@ -34,8 +34,7 @@ fn main() {
         points as f64 / (objects * data.steps()) as f64
     );
     for n in [1024usize, 4096] {
-        let cfg =
-            FilterConfig { particles: n, lag: 8, seed: 1, ..FilterConfig::default() };
+        let cfg = FilterConfig { particles: n, lag: 8, seed: 1, ..FilterConfig::default() };
         let time = |threads: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
             pool.install(|| {
