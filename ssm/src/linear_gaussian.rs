@@ -126,7 +126,7 @@ impl DifferentiableModel for LgssmBatch {
         let theta = ThetaVars::from_vector(params[0]);
         let ys: Vec<F> = blocks
             .iter()
-            .flat_map(|b| std::iter::repeat(F::from_f64(self.sequences[b.object][b.t])).take(b.len))
+            .flat_map(|b| std::iter::repeat_n(F::from_f64(self.sequences[b.object][b.t]), b.len))
             .collect();
         let tape = states[0].tape();
         normal_logpdf(states[0], tape.constant(Tensor::from_vec(ys)), theta.log_sw)

@@ -218,7 +218,7 @@ fn replay_gradient<M: DifferentiableModel, F: Float>(
                 if resampled.iter().all(|&s| s) {
                     after
                 } else {
-                    let mask: Vec<bool> = resampled.iter().flat_map(|&s| std::iter::repeat(s).take(n)).collect();
+                    let mask: Vec<bool> = resampled.iter().flat_map(|&s| std::iter::repeat_n(s, n)).collect();
                     tape.select(&mask, after, lw_a)
                 }
             } else {
