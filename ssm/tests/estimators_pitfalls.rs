@@ -86,6 +86,36 @@ fn flat(e: &ScoreEstimate) -> Vec<f64> {
     e.gradient.iter().flat_map(|g| g.data().iter().copied()).collect()
 }
 
+/// PF-SEFI at three lags (filter marginals, a short lag, full paths for sequences of
+/// `len` steps) and every baseline.
+fn every_estimator(len: usize) -> [Estimator; 7] {
+    [
+        Estimator::pf_sefi(0),
+        Estimator::pf_sefi(3),
+        Estimator::pf_sefi(len + 5),
+        Estimator::pf(),
+        Estimator::dpf_sgr(),
+        Estimator::dpf_sgr_stopped(),
+        Estimator::pfnet(0.8),
+    ]
+}
+
+/// DPF-SGR with stopped particles gives full-path PF-SEFI's gradient on the same
+/// draws, to the f32 rounding of the filter's weights.
+fn assert_full_path_identity<M: DifferentiableModel>(
+    data: &M,
+    cfg: &EstimatorConfig,
+    seed: u64,
+    len: usize,
+    what: &str,
+) {
+    let sefi = Estimator::pf_sefi(len).estimate(data, cfg, seed);
+    let dpf = Estimator::dpf_sgr_stopped().estimate(data, cfg, seed);
+    for (a, b) in flat(&sefi).iter().zip(flat(&dpf)) {
+        assert!((a - b).abs() <= 2e-6 * (1.0 + a.abs()), "{what}: {a} vs {b}");
+    }
+}
+
 /// `max |a - b| / max |a|`: a relative difference that a small component cannot inflate.
 fn rel_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
@@ -527,15 +557,7 @@ fn collapsed_steps_are_skipped_by_every_estimator() {
     let data = LgssmBatch::new(lgssm(), seqs).unwrap();
     let masked =
         Edited { inner: healthy.clone(), missing: absurd.iter().map(|&(j, t, _)| (j, t)).collect(), gates: vec![] };
-    let estimators = [
-        Estimator::pf_sefi(0),
-        Estimator::pf_sefi(3),
-        Estimator::pf_sefi(len + 5),
-        Estimator::pf(),
-        Estimator::dpf_sgr(),
-        Estimator::dpf_sgr_stopped(),
-        Estimator::pfnet(0.8),
-    ];
+    let estimators = every_estimator(len);
     for precision in [Precision::F32, Precision::F64] {
         for ess_threshold in [None, Some(0.5)] {
             let cfg = EstimatorConfig { ess_threshold, chunk_objects: 4, ..config(32, precision) };
@@ -551,11 +573,7 @@ fn collapsed_steps_are_skipped_by_every_estimator() {
                 assert_eq!(got.gradient, missing.gradient, "{what}: a collapsed step is a missing observation");
             }
             if precision == Precision::F64 {
-                let sefi = Estimator::pf_sefi(len).estimate(&data, &cfg, 9);
-                let dpf = Estimator::dpf_sgr_stopped().estimate(&data, &cfg, 9);
-                for (a, b) in flat(&sefi).iter().zip(flat(&dpf)) {
-                    assert!((a - b).abs() <= 2e-6 * (1.0 + a.abs()), "ess {ess_threshold:?}: {a} vs {b}");
-                }
+                assert_full_path_identity(&data, &cfg, 9, len, &format!("ess {ess_threshold:?}"));
             }
         }
     }
@@ -575,15 +593,7 @@ fn partly_impossible_particles_never_give_nan() {
     // Gate at the observation itself: about half the particles are impossible.
     let gates = (0..3).flat_map(|j| [0, 3, 4, len - 1].map(|t| (j, t, inner.sequence(j)[t]))).collect();
     let data = Edited { inner, missing: vec![], gates };
-    let estimators = [
-        Estimator::pf_sefi(0),
-        Estimator::pf_sefi(3),
-        Estimator::pf_sefi(len + 5),
-        Estimator::pf(),
-        Estimator::dpf_sgr(),
-        Estimator::dpf_sgr_stopped(),
-        Estimator::pfnet(0.8),
-    ];
+    let estimators = every_estimator(len);
     for precision in [Precision::F32, Precision::F64] {
         for ess_threshold in [None, Some(0.5)] {
             let cfg = EstimatorConfig { ess_threshold, chunk_objects: 3, ..config(32, precision) };
@@ -594,11 +604,7 @@ fn partly_impossible_particles_never_give_nan() {
                 assert_eq!(got.collapsed_steps, 0, "{what}");
             }
             if precision == Precision::F64 {
-                let sefi = Estimator::pf_sefi(len).estimate(&data, &cfg, 4);
-                let dpf = Estimator::dpf_sgr_stopped().estimate(&data, &cfg, 4);
-                for (a, b) in flat(&sefi).iter().zip(flat(&dpf)) {
-                    assert!((a - b).abs() <= 2e-6 * (1.0 + a.abs()), "ess {ess_threshold:?}: {a} vs {b}");
-                }
+                assert_full_path_identity(&data, &cfg, 4, len, &format!("ess {ess_threshold:?}"));
             }
         }
     }
