@@ -6,7 +6,6 @@
 //! note.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
 use autodiff::nn::ParamStore;
 use ssm::data::ObservationKind;
@@ -14,23 +13,12 @@ use ssm::params::Models;
 
 const METHODS: [&str; 4] = ["pf-sefi", "dpf-sgr", "pfnet", "pf"];
 
-fn sefi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sefi")).args(args).output().expect("runs")
-}
+mod common;
 
-fn ok(out: &Output) -> String {
-    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use common::{ok, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("sefi-experiment-c-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+    common::temp("experiment-c", name)
 }
 
 /// The KITTI folder, resolved from the workspace root as the `import-kitti`

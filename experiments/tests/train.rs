@@ -2,25 +2,14 @@
 //! files they promise, refusals that protect earlier work, and resuming.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
-fn sefi(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_sefi")).args(args).output().expect("runs")
-}
+mod common;
 
-fn ok(out: &Output) -> String {
-    assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
+use common::{ok, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("sefi-train-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+    common::temp("train", name)
 }
 
 fn rows(path: &Path) -> usize {
