@@ -41,10 +41,55 @@ pub struct GenerateArgs {
     /// Small sizes, for tests: 2 training and 1 test scene of 10 objects, 6 steps, a tiny fit.
     #[arg(long)]
     pub quick: bool,
+    /// Instead of experiment A/B, one dataset with a hidden effect for `sefi diagnose` to find: none, latency,
+    /// clutter, size_bias, heavy_tailed_accel (points) or heading_flip (boxes), at its default size.
+    #[arg(long)]
+    pub hidden: Option<String>,
+    /// With --hidden: box detections instead of point sets.
+    #[arg(long)]
+    pub boxes: bool,
+    /// With --hidden: scenes.
+    #[arg(long, default_value_t = 8)]
+    pub scenes: usize,
+    /// With --hidden: objects per scene.
+    #[arg(long, default_value_t = 6)]
+    pub objects: usize,
+    /// With --hidden: steps per scene (T + 1).
+    #[arg(long, default_value_t = 16)]
+    pub steps: usize,
+}
+
+/// Writes the hidden-effect dataset of `args` into `args.out`.
+fn run_hidden(args: &GenerateArgs, effect: &str) -> Result<(), String> {
+    use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+    use ssm::data::ObservationKind;
+    let effect = HiddenEffect::by_id(effect).map_err(|e| e.to_string())?;
+    let kind = if args.boxes { ObservationKind::Boxes } else { ObservationKind::Points };
+    let config = HiddenConfig {
+        scenes: args.scenes,
+        objects_per_scene: args.objects,
+        steps: args.steps,
+        ..HiddenConfig::quick(kind, effect, args.seed)
+    };
+    let data = generate_hidden(&config).map_err(|e| e.to_string())?;
+    data.write(&args.out).map_err(|e| e.to_string())?;
+    println!(
+        "wrote {} ({:?}, {} scenes x {} objects, {} steps; hidden effect: {:?})",
+        args.out.display(),
+        kind,
+        args.scenes,
+        args.objects,
+        args.steps,
+        effect
+    );
+    Ok(())
 }
 
 /// Runs `sefi generate`.
 pub fn run(args: &GenerateArgs) -> Result<(), String> {
+    if let Some(effect) = &args.hidden {
+        return run_hidden(args, effect);
+    }
     let started = Instant::now();
     let experiment: Experiment = args.exp.parse().map_err(|e: ssm::synthetic::SyntheticError| e.to_string())?;
     let config = if args.quick { ExperimentConfig::quick(experiment) } else { ExperimentConfig::paper(experiment) };

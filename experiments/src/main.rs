@@ -4,6 +4,7 @@
 
 mod birdseye;
 mod demo;
+mod diagnose;
 mod evaluate;
 mod experiment_c;
 mod generate;
@@ -78,6 +79,9 @@ enum Command {
     /// The paper's experiment C on KITTI: train every estimator on the train sequences, evaluate on val,
     /// compare with a supervised observation model.
     ExperimentC(experiment_c::ExperimentCArgs),
+    /// Model criticism: what the fitted simulation gets wrong, its cause among the catalogue's extensions,
+    /// and the held-out gain of the extended model.
+    Diagnose(diagnose::DiagnoseArgs),
 }
 
 fn main() -> ExitCode {
@@ -94,6 +98,7 @@ fn main() -> ExitCode {
         Command::Reproduce(args) => reproduce::run(&args),
         Command::ScoreCheck(args) => score_check::run(&args),
         Command::ExperimentC(args) => experiment_c::run(&args),
+        Command::Diagnose(args) => diagnose::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -170,7 +170,17 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     ensure_dir(&args.out)?;
     let data_dir = args.out.join("data");
     if !data_dir.join("generate.json").is_file() {
-        generate::run(&GenerateArgs { exp: args.exp.clone(), out: data_dir.clone(), seed: 0, quick: args.quick })?;
+        generate::run(&GenerateArgs {
+            exp: args.exp.clone(),
+            out: data_dir.clone(),
+            seed: 0,
+            quick: args.quick,
+            hidden: None,
+            boxes: false,
+            scenes: 0,
+            objects: 0,
+            steps: 0,
+        })?;
     } else {
         eprintln!("reusing the data in {}", data_dir.display());
     }

@@ -14,10 +14,10 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
+use crate::criticism::extensions::{ExtendedSsm, ExtensibleObservation, Extension};
 use crate::data::Dataset;
 use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
 use crate::filter::{run_filter, FilterConfig};
-use crate::observation::ObservationModel;
 use crate::params::{AnyPolicy, ModelVisitor, Models};
 use crate::training::{non_finite, BatchEstimate, Objective};
 use crate::vehicle::GaussianPolicy;
@@ -34,6 +34,10 @@ pub struct ObjectiveConfig {
     pub scenes_per_step: usize,
     /// Particles of the test evaluation (SPEC §5: 4096).
     pub eval_particles: usize,
+    /// A catalogue extension of the base model to fit along with it
+    /// ([`crate::criticism::extensions`]); its parameter is `ext.<id>` in the store.
+    #[serde(default)]
+    pub extension: Option<Extension>,
 }
 
 /// Training scenes in batches, test data, and an estimator.
@@ -68,25 +72,36 @@ impl SceneObjective {
 struct Estimate<'a> {
     estimator: &'a Estimator,
     config: &'a EstimatorConfig,
+    extension: Option<Extension>,
+    params: &'a ParamStore<f64>,
     seed: u64,
 }
 
 impl ModelVisitor for Estimate<'_> {
-    type Output = (ScoreEstimate, Vec<String>);
-    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        (self.estimator.estimate(model, self.config, self.seed), model.parameter_names())
+    type Output = Result<(ScoreEstimate, Vec<String>), String>;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let model = ExtendedSsm::from_store(model, self.extension, self.params)?;
+        Ok((self.estimator.estimate(&model, self.config, self.seed), model.parameter_names()))
     }
 }
 
-struct LogLikelihood<'a> {
-    config: &'a FilterConfig,
+/// The filter's log-likelihood estimate of a dataset under a model (with an
+/// extension, if any): `(l_hat, observed units, collapsed steps)`.
+pub struct LogLikelihood<'a> {
+    /// The filter's settings.
+    pub config: &'a FilterConfig,
+    /// The extension, if any.
+    pub extension: Option<Extension>,
+    /// The store holding the extension's parameter.
+    pub params: &'a ParamStore<f64>,
 }
 
 impl ModelVisitor for LogLikelihood<'_> {
-    type Output = (f64, usize, usize);
-    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        let run = run_filter(model, self.config, |_| ());
-        (run.log_likelihood(), run.observed_units(), run.collapsed_steps())
+    type Output = Result<(f64, usize, usize), String>;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let model = ExtendedSsm::from_store(model, self.extension, self.params)?;
+        let run = run_filter(&model, self.config, |_| ());
+        Ok((run.log_likelihood(), run.observed_units(), run.collapsed_steps()))
     }
 }
 
@@ -112,8 +127,14 @@ impl Objective for SceneObjective {
 
     fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String> {
         let models = self.models(params)?;
-        let visit = Estimate { estimator: &self.config.estimator, config: &self.config.estimator_config, seed };
-        let (estimate, names) = models.visit(&self.batches[batch], visit)?;
+        let visit = Estimate {
+            estimator: &self.config.estimator,
+            config: &self.config.estimator_config,
+            extension: self.config.extension,
+            params,
+            seed,
+        };
+        let (estimate, names) = models.visit(&self.batches[batch], visit)??;
         if !estimate.is_finite() {
             return Err(non_finite(format!("score estimate on batch {batch}")));
         }
@@ -135,7 +156,8 @@ impl Objective for SceneObjective {
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
         let config = FilterConfig { particles: self.config.eval_particles, lag: 0, seed, ..FilterConfig::default() };
-        let (ll, units, collapsed) = models.visit(&self.test, LogLikelihood { config: &config })?;
+        let visit = LogLikelihood { config: &config, extension: self.config.extension, params };
+        let (ll, units, collapsed) = models.visit(&self.test, visit)??;
         let mut metrics = vec![
             ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),
             ("test_collapsed_steps".to_string(), collapsed as f64),

@@ -41,6 +41,7 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
+use crate::criticism::extensions::ExtensibleObservation;
 use crate::data::{Dataset, ObservationKind};
 use crate::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
@@ -257,7 +258,7 @@ pub trait ModelVisitor {
     /// What the visit returns.
     type Output;
     /// Runs on the model.
-    fn visit<O: ObservationModel>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output;
 }
 
 /// A policy and an observation model with its parameters, read from one store.

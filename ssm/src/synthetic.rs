@@ -69,7 +69,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Poisson, StandardNormal};
 
-use crate::data::{Action, DataError, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
+use crate::data::{Action, DataError, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use crate::observation::{
     aotll, fit_network, random_point_examples, FitConfig, FitReport, ObsContext, ObservationModel, PointGenerator,
     PointObservationModel, SceneRanges,
@@ -464,9 +464,85 @@ fn from_vehicle(s: VehicleState<f64>) -> State {
     State { x: s.x, y: s.y, yaw: s.yaw, v: s.v, kappa: s.kappa }
 }
 
+/// One object's placement and true motion (no observations yet).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SimulatedObject {
+    /// Its ids, extents and prior.
+    pub object: Object,
+    /// True states, `states[t]` for `t = 0..steps`.
+    pub states: Vec<State>,
+    /// True actions, `actions[t - 1]` for `t = 1..steps`.
+    pub actions: Vec<Action>,
+}
+
+/// Places one object and drives it (steps 3 and 4 of the [module docs](self)):
+/// draws, in order from `rng`, its length and width, its prior mean (range,
+/// bearing, heading, speed, curvature; around `start`, the AV's initial pose), its
+/// `x_0` from the prior, then for each step the policy's two innovations — the
+/// acceleration's from `accel_innovation` (the standardised `z` of
+/// `accel = mean + sd z`; [`StandardNormal`] for the paper's data), the pinch's from
+/// a standard normal — and moves it with `motion`.
+///
+/// [`simulate_scene`] and the hidden-effect generator
+/// ([`crate::criticism::hidden`]) share it, so both place and drive objects alike.
+#[allow(clippy::too_many_arguments)]
+pub fn simulate_object<R: Rng + ?Sized, D: Distribution<f64> + ?Sized>(
+    config: &SceneConfig,
+    policy: &HandCraftedPolicy,
+    motion: &MotionModel,
+    start: Pose,
+    scene: i64,
+    id: i64,
+    accel_innovation: &D,
+    rng: &mut R,
+) -> SimulatedObject {
+    let length = uniform(rng, config.length);
+    let width = uniform(rng, config.width);
+    let r = uniform(rng, config.range);
+    let bearing = TAU * rng.random::<f64>();
+    let mean = State {
+        x: start.x + r * bearing.cos(),
+        y: start.y + r * bearing.sin(),
+        yaw: TAU * rng.random::<f64>(),
+        v: uniform(rng, config.speed),
+        kappa: uniform(rng, (-config.max_kappa, config.max_kappa)),
+    };
+    let sd = config.prior_sd;
+    let noise: [f64; 5] = std::array::from_fn(|_| rng.sample::<f64, _>(StandardNormal));
+    let m = mean.to_array();
+    let s = sd.to_array();
+    let x0 = State::from_array(std::array::from_fn(|i| m[i] + s[i] * noise[i]));
+
+    // Dynamics: a_t ~ pi(. | x_{t-1}), x_t = f(x_{t-1}, a_t).
+    let steps = config.steps;
+    let mut gaussians = ActionGaussians::<f64>::default();
+    let mut states = Vec::with_capacity(steps);
+    let mut actions = Vec::with_capacity(steps.saturating_sub(1));
+    states.push(x0);
+    for _ in 1..steps {
+        let prev = *states.last().expect("x_0 is there");
+        policy.gaussians(&[prev.v], &[prev.kappa], &mut gaussians);
+        let g = &gaussians;
+        let e1: f64 = accel_innovation.sample(rng);
+        let e2: f64 = rng.sample(StandardNormal);
+        let accel = g.mean_accel[0] + g.l11[0] * e1;
+        let pinch = g.mean_pinch[0] + g.l21[0] * e1 + g.l22[0] * e2;
+        let next = motion.step(&to_vehicle(prev), &VAction::new(accel, pinch));
+        actions.push(Action { accel, pinch });
+        states.push(from_vehicle(next));
+    }
+    let object = Object { scene, id, length, width, prior: Prior { mean, sd } };
+    SimulatedObject { object, states, actions }
+}
+
+/// The exact motion model of the synthetic data at `config.dt` (8-node Gauss–Legendre).
+pub(crate) fn scene_motion(config: &SceneConfig) -> Result<MotionModel, SyntheticError> {
+    MotionModel::new(config.dt, Quadrature::default()).map_err(|e| config_err(format!("motion model: {e}")))
+}
+
 /// Simulates one scene (see the [module docs](self)). Objects are drawn one after
-/// another, each completely (size, prior, `x_0`, actions and states, then points),
-/// from `rng`.
+/// another, each completely (size, prior, `x_0`, actions and states with
+/// [`simulate_object`], then points), from `rng`.
 pub fn simulate_scene<R: Rng + ?Sized>(
     config: &SceneConfig,
     truth: &TrueModel,
@@ -474,8 +550,7 @@ pub fn simulate_scene<R: Rng + ?Sized>(
     rng: &mut R,
 ) -> Result<SyntheticScene, SyntheticError> {
     config.validate()?;
-    let motion =
-        MotionModel::new(config.dt, Quadrature::default()).map_err(|e| config_err(format!("motion model: {e}")))?;
+    let motion = scene_motion(config)?;
     let steps = config.steps;
     let av: Vec<Pose> = (0..steps).map(|t| config.av_pose(t)).collect();
     let start = av[0];
@@ -487,45 +562,12 @@ pub fn simulate_scene<R: Rng + ?Sized>(
         actions: Vec::with_capacity(config.objects),
         points: Vec::with_capacity(config.objects),
     };
-    let mut gaussians = ActionGaussians::<f64>::default();
     for k in 0..config.objects {
-        let length = uniform(rng, config.length);
-        let width = uniform(rng, config.width);
-        let r = uniform(rng, config.range);
-        let bearing = TAU * rng.random::<f64>();
-        let mean = State {
-            x: start.x + r * bearing.cos(),
-            y: start.y + r * bearing.sin(),
-            yaw: TAU * rng.random::<f64>(),
-            v: uniform(rng, config.speed),
-            kappa: uniform(rng, (-config.max_kappa, config.max_kappa)),
-        };
-        let sd = config.prior_sd;
-        let noise: [f64; 5] = std::array::from_fn(|_| rng.sample::<f64, _>(StandardNormal));
-        let m = mean.to_array();
-        let s = sd.to_array();
-        let x0 = State::from_array(std::array::from_fn(|i| m[i] + s[i] * noise[i]));
-
-        // Dynamics: a_t ~ pi(. | x_{t-1}), x_t = f(x_{t-1}, a_t).
-        let mut states = Vec::with_capacity(steps);
-        let mut actions = Vec::with_capacity(steps.saturating_sub(1));
-        states.push(x0);
-        for _ in 1..steps {
-            let prev = *states.last().expect("x_0 is there");
-            truth.policy.gaussians(&[prev.v], &[prev.kappa], &mut gaussians);
-            let g = &gaussians;
-            let e1: f64 = rng.sample(StandardNormal);
-            let e2: f64 = rng.sample(StandardNormal);
-            let accel = g.mean_accel[0] + g.l11[0] * e1;
-            let pinch = g.mean_pinch[0] + g.l21[0] * e1 + g.l22[0] * e2;
-            let next = motion.step(&to_vehicle(prev), &VAction::new(accel, pinch));
-            actions.push(Action { accel, pinch });
-            states.push(from_vehicle(next));
-        }
+        let SimulatedObject { object, states, actions } =
+            simulate_object(config, &truth.policy, &motion, start, id, k as i64, &StandardNormal, rng);
 
         // Observations: a Poisson count from the generator's count model, points
         // from the true network.
-        let object = Object { scene: id, id: k as i64, length, width, prior: Prior { mean, sd } };
         let mut points = Vec::with_capacity(steps);
         for (t, x) in states.iter().enumerate() {
             let ctx = ObsContext::of_object(scene.av[t], &object);
@@ -549,11 +591,11 @@ pub fn simulate_scene<R: Rng + ?Sized>(
     Ok(scene)
 }
 
-/// Assembles simulated scenes into a validated point [`Dataset`] with ground-truth
-/// states and actions.
-pub fn build_dataset(config: &SceneConfig, scenes: &[SyntheticScene]) -> Result<Dataset, SyntheticError> {
-    let meta = Meta { dt: config.dt, steps: config.steps };
-    let mut b = Dataset::builder(meta, ObservationKind::Points);
+/// A builder holding the scenes' AV poses, objects and ground truth (states and
+/// actions) but no observations: [`build_dataset`] adds points, the hidden-effect
+/// generator box detections.
+pub(crate) fn ground_truth_builder(meta: Meta, kind: ObservationKind, scenes: &[SyntheticScene]) -> DatasetBuilder {
+    let mut b = Dataset::builder(meta, kind);
     b.with_states().with_actions();
     for s in scenes {
         b.scene(s.id, &s.av);
@@ -565,7 +607,19 @@ pub fn build_dataset(config: &SceneConfig, scenes: &[SyntheticScene]) -> Result<
             for (t, a) in s.actions[k].iter().enumerate() {
                 b.action(s.id, o.id, t + 1, *a);
             }
-            for (t, pts) in s.points[k].iter().enumerate() {
+        }
+    }
+    b
+}
+
+/// Assembles simulated scenes into a validated point [`Dataset`] with ground-truth
+/// states and actions.
+pub fn build_dataset(config: &SceneConfig, scenes: &[SyntheticScene]) -> Result<Dataset, SyntheticError> {
+    let meta = Meta { dt: config.dt, steps: config.steps };
+    let mut b = ground_truth_builder(meta, ObservationKind::Points, scenes);
+    for s in scenes {
+        for (o, points) in s.objects.iter().zip(&s.points) {
+            for (t, pts) in points.iter().enumerate() {
                 for p in pts {
                     b.point(s.id, o.id, t, *p);
                 }

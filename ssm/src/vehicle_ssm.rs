@@ -33,10 +33,35 @@ pub struct VehicleSsm<'a, P: GaussianPolicy, O: ObservationModel> {
     observation_params64: ParamStore<f64>,
 }
 
+/// What the observation log-density of tape rows needs besides the states: per
+/// row, the AV's pose, the observation and the object's extents.
+pub(crate) struct ObservationRows<'a, I> {
+    pub(crate) av: Vec<Pose>,
+    pub(crate) items: Vec<&'a [I]>,
+    pub(crate) length: Vec<f64>,
+    pub(crate) width: Vec<f64>,
+}
+
+impl<I> ObservationRows<'_, I> {
+    /// The rows' poses from `states` (components `x, y, yaw` tracked as given) with
+    /// the extents as constants.
+    pub(crate) fn vars<'t, F: Float>(&self, states: &[Var<'t, F>]) -> RowVars<'t, F> {
+        let tape = states[0].tape();
+        let constant = |v: &[f64]| tape.constant(Tensor::from_vec(v.iter().map(|&x| F::from_f64(x)).collect()));
+        RowVars {
+            x: states[0],
+            y: states[1],
+            yaw: states[YAW],
+            length: constant(&self.length),
+            width: constant(&self.width),
+        }
+    }
+}
+
 /// Per-thread working memory of [`VehicleSsm`].
 pub struct VehicleScratch {
-    observation: Scratch<f32>,
-    gaussians: ActionGaussians<f32>,
+    pub(crate) observation: Scratch<f32>,
+    pub(crate) gaussians: ActionGaussians<f32>,
 }
 
 impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
@@ -74,13 +99,71 @@ impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
         let scene = &self.data.scenes()[self.data.object_scene(object)];
         ObsContext::of_object(scene.av[t], &self.data.objects()[object])
     }
+
+    /// The motion model.
+    pub fn motion(&self) -> &MotionModel {
+        &self.motion
+    }
+
+    /// The policy.
+    pub fn policy(&self) -> &'a P {
+        self.policy
+    }
+
+    /// The observation model (a layout over [`VehicleSsm::observation_params`]).
+    pub fn observation(&self) -> &'a O {
+        self.observation
+    }
+
+    /// The observation network's parameters (f64 master copy).
+    pub fn observation_params(&self) -> &ParamStore<f64> {
+        &self.observation_params64
+    }
+
+    /// The same in f32, as the filter reads them.
+    pub(crate) fn observation_params32(&self) -> &ParamStore<f32> {
+        &self.observation_params
+    }
+
+    /// How many of [`DifferentiableModel::parameters`] are the policy's (they come first).
+    pub fn policy_param_count(&self) -> usize {
+        self.policy.parameters().len()
+    }
+
+    /// The observation network's parameters among the bound `params` of the tape methods.
+    pub(crate) fn observation_params_on_tape<'t, F: Float>(&self, params: &[Var<'t, F>]) -> BoundParams<'t, F> {
+        let np = self.policy_param_count();
+        BoundParams::from_vars(params[np..np + self.observation_params64.len()].to_vec())
+    }
+
+    /// Per-row AV poses, observations and extents of `blocks`.
+    pub(crate) fn observation_rows(&self, blocks: &[Block]) -> ObservationRows<'a, O::Item> {
+        let rows = block_rows(blocks);
+        let mut out = ObservationRows {
+            av: Vec::with_capacity(rows),
+            items: Vec::with_capacity(rows),
+            length: Vec::with_capacity(rows),
+            width: Vec::with_capacity(rows),
+        };
+        for b in blocks {
+            let ctx = self.context(b.object, b.t);
+            let its = O::items(self.data, b.object, b.t);
+            for _ in 0..b.len {
+                out.av.push(ctx.av);
+                out.items.push(its);
+                out.length.push(ctx.length);
+                out.width.push(ctx.width);
+            }
+        }
+        out
+    }
 }
 
-fn states_ref(s: &[f32], n: usize) -> StatesRef<'_, f32> {
+pub(crate) fn states_ref(s: &[f32], n: usize) -> StatesRef<'_, f32> {
     StatesRef { x: &s[..n], y: &s[n..2 * n], yaw: &s[2 * n..3 * n], v: &s[3 * n..4 * n], kappa: &s[4 * n..5 * n] }
 }
 
-fn states_mut(s: &mut [f32], n: usize) -> StatesMut<'_, f32> {
+pub(crate) fn states_mut(s: &mut [f32], n: usize) -> StatesMut<'_, f32> {
     let (x, rest) = s.split_at_mut(n);
     let (y, rest) = rest.split_at_mut(n);
     let (yaw, rest) = rest.split_at_mut(n);
@@ -190,31 +273,9 @@ impl<P: GaussianPolicy, O: ObservationModel> DifferentiableModel for VehicleSsm<
         blocks: &[Block],
         states: &[Var<'t, F>],
     ) -> Var<'t, F> {
-        let np = self.policy.parameters().len();
-        let obs = BoundParams::from_vars(params[np..].to_vec());
-        let rows = block_rows(blocks);
-        let tape = states[0].tape();
-        let mut av: Vec<Pose> = Vec::with_capacity(rows);
-        let mut items: Vec<&[O::Item]> = Vec::with_capacity(rows);
-        let (mut length, mut width) = (Vec::with_capacity(rows), Vec::with_capacity(rows));
-        for b in blocks {
-            let ctx = self.context(b.object, b.t);
-            let its = O::items(self.data, b.object, b.t);
-            for _ in 0..b.len {
-                av.push(ctx.av);
-                items.push(its);
-                length.push(F::from_f64(ctx.length));
-                width.push(F::from_f64(ctx.width));
-            }
-        }
-        let row_vars = RowVars {
-            x: states[0],
-            y: states[1],
-            yaw: states[YAW],
-            length: tape.constant(Tensor::from_vec(length)),
-            width: tape.constant(Tensor::from_vec(width)),
-        };
-        self.observation.log_likelihood_rows(&obs, &row_vars, &av, &items)
+        let obs = self.observation_params_on_tape(params);
+        let rows = self.observation_rows(blocks);
+        self.observation.log_likelihood_rows(&obs, &rows.vars(states), &rows.av, &rows.items)
     }
 
     /// `log pi(a | x_{t-1})`: the motion model is deterministic and injective in

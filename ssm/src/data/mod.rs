@@ -395,15 +395,45 @@ impl Dataset {
         let mut order: Vec<usize> = scenes.to_vec();
         order.sort_unstable_by_key(|&s| self.scenes[s].id);
         assert!(order.windows(2).all(|w| w[0] != w[1]), "Dataset::select_scenes: a scene is listed twice");
+        let objects: Vec<usize> = order.iter().flat_map(|&s| self.scenes[s].objects.clone()).collect();
+        self.select(&order, &objects)
+    }
+
+    /// A dataset with only the listed objects (indices into [`Dataset::objects`],
+    /// in any order) and the scenes that hold at least one of them, each with its
+    /// AV poses: the way to split a dataset by object.
+    ///
+    /// # Panics
+    /// If an index is out of range or listed twice (a programmer error).
+    #[track_caller]
+    pub fn select_objects(&self, objects: &[usize]) -> Dataset {
+        let mut picked = objects.to_vec();
+        picked.sort_unstable();
+        assert!(picked.windows(2).all(|w| w[0] != w[1]), "Dataset::select_objects: an object is listed twice");
+        assert!(picked.last().is_none_or(|&o| o < self.objects.len()), "Dataset::select_objects: index out of range");
+        let mut scenes: Vec<usize> = picked.iter().map(|&o| self.object_scene[o]).collect();
+        scenes.dedup();
+        scenes.sort_unstable_by_key(|&s| self.scenes[s].id);
+        // Objects in scene order, each scene's in their original order.
+        let ordered: Vec<usize> = scenes
+            .iter()
+            .flat_map(|&s| self.scenes[s].objects.clone().filter(|o| picked.binary_search(o).is_ok()))
+            .collect();
+        self.select(&scenes, &ordered)
+    }
+
+    /// The scenes `order` (sorted by id) with the objects `picked` (grouped by
+    /// scene in that order).
+    fn select(&self, order: &[usize], picked: &[usize]) -> Dataset {
         let mut new_scenes = Vec::with_capacity(order.len());
-        let mut picked = Vec::new();
-        let mut object_scene = Vec::new();
+        let mut object_scene = Vec::with_capacity(picked.len());
+        let mut start = 0;
         for (new_index, &s) in order.iter().enumerate() {
             let scene = &self.scenes[s];
-            let start = picked.len();
-            picked.extend(scene.objects.clone());
-            object_scene.resize(picked.len(), new_index);
-            new_scenes.push(Scene { id: scene.id, av: scene.av.clone(), objects: start..picked.len() });
+            let count = picked[start..].iter().take_while(|&&o| self.object_scene[o] == s).count();
+            object_scene.resize(start + count, new_index);
+            new_scenes.push(Scene { id: scene.id, av: scene.av.clone(), objects: start..start + count });
+            start += count;
         }
         Dataset {
             meta: self.meta,
@@ -411,11 +441,11 @@ impl Dataset {
             objects: picked.iter().map(|&o| self.objects[o]).collect(),
             object_scene,
             observations: match &self.observations {
-                Observations::Points(p) => Observations::Points(p.select(&picked)),
-                Observations::Boxes(b) => Observations::Boxes(b.select(&picked)),
+                Observations::Points(p) => Observations::Points(p.select(picked)),
+                Observations::Boxes(b) => Observations::Boxes(b.select(picked)),
             },
-            states: self.states.as_ref().map(|s| s.select(&picked)),
-            actions: self.actions.as_ref().map(|a| a.select(&picked)),
+            states: self.states.as_ref().map(|s| s.select(picked)),
+            actions: self.actions.as_ref().map(|a| a.select(picked)),
         }
     }
 }

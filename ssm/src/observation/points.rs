@@ -28,10 +28,28 @@
 //! bound of each edge's term (the soft uniform inside an edge is at most `1 / L`),
 //! so one logarithm per point suffices and no term is ever `-inf` or NaN for
 //! finite inputs.
+//!
+//! # Clutter
+//!
+//! A model extension ([`Clutter`]) mixes a broad component into every point's
+//! density: with probability `eps` a point is not on the box but drawn from an
+//! isotropic Gaussian of sd `s` centred on the box centre `(x, y)`,
+//!
+//! ```text
+//! g_c(y | x) = (1 - eps) g(y | x) + eps N2(y; (x, y), s^2 I)
+//! ```
+//!
+//! On the tape `eps = sigmoid(lambda)` and `s = exp(sigma)`
+//! ([`PointObservationModel::log_likelihood_rows_with_clutter`]). The clutter paths
+//! run the same kernels as the clutter-free ones and then one more pass over the
+//! per-point values: a two-term log-sum-exp, and on the tape the partials scaled
+//! by the box component's responsibility `r_p` plus the clutter term's own. The
+//! clutter-free paths do none of this work.
 
 use autodiff::nn::{Activation, BoundParams, Mlp, ParamStore};
 use autodiff::{Float, Parallelism, Tensor, Var};
 use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
 use super::edges::{
@@ -56,6 +74,12 @@ pub const POINT_MIN_SCALE: f64 = 0.01;
 /// 12 partials with respect to `(ln phi, mu, b)`, and 5 with respect to
 /// `(x, y, yaw, l, w)`.
 const ROW_OUT: usize = 1 + 3 * NUM_EDGES + 5;
+/// Per-row values the fused kernel adds with clutter: the partials with respect to
+/// the clutter's logit fraction `lambda` and log scale `sigma`.
+const CLUTTER_OUT: usize = 2;
+/// Per-point work columns of the fused kernel: its outputs (with clutter's), the
+/// box component's responsibilities `r_p` (clutter only), and the points' x and y.
+const COLS: usize = ROW_OUT + CLUTTER_OUT + 3;
 /// Rows per parallel task of the fused kernel (fixed: results never depend on threads).
 const ROWS_PER_TASK: usize = 64;
 /// The fused kernel pads each row's points to a multiple of this (the f32 vector
@@ -77,6 +101,125 @@ pub struct EdgeMixture {
     pub mu: [f64; NUM_EDGES],
     /// Laplace scales `b_e` (m).
     pub b: [f64; NUM_EDGES],
+}
+
+/// Clutter mixed into every point's density (see the [module docs](self#clutter)):
+/// with probability `fraction` a point is drawn from an isotropic 2-D Gaussian of
+/// sd `scale` centred on the box centre instead of from the box's edges.
+///
+/// ```
+/// use ssm::observation::points::Clutter;
+/// let c = Clutter::from_logits(0.0, 2f64.ln());
+/// assert_eq!(c, Clutter { fraction: 0.5, scale: 2.0 });
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Clutter {
+    /// Fraction `eps` of clutter points, in `(0, 1)`.
+    pub fraction: f64,
+    /// Sd `s` of the clutter Gaussian (m, positive).
+    pub scale: f64,
+}
+
+impl Clutter {
+    /// The clutter with `fraction = sigmoid(logit_fraction)` and `scale = exp(log_scale)`
+    /// (the tape path's parameterisation).
+    pub fn from_logits(logit_fraction: f64, log_scale: f64) -> Self {
+        Clutter { fraction: 1.0 / (1.0 + (-logit_fraction).exp()), scale: log_scale.exp() }
+    }
+
+    /// Panics unless `0 < fraction < 1` and `scale` is positive and finite.
+    #[track_caller]
+    fn check(&self, op: &str) {
+        assert!(
+            self.fraction > 0.0 && self.fraction < 1.0,
+            "{op}: clutter fraction must lie in (0, 1), got {}",
+            self.fraction
+        );
+        assert!(
+            self.scale > 0.0 && self.scale.is_finite(),
+            "{op}: clutter scale must be positive and finite, got {}",
+            self.scale
+        );
+    }
+}
+
+/// `ln(1 + e^x)` in f64 without overflow or loss for large `|x|`.
+fn softplus64(x: f64) -> f64 {
+    if x > 0.0 {
+        x + (-x).exp().ln_1p()
+    } else {
+        x.exp().ln_1p()
+    }
+}
+
+/// The clutter's constants in the kernels' float type: with `c(d) = eps N2` at
+/// distance `d` from the centre, `ln c = ln_peak - half_prec d^2`.
+#[derive(Clone, Copy, Debug)]
+struct ClutterConsts<F> {
+    /// `ln(1 - eps)`.
+    ln_keep: F,
+    /// `ln eps - ln(2 pi) - 2 ln s`.
+    ln_peak: F,
+    /// `1 / s^2`.
+    prec: F,
+    /// `1 / (2 s^2)`.
+    half_prec: F,
+    /// `eps`.
+    eps: F,
+}
+
+impl<F: Float> ClutterConsts<F> {
+    /// From `ln(1 - eps)`, `ln eps` and `ln s`, computed in f64.
+    fn new(ln_keep: f64, ln_eps: f64, ln_s: f64) -> Self {
+        let prec = (-2.0 * ln_s).exp();
+        let f = F::from_f64;
+        ClutterConsts {
+            ln_keep: f(ln_keep),
+            ln_peak: f(ln_eps - (2.0 * std::f64::consts::PI).ln() - 2.0 * ln_s),
+            prec: f(prec),
+            half_prec: f(0.5 * prec),
+            eps: f(ln_eps.exp()),
+        }
+    }
+
+    /// Of a validated [`Clutter`].
+    #[track_caller]
+    fn of(c: Clutter, op: &str) -> Self {
+        c.check(op);
+        Self::new((-c.fraction).ln_1p(), c.fraction.ln(), c.scale.ln())
+    }
+
+    /// Of `eps = sigmoid(lambda)`, `s = exp(sigma)`: `ln eps = -softplus(-lambda)` and
+    /// `ln(1 - eps) = -softplus(lambda)` stay accurate however large `|lambda|` is.
+    #[track_caller]
+    fn from_logits(lambda: f64, sigma: f64, op: &str) -> Self {
+        assert!(
+            lambda.is_finite() && sigma.is_finite(),
+            "{op}: clutter logit fraction {lambda} and log scale {sigma} must be finite"
+        );
+        Self::new(-softplus64(lambda), -softplus64(-lambda), sigma)
+    }
+}
+
+/// One point's mixture with clutter: `lg` the log of `g_c`, `q = 1 - r` the clutter
+/// term's responsibility, `d2` the squared distance to the box centre.
+struct ClutterMix<F> {
+    lg: F,
+    q: F,
+    d2: F,
+}
+
+/// `log((1 - eps) e^{lg} + c(d))` for a point at `(dx, dy)` from the box centre whose
+/// box log-density is `lg`: a two-term log-sum-exp, finite for finite inputs.
+#[inline(always)]
+fn clutter_mix<F: Float>(lg: F, dx: F, dy: F, cc: &ClutterConsts<F>) -> ClutterMix<F> {
+    let d2 = dx * dx + dy * dy;
+    let a = cc.ln_keep + lg;
+    let b = cc.ln_peak - cc.half_prec * d2;
+    let m = fmax(a, b);
+    let (ea, eb) = ((a - m).exp(), (b - m).exp());
+    let total = ea + eb;
+    ClutterMix { lg: m + total.ln(), q: eb / total, d2 }
 }
 
 /// The point observation model: a layout (the network's parameter ids) plus the
@@ -122,6 +265,204 @@ impl PointObservationModel {
             m.b[e] = POINT_SCALE_SCALE * o[8 + e].softplus() + POINT_MIN_SCALE;
         }
         m
+    }
+
+    /// The filter's hot path with clutter: like [`ObservationModel::log_likelihood`],
+    /// `out[i] = sum over points of log g_c(point | pose i)`. Each point's box
+    /// log-density goes through the same kernel into `scratch`, then is mixed with
+    /// the clutter term and added to `out`.
+    ///
+    /// # Panics
+    /// If `out` does not have one value per pose, or `clutter` is invalid
+    /// (fraction outside `(0, 1)`, scale not positive).
+    #[allow(clippy::too_many_arguments)]
+    #[track_caller]
+    pub fn log_likelihood_with_clutter<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        items: &[[f64; 2]],
+        clutter: Clutter,
+        scratch: &mut Scratch<F>,
+        out: &mut [F],
+    ) {
+        let op = "PointObservationModel::log_likelihood_with_clutter";
+        let n = poses.len();
+        assert_eq!(out.len(), n, "{op}: {n} poses, room for {}", out.len());
+        let cc = ClutterConsts::of(clutter, op);
+        if items.is_empty() || n == 0 {
+            out.fill(F::ZERO);
+            return;
+        }
+        self.prepare(params, ctx, poses, scratch);
+        let bc = BoxConsts::new(ctx.length, ctx.width, self.soft_scale);
+        fit_len(&mut scratch.tmp, n);
+        let Scratch { cos, sin, head, tmp, .. } = scratch;
+        for (j, p) in items.iter().enumerate() {
+            point_pass(false, *p, &bc, poses, cos, sin, head, tmp);
+            clutter_point_pass(j > 0, *p, &cc, poses, tmp, out);
+        }
+    }
+
+    /// The tape path with clutter: like [`ObservationModel::log_likelihood_rows`]
+    /// (per-row sums of `log g_c`, shape `[R]`), differentiable in the network
+    /// parameters, every tracked `Var` of `rows`, and in `logit_fraction`
+    /// (`lambda`, `eps = sigmoid(lambda)`) and `log_scale` (`sigma`, `s = exp(sigma)`),
+    /// both of shape `[1]` and shared by all rows.
+    ///
+    /// ```
+    /// use autodiff::nn::ParamStore;
+    /// use autodiff::{Tape, Tensor};
+    /// use rand::SeedableRng;
+    /// use ssm::data::Pose;
+    /// use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, RowVars};
+    ///
+    /// let mut rng = rand::rngs::StdRng::seed_from_u64(0);
+    /// let mut store = ParamStore::new();
+    /// let model = PointObservationModel::init_params(&mut store, "obs", &mut rng);
+    /// let ctx = ObsContext::new(Pose::default(), 4.5, 1.8);
+    /// let pose = Pose { x: 12.0, y: 3.0, yaw: 0.3 };
+    /// let points = [[12.0, 4.0], [40.0, 3.0]]; // the second far from the box
+    ///
+    /// let tape = Tape::<f64>::new();
+    /// let params = store.bind(&tape);
+    /// let rows = RowVars::from_poses(&tape, &[pose], &[ctx]);
+    /// let lambda = tape.param(Tensor::from_vec(vec![-2.0]));
+    /// let sigma = tape.param(Tensor::from_vec(vec![1.0]));
+    /// let items: [&[[f64; 2]]; 1] = [&points];
+    /// let ll = model.log_likelihood_rows_with_clutter(&params, &rows, &[ctx.av], &items, lambda, sigma);
+    /// let grads = tape.backward(ll.sum());
+    /// // The far point is clutter: more clutter makes the data likelier.
+    /// assert!(grads.wrt(lambda).item() > 0.0);
+    /// ```
+    ///
+    /// # Panics
+    /// On the shape mismatches of `log_likelihood_rows`, if `logit_fraction` or
+    /// `log_scale` does not have shape `[1]`, or if their values are not finite.
+    #[track_caller]
+    pub fn log_likelihood_rows_with_clutter<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[[f64; 2]]],
+        logit_fraction: Var<'t, F>,
+        log_scale: Var<'t, F>,
+    ) -> Var<'t, F> {
+        let op = "PointObservationModel::log_likelihood_rows_with_clutter";
+        for (name, v) in [("logit_fraction", logit_fraction), ("log_scale", log_scale)] {
+            assert!(v.shape() == [1], "{op}: {name} has shape {:?}, expected [1]", v.shape());
+        }
+        self.rows_log_likelihood(params, rows, av, items, Some([logit_fraction, log_scale]), op)
+    }
+
+    /// Appends `n` points drawn independently from `g_c(. | pose)`: each is clutter
+    /// with probability `clutter.fraction`, else drawn as by
+    /// [`ObservationModel::sample`].
+    ///
+    /// # Panics
+    /// If `clutter` is invalid (fraction outside `(0, 1)`, scale not positive).
+    #[allow(clippy::too_many_arguments)]
+    #[track_caller]
+    pub fn sample_with_clutter<R: Rng + ?Sized>(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        n: usize,
+        clutter: Clutter,
+        rng: &mut R,
+        out: &mut Vec<[f64; 2]>,
+    ) {
+        clutter.check("PointObservationModel::sample_with_clutter");
+        let is_clutter: Vec<bool> = (0..n).map(|_| rng.random::<f64>() < clutter.fraction).collect();
+        // The box points in one batch (one network evaluation), interleaved in draw order.
+        let mut on_box = Vec::new();
+        self.sample(params, ctx, pose, is_clutter.iter().filter(|&&c| !c).count(), rng, &mut on_box);
+        let mut on_box = on_box.into_iter();
+        out.reserve(n);
+        for c in is_clutter {
+            let p = if c {
+                let (a, b): (f64, f64) = (StandardNormal.sample(rng), StandardNormal.sample(rng));
+                [pose.x + clutter.scale * a, pose.y + clutter.scale * b]
+            } else {
+                on_box.next().expect("one box point per non-clutter draw")
+            };
+            out.push(p);
+        }
+    }
+
+    /// [`ObservationModel::log_likelihood_rows`] and, with `clutter = Some([lambda,
+    /// sigma])`, [`Self::log_likelihood_rows_with_clutter`]: the network on the tape,
+    /// the fused kernel, and the partials entering as `sum_k g_k (z_k - stop(z_k))`.
+    #[track_caller]
+    fn rows_log_likelihood<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[[f64; 2]]],
+        clutter: Option<[Var<'t, F>; 2]>,
+        op: &str,
+    ) -> Var<'t, F> {
+        let r = rows.check(av.len(), items.len(), op);
+        let tape = rows.x.tape();
+        let cc = clutter.map(|[l, s]| ClutterConsts::from_logits(l.item().to_f64(), s.item().to_f64(), op));
+        let feats = av_features_on_tape(rows, av);
+        let o = self.mlp.forward(params, feats);
+        let logphi = o.slice(1, 0, NUM_EDGES).log_softmax(1);
+        let mu = o.slice(1, NUM_EDGES, NUM_EDGES).mul_scalar(POINT_OFFSET_SCALE);
+        let b =
+            o.slice(1, 2 * NUM_EDGES, NUM_EDGES).softplus().mul_scalar(POINT_SCALE_SCALE).add_scalar(POINT_MIN_SCALE);
+        let head = tape.concat(&[logphi, mu, b], 1);
+        let row_vars = [rows.x, rows.y, rows.yaw, rows.length, rows.width];
+        let clutter_vars = clutter.as_ref().map_or(&[][..], |c| &c[..]);
+        let grad =
+            tape.is_recording() && (head.is_tracked() || row_vars.iter().chain(clutter_vars).any(|v| v.is_tracked()));
+        let stride = row_stride(cc.is_some());
+        let mut k = vec![0.0f64; r * stride];
+        {
+            let hv = head.value();
+            let vals: Vec<Vec<F>> = row_vars.iter().map(|v| v.value().data().to_vec()).collect();
+            rows_kernel(
+                hv.data(),
+                &vals[0],
+                &vals[1],
+                &vals[2],
+                &vals[3],
+                &vals[4],
+                items,
+                self.soft_scale,
+                cc.as_ref(),
+                grad,
+                tape.parallelism(),
+                &mut k,
+            );
+        }
+        let column = |j: usize| Tensor::from_vec((0..r).map(|i| F::from_f64(k[i * stride + j])).collect());
+        let mut total = tape.constant(column(0));
+        if !grad {
+            return total;
+        }
+        if head.is_tracked() {
+            let g: Vec<F> = (0..r)
+                .flat_map(|i| (1..1 + 3 * NUM_EDGES).map(move |j| (i, j)))
+                .map(|(i, j)| F::from_f64(k[i * stride + j]))
+                .collect();
+            let g = tape.constant(Tensor::new(&[r, 3 * NUM_EDGES], g));
+            total = total + ((head - head.detach()) * g).sum_axis(1, false);
+        }
+        // Row variables have shape [R]; the clutter's shape [1] broadcasts over rows.
+        let tracked = row_vars.iter().enumerate().map(|(j, v)| (1 + 3 * NUM_EDGES + j, v));
+        let tracked = tracked.chain(clutter_vars.iter().enumerate().map(|(j, v)| (ROW_OUT + j, v)));
+        for (j, v) in tracked {
+            if v.is_tracked() {
+                let g = tape.constant(column(j));
+                total = total + (*v - v.detach()) * g;
+            }
+        }
+        total
     }
 
     /// Network plus head: per particle and edge, `k_e = ln phi_e - ln(2 b_e) - ln L_e`,
@@ -307,6 +648,53 @@ fn point_pass<F: Float>(
     }
 }
 
+/// Clutter for one point over all particles: `lg[i]` holds `log g(point | particle i)`;
+/// `log g_c` is added to `out` (`ACC`) or written into it.
+#[allow(clippy::needless_range_loop)]
+#[inline(never)]
+fn clutter_point_kernel<F: Float, const ACC: bool>(
+    px: F,
+    py: F,
+    cc: &ClutterConsts<F>,
+    poses: PosesRef<'_, F>,
+    lg: &[F],
+    out: &mut [F],
+) {
+    let n = out.len();
+    let (xs, ys, lg) = (&poses.x[..n], &poses.y[..n], &lg[..n]);
+    for i in 0..n {
+        let lgc = clutter_mix(lg[i], px - xs[i], py - ys[i], cc).lg;
+        out[i] = if ACC { out[i] + lgc } else { lgc };
+    }
+}
+
+/// [`clutter_point_kernel`] for one point, picking the variant for `acc`.
+#[inline]
+fn clutter_point_pass<F: Float>(
+    acc: bool,
+    p: [f64; 2],
+    cc: &ClutterConsts<F>,
+    poses: PosesRef<'_, F>,
+    lg: &[F],
+    out: &mut [F],
+) {
+    let (px, py) = (F::from_f64(p[0]), F::from_f64(p[1]));
+    if acc {
+        clutter_point_kernel::<F, true>(px, py, cc, poses, lg, out);
+    } else {
+        clutter_point_kernel::<F, false>(px, py, cc, poses, lg, out);
+    }
+}
+
+/// Values per row in the fused kernel's output, with or without clutter.
+fn row_stride(clutter: bool) -> usize {
+    if clutter {
+        ROW_OUT + CLUTTER_OUT
+    } else {
+        ROW_OUT
+    }
+}
+
 /// Per-row inputs of the fused tape kernel, in the kernel's float type.
 struct RowInput<'a, F> {
     /// `(ln phi, mu, b)`, 12 values.
@@ -332,17 +720,19 @@ struct RowConsts<'a, F> {
     bc: &'a BoxConsts<F>,
 }
 
-/// The fused kernel for one row: `out[0]` the sum over its points of `log g`, and
-/// (if `GRAD`) `out[1..13]` its partials with respect to `(ln phi, mu, b)` and
-/// `out[13..18]` with respect to `(x, y, yaw, l, w)`.
+/// The fused kernel for one row: `out[0]` the sum over its points of `log g` (of
+/// `log g_c` with `clutter`), and (if `GRAD`) `out[1..13]` its partials with respect
+/// to `(ln phi, mu, b)`, `out[13..18]` with respect to `(x, y, yaw, l, w)` and, with
+/// clutter, `out[18..20]` with respect to the clutter's `(lambda, sigma)`.
 ///
 /// One branch-free pass over the row's points (vectorised across points) writes
-/// each point's contributions into columns of `cols`; the columns are then summed in
-/// f64, in point order.
+/// each point's contributions into columns of `cols`; with clutter a second pass
+/// mixes in the clutter term; the columns are then summed in f64, in point order.
 fn row_kernel<F: Float, const GRAD: bool>(
     row: &RowInput<'_, F>,
     bc: &BoxConsts<F>,
-    cols: &mut [Vec<F>; ROW_OUT + 2],
+    clutter: Option<&ClutterConsts<F>>,
+    cols: &mut [Vec<F>; COLS],
     out: &mut [f64],
 ) {
     out.iter_mut().for_each(|o| *o = 0.0);
@@ -350,17 +740,17 @@ fn row_kernel<F: Float, const GRAD: bool>(
     if np == 0 {
         return;
     }
-    let used = if GRAD { ROW_OUT } else { 1 };
+    let used = if GRAD { row_stride(clutter.is_some()) } else { 1 };
     // Rows are short (tens of points): pad to whole vectors by repeating the last
     // point, so no point takes the scalar remainder loop; padding is not summed.
     let padded = np.div_ceil(ROW_LANES) * ROW_LANES;
-    let (outs, xy) = cols.split_at_mut(ROW_OUT);
-    for c in outs[..used].iter_mut().chain(xy.iter_mut()) {
+    let (outs, rest) = cols.split_at_mut(ROW_OUT + CLUTTER_OUT);
+    let [resp, px, py] = rest else { unreachable!("responsibility and point columns") };
+    for c in outs[..used].iter_mut().chain([&mut *px, &mut *py]) {
         fit_len(c, padded);
     }
     // The points as two contiguous columns in the kernel's type (an interleaved f64
     // input keeps the passes below from vectorising).
-    let [px, py] = xy else { unreachable!("two point columns") };
     for (k, (x, y)) in px.iter_mut().zip(py.iter_mut()).enumerate() {
         let p = row.points[k.min(np - 1)];
         *x = F::from_f64(p[0]);
@@ -380,15 +770,88 @@ fn row_kernel<F: Float, const GRAD: bool>(
         bc,
     };
     if GRAD {
-        let [lg, p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gx, gy, gyaw, gl, gw] = outs else {
+        let (base, extra) = outs.split_at_mut(ROW_OUT);
+        let [lg, p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gx, gy, gyaw, gl, gw] = base else {
             unreachable!("{ROW_OUT} output columns")
         };
         row_grad_pass(&rc, px, py, lg, p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gx, gy, gyaw, gl, gw);
+        if let Some(cc) = clutter {
+            let [dlambda, dsigma] = extra else { unreachable!("{CLUTTER_OUT} clutter columns") };
+            fit_len(resp, padded);
+            clutter_grad_pass(cc, rc.x, rc.y, px, py, lg, resp, gx, gy, dlambda, dsigma);
+            for c in [p0, p1, p2, p3, m0, m1, m2, m3, b0, b1, b2, b3, gyaw, gl, gw] {
+                scale_by(c, resp);
+            }
+        }
     } else {
         row_value_pass(&rc, px, py, &mut outs[0]);
+        if let Some(cc) = clutter {
+            clutter_value_pass(cc, rc.x, rc.y, px, py, &mut outs[0]);
+        }
     }
     for (o, column) in out[..used].iter_mut().zip(outs.iter()) {
         *o = column[..np].iter().map(|v| v.to_f64()).sum();
+    }
+}
+
+/// `lg[p] <- log g_c(point p | row)` from `lg[p] = log g(point p | row)`, for a row
+/// centred at `(x, y)`.
+#[inline(never)]
+#[allow(clippy::needless_range_loop)]
+fn clutter_value_pass<F: Float>(cc: &ClutterConsts<F>, x: F, y: F, px: &[F], py: &[F], lg: &mut [F]) {
+    let n = px.len();
+    let (px, py, lg) = (&px[..n], &py[..n], &mut lg[..n]);
+    for p in 0..n {
+        lg[p] = clutter_mix(lg[p], px[p] - x, py[p] - y, cc).lg;
+    }
+}
+
+/// The clutter's part of the fused kernel's gradient pass, per point: `lg[p]` from
+/// `log g` to `log g_c`; `resp[p]` the box component's responsibility `r`;
+/// `gx`, `gy` from the box's partials to `r g + (1 - r) (p - centre) / s^2`; and
+/// the partials with respect to `lambda` (`1 - r - eps`) and `sigma`
+/// (`(1 - r) (d^2 / s^2 - 2)`). The other partials still need scaling by `r`
+/// ([`scale_by`]).
+#[inline(never)]
+#[allow(clippy::too_many_arguments, clippy::needless_range_loop)]
+fn clutter_grad_pass<F: Float>(
+    cc: &ClutterConsts<F>,
+    x: F,
+    y: F,
+    px: &[F],
+    py: &[F],
+    lg: &mut [F],
+    resp: &mut [F],
+    gx: &mut [F],
+    gy: &mut [F],
+    dlambda: &mut [F],
+    dsigma: &mut [F],
+) {
+    let n = px.len();
+    let (px, py, lg, resp) = (&px[..n], &py[..n], &mut lg[..n], &mut resp[..n]);
+    let (gx, gy, dlambda, dsigma) = (&mut gx[..n], &mut gy[..n], &mut dlambda[..n], &mut dsigma[..n]);
+    let two = F::from_f64(2.0);
+    for p in 0..n {
+        let (dx, dy) = (px[p] - x, py[p] - y);
+        let m = clutter_mix(lg[p], dx, dy, cc);
+        let r = F::ONE - m.q;
+        lg[p] = m.lg;
+        resp[p] = r;
+        // d ln c / d(x, y) = (p - centre) / s^2.
+        let qp = m.q * cc.prec;
+        gx[p] = r * gx[p] + qp * dx;
+        gy[p] = r * gy[p] + qp * dy;
+        dlambda[p] = m.q - cc.eps;
+        dsigma[p] = m.q * (m.d2 * cc.prec - two);
+    }
+}
+
+/// `col[p] *= r[p]` over `col`'s length.
+#[inline(never)]
+fn scale_by<F: Float>(col: &mut [F], r: &[F]) {
+    let n = col.len();
+    for (c, &r) in col.iter_mut().zip(&r[..n]) {
+        *c *= r;
     }
 }
 
@@ -530,7 +993,7 @@ fn row_grad_pass<F: Float>(
 }
 
 /// Runs the fused kernel over all rows (in parallel for large batches) into
-/// `out` (`ROW_OUT` values per row).
+/// `out` (`ROW_OUT` values per row, `ROW_OUT + CLUTTER_OUT` with clutter).
 #[allow(clippy::too_many_arguments)]
 fn rows_kernel<F: Float>(
     head: &[F],
@@ -541,14 +1004,16 @@ fn rows_kernel<F: Float>(
     width: &[F],
     items: &[&[[f64; 2]]],
     scale: f64,
+    clutter: Option<&ClutterConsts<F>>,
     grad: bool,
     par: Parallelism,
     out: &mut [f64],
 ) {
+    let stride = row_stride(clutter.is_some());
     let task = |first: usize, chunk: &mut [f64]| {
-        let mut cols: [Vec<F>; ROW_OUT + 2] = std::array::from_fn(|_| Vec::new());
+        let mut cols: [Vec<F>; COLS] = std::array::from_fn(|_| Vec::new());
         let mut cached: Option<(F, F, BoxConsts<F>)> = None;
-        for (j, o) in chunk.chunks_mut(ROW_OUT).enumerate() {
+        for (j, o) in chunk.chunks_mut(stride).enumerate() {
             let r = first + j;
             let bc = match cached {
                 Some((l, w, bc)) if l == length[r] && w == width[r] => bc,
@@ -566,15 +1031,15 @@ fn rows_kernel<F: Float>(
                 points: items[r],
             };
             if grad {
-                row_kernel::<F, true>(&row, &bc, &mut cols, o);
+                row_kernel::<F, true>(&row, &bc, clutter, &mut cols, o);
             } else {
-                row_kernel::<F, false>(&row, &bc, &mut cols, o);
+                row_kernel::<F, false>(&row, &bc, clutter, &mut cols, o);
             }
         }
     };
     let pairs: usize = items.iter().map(|p| p.len()).sum();
     if par == Parallelism::Rayon && pairs >= PAR_MIN_PAIRS {
-        out.par_chunks_mut(ROW_OUT * ROWS_PER_TASK).enumerate().for_each(|(c, chunk)| task(c * ROWS_PER_TASK, chunk));
+        out.par_chunks_mut(stride * ROWS_PER_TASK).enumerate().for_each(|(c, chunk)| task(c * ROWS_PER_TASK, chunk));
     } else {
         task(0, out);
     }
@@ -658,55 +1123,7 @@ impl ObservationModel for PointObservationModel {
         av: &[Pose],
         items: &[&[[f64; 2]]],
     ) -> Var<'t, F> {
-        let r = rows.check(av.len(), items.len(), "PointObservationModel::log_likelihood_rows");
-        let tape = rows.x.tape();
-        let feats = av_features_on_tape(rows, av);
-        let o = self.mlp.forward(params, feats);
-        let logphi = o.slice(1, 0, NUM_EDGES).log_softmax(1);
-        let mu = o.slice(1, NUM_EDGES, NUM_EDGES).mul_scalar(POINT_OFFSET_SCALE);
-        let b =
-            o.slice(1, 2 * NUM_EDGES, NUM_EDGES).softplus().mul_scalar(POINT_SCALE_SCALE).add_scalar(POINT_MIN_SCALE);
-        let head = tape.concat(&[logphi, mu, b], 1);
-        let row_vars = [rows.x, rows.y, rows.yaw, rows.length, rows.width];
-        let grad = tape.is_recording() && (head.is_tracked() || row_vars.iter().any(|v| v.is_tracked()));
-        let mut k = vec![0.0f64; r * ROW_OUT];
-        {
-            let hv = head.value();
-            let vals: Vec<Vec<F>> = row_vars.iter().map(|v| v.value().data().to_vec()).collect();
-            rows_kernel(
-                hv.data(),
-                &vals[0],
-                &vals[1],
-                &vals[2],
-                &vals[3],
-                &vals[4],
-                items,
-                self.soft_scale,
-                grad,
-                tape.parallelism(),
-                &mut k,
-            );
-        }
-        let column = |j: usize| Tensor::from_vec((0..r).map(|i| F::from_f64(k[i * ROW_OUT + j])).collect());
-        let mut total = tape.constant(column(0));
-        if !grad {
-            return total;
-        }
-        if head.is_tracked() {
-            let g: Vec<F> = (0..r)
-                .flat_map(|i| (1..1 + 3 * NUM_EDGES).map(move |j| (i, j)))
-                .map(|(i, j)| F::from_f64(k[i * ROW_OUT + j]))
-                .collect();
-            let g = tape.constant(Tensor::new(&[r, 3 * NUM_EDGES], g));
-            total = total + ((head - head.detach()) * g).sum_axis(1, false);
-        }
-        for (j, v) in row_vars.iter().enumerate() {
-            if v.is_tracked() {
-                let g = tape.constant(column(1 + 3 * NUM_EDGES + j));
-                total = total + (*v - v.detach()) * g;
-            }
-        }
-        total
+        self.rows_log_likelihood(params, rows, av, items, None, "PointObservationModel::log_likelihood_rows")
     }
 
     fn sample<R: Rng + ?Sized>(

@@ -19,6 +19,15 @@ pub const NEURAL_POLICY_LAYERS: [usize; 4] = [2, 32, 32, 5];
 pub const SPEED_INPUT_SCALE: f64 = 0.1;
 /// Curvature is fed as `kappa * CURVATURE_INPUT_SCALE` (order one over |kappa| <= 0.2).
 pub const CURVATURE_INPUT_SCALE: f64 = 10.0;
+/// The network sees speeds clamped to `[-INPUT_SPEED_LIMIT, INPUT_SPEED_LIMIT]` (m/s)
+/// and curvatures clamped to `[-INPUT_CURVATURE_LIMIT, INPUT_CURVATURE_LIMIT]` (1/m):
+/// beyond any road user's range its outputs stay those at the boundary. Without the
+/// clamp a ReLU network extrapolates linearly, and a mean acceleration that grows
+/// with speed makes particles' speeds grow geometrically over the steps of a scene
+/// until they overflow (training then diverges).
+pub const INPUT_SPEED_LIMIT: f64 = 60.0;
+/// See [`INPUT_SPEED_LIMIT`].
+pub const INPUT_CURVATURE_LIMIT: f64 = 0.5;
 /// Output 1 times this is the mean pinch: pinch is two orders smaller than accel, so
 /// order-one outputs cover it.
 pub const PINCH_OUTPUT_SCALE: f64 = 0.1;
@@ -93,8 +102,11 @@ impl NeuralPolicy {
         let tape = v.tape();
         let x = tape.concat(
             &[
-                v.reshape(&[n, 1]).mul_scalar(SPEED_INPUT_SCALE),
-                kappa.reshape(&[n, 1]).mul_scalar(CURVATURE_INPUT_SCALE),
+                v.clamp(-INPUT_SPEED_LIMIT, INPUT_SPEED_LIMIT).reshape(&[n, 1]).mul_scalar(SPEED_INPUT_SCALE),
+                kappa
+                    .clamp(-INPUT_CURVATURE_LIMIT, INPUT_CURVATURE_LIMIT)
+                    .reshape(&[n, 1])
+                    .mul_scalar(CURVATURE_INPUT_SCALE),
             ],
             1,
         );

@@ -1,0 +1,293 @@
+//! `sefi diagnose`: model criticism of a dataset (SPEC §7) — runs
+//! [`ssm::criticism::diagnose::diagnose`] with a progress bar and writes
+//! `report.json`, `report.md` and one SVG per check worth looking at.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use plotters::prelude::*;
+use ssm::criticism::diagnose::{diagnose, CheckReport, DiagnoseConfig, Report, Stage};
+use ssm::data::Dataset;
+
+use crate::output::{ensure_dir, write_atomic, write_json, write_with};
+use crate::train::bar;
+
+/// Checks plotted in the report (the largest |z| first).
+const PLOTTED_CHECKS: usize = 4;
+
+/// Arguments of `sefi diagnose`.
+#[derive(Args, Debug)]
+pub struct DiagnoseArgs {
+    /// The dataset (SPEC §4 format, points or boxes).
+    #[arg(long)]
+    data: PathBuf,
+    /// Output directory (report.json, report.md, plots, training runs).
+    #[arg(long, default_value = "out/diagnose")]
+    out: PathBuf,
+    /// A small scale (about a minute on generated data).
+    #[arg(long)]
+    quick: bool,
+    /// Seed of the split, initialisation, training and checks.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Fit every extension that applies to the data, not only those the checks make plausible.
+    #[arg(long)]
+    fit_all: bool,
+    /// PF-SEFI steps of the base fit.
+    #[arg(long)]
+    base_steps: Option<usize>,
+    /// PF-SEFI steps of each extension's fit.
+    #[arg(long)]
+    candidate_steps: Option<usize>,
+    /// Training particles.
+    #[arg(long)]
+    particles: Option<usize>,
+    /// Particles of the held-out evaluation and the smoother draws.
+    #[arg(long)]
+    eval_particles: Option<usize>,
+    /// Smoother draws per held-out object.
+    #[arg(long)]
+    draws: Option<usize>,
+    /// Scenes per training step.
+    #[arg(long)]
+    scenes_per_step: Option<usize>,
+    /// Fraction of the objects held out.
+    #[arg(long)]
+    heldout_fraction: Option<f64>,
+    /// Adam learning rate.
+    #[arg(long)]
+    lr: Option<f64>,
+}
+
+impl DiagnoseArgs {
+    fn config(&self) -> DiagnoseConfig {
+        let mut c = if self.quick { DiagnoseConfig::quick() } else { DiagnoseConfig::default() };
+        c.seed = self.seed;
+        c.fit_all = self.fit_all;
+        let set = |target: &mut usize, v: Option<usize>| {
+            if let Some(v) = v {
+                *target = v;
+            }
+        };
+        set(&mut c.base_steps, self.base_steps);
+        set(&mut c.candidate_steps, self.candidate_steps);
+        set(&mut c.particles, self.particles);
+        set(&mut c.eval_particles, self.eval_particles);
+        set(&mut c.draws, self.draws);
+        set(&mut c.scenes_per_step, self.scenes_per_step);
+        if let Some(f) = self.heldout_fraction {
+            c.heldout_fraction = f;
+        }
+        if let Some(lr) = self.lr {
+            c.lr = lr;
+        }
+        c
+    }
+}
+
+/// Runs `sefi diagnose`.
+pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
+    let data = Dataset::read(&args.data).map_err(|e| e.to_string())?;
+    let config = args.config();
+    config.validate()?;
+    ensure_dir(&args.out)?;
+    let progress = bar("diagnose");
+    let mut current = String::new();
+    let mut on_stage = |s: &Stage| match s {
+        Stage::Training { model, step, total } => {
+            if *model != current {
+                current = model.clone();
+                progress.reset();
+                progress.set_length(*total as u64);
+                progress.set_message(format!("fitting {model}"));
+            }
+            progress.set_position(*step as u64);
+        }
+        Stage::Checking { model } => progress.set_message(format!("checking {model}")),
+    };
+    let report = diagnose(&data, &config, &args.out, &mut on_stage)?;
+    progress.finish_and_clear();
+    write_report(&args.out, &report, &args.data)?;
+    println!("cause: {}", report.cause);
+    if report.cause != "none" {
+        println!("{}", report.finding);
+        println!("held-out gain: {:+.4} ± {:.4} nats per observed unit", report.gain, report.gain_se);
+    }
+    println!("report: {}", args.out.join("report.md").display());
+    Ok(())
+}
+
+/// Writes `report.json`, `report.md` and the check plots into `out`.
+pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), String> {
+    let json = serde_json::to_value(report).map_err(|e| e.to_string())?;
+    write_json(&out.join("report.json"), &json)?;
+    let mut worst: Vec<&CheckReport> = report.checks.iter().filter(|c| c.before.z.is_finite()).collect();
+    worst.sort_by(|a, b| b.before.z.abs().total_cmp(&a.before.z.abs()));
+    worst.truncate(PLOTTED_CHECKS);
+    let mut plots = Vec::new();
+    for c in &worst {
+        let name = format!("check_{}.svg", c.name);
+        write_with(&out.join(&name), |p| check_plot(p, c))?;
+        plots.push((c.name.clone(), name));
+    }
+    write_atomic(&out.join("report.md"), markdown(report, data, &plots).as_bytes())
+}
+
+fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "# Diagnosis of `{}`\n", data.display());
+    let _ = writeln!(
+        s,
+        "{:?} data; {} objects fitted, {} held out ({} observed units). Base model (neural policy + observation \
+         network) fitted by PF-SEFI: held-out MLL {:.4} nats per unit.\n",
+        r.kind, r.train_objects, r.heldout_objects, r.heldout_units, r.base_mll
+    );
+    let _ = writeln!(s, "## Finding\n");
+    if r.cause == "none" {
+        let _ = writeln!(
+            s,
+            "**No cause found.** No catalogue extension improved the held-out log-likelihood by more than {} \
+             standard errors.\n",
+            r.config.significance
+        );
+    } else {
+        let _ = writeln!(s, "**Cause: `{}`** — {}.\n", r.cause, r.finding);
+        let _ = writeln!(
+            s,
+            "Extending the model raises the held-out log-likelihood by **{:+.4} ± {:.4}** nats per observed unit \
+             (paired over {} held-out objects; {:.4} → {:.4}).\n",
+            r.gain, r.gain_se, r.heldout_objects, r.base_mll, r.chosen_mll
+        );
+    }
+    let _ = writeln!(s, "## What the simulation gets wrong\n");
+    let _ = writeln!(
+        s,
+        "Posterior predictive checks on held-out objects: {} paths drawn from the smoother; along each, replicated \
+         observations and actions from the fitted model. z = mean / sd over draws of (measured − replicated); p \
+         two-sided, Holm-adjusted over the {} checks.\n",
+        r.config.draws,
+        r.checks.len()
+    );
+    let _ = writeln!(s, "| check | suggests | measured | replicated (sd) | z | p adj. | after: z | after: p adj. |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");
+    let mut order: Vec<&CheckReport> = r.checks.iter().collect();
+    order.sort_by(|a, b| b.before.z.abs().total_cmp(&a.before.z.abs()));
+    for c in order {
+        let b = &c.before;
+        let (az, ap) = c.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt(a.z), fmt(a.p_adjusted)));
+        let flag = if b.significant { " **" } else { "" };
+        let _ = writeln!(
+            s,
+            "| {}{flag} | {} | {} | {} ({}) | {} | {} | {az} | {ap} |",
+            c.name,
+            c.suggests.as_deref().unwrap_or("-"),
+            fmt(b.measured),
+            fmt(b.replicated),
+            fmt(b.replicated_sd),
+            fmt(b.z),
+            fmt(b.p_adjusted),
+        );
+    }
+    let _ = writeln!(s, "\n(** significant at family-wise level {}.)\n", r.config.alpha);
+    for c in &r.checks {
+        let _ = writeln!(s, "- `{}`: {}", c.name, c.description);
+    }
+    let _ = writeln!(s, "\n## Candidate extensions\n");
+    let _ = writeln!(s, "| extension | gain (nats/unit) | SE | learned | flagged by |");
+    let _ = writeln!(s, "|---|---|---|---|---|");
+    for c in &r.candidates {
+        let _ = writeln!(
+            s,
+            "| {} | {:+.4} | {:.4} | {} | {} |",
+            c.cause,
+            c.gain,
+            c.gain_se,
+            c.description,
+            if c.flagged_by.is_empty() { "(fit all)".into() } else { c.flagged_by.join(", ") }
+        );
+    }
+    if !r.not_fitted.is_empty() {
+        let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
+    }
+    let _ = writeln!(s, "\n## The worst checks\n");
+    let _ = writeln!(
+        s,
+        "Each dot is one smoother draw: the statistic on the measured data and on data replicated from the base model \
+         (and from the extended model, if one was chosen).\n"
+    );
+    for (name, file) in plots {
+        let _ = writeln!(s, "![{name}]({file})\n");
+    }
+    s
+}
+
+fn fmt(x: f64) -> String {
+    if !x.is_finite() {
+        "-".into()
+    } else if x != 0.0 && (x.abs() < 1e-3 || x.abs() >= 1e4) {
+        format!("{x:.2e}")
+    } else {
+        format!("{x:.4}")
+    }
+}
+
+/// One check: per draw, the measured and replicated statistic, base and extended.
+fn check_plot(path: &Path, c: &CheckReport) -> Result<(), String> {
+    let mut rows: Vec<(&str, Vec<f64>, RGBColor)> = vec![
+        ("measured", c.draws_before.iter().map(|d| d.0).collect(), RED),
+        ("replicated: base", c.draws_before.iter().map(|d| d.1).collect(), BLUE),
+    ];
+    if !c.draws_after.is_empty() {
+        rows.push(("measured: extended fit", c.draws_after.iter().map(|d| d.0).collect(), RGBColor(200, 80, 0)));
+        rows.push(("replicated: extended", c.draws_after.iter().map(|d| d.1).collect(), RGBColor(0, 140, 60)));
+    }
+    let values = rows.iter().flat_map(|r| r.1.iter().copied()).filter(|v| v.is_finite());
+    let (lo, hi) = values.fold((f64::MAX, f64::MIN), |(a, b), v| (a.min(v), b.max(v)));
+    if lo > hi {
+        return Err(format!("{}: nothing finite to plot", path.display()));
+    }
+    let pad = ((hi - lo) * 0.08).max(1e-6);
+    let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
+    let root = SVGBackend::new(path, (820, 130 + 60 * rows.len() as u32)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| err(&e))?;
+    let title = format!(
+        "{} (z = {:.2} before{})",
+        c.name,
+        c.before.z,
+        c.after.as_ref().map_or(String::new(), |a| { format!(", {:.2} after", a.z) })
+    );
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, ("sans-serif", 20))
+        .margin(12)
+        .x_label_area_size(36)
+        .y_label_area_size(170)
+        .build_cartesian_2d((lo - pad)..(hi + pad), -0.5..(rows.len() as f64 - 0.5))
+        .map_err(|e| err(&e))?;
+    let labels: Vec<String> = rows.iter().map(|r| r.0.to_string()).collect();
+    chart
+        .configure_mesh()
+        .y_labels(rows.len())
+        .y_label_formatter(&|y| {
+            let i = y.round();
+            if (y - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < labels.len() {
+                labels[i as usize].clone()
+            } else {
+                String::new()
+            }
+        })
+        .x_desc(c.description.as_str())
+        .disable_y_mesh()
+        .draw()
+        .map_err(|e| err(&e))?;
+    for (row, (_, values, color)) in rows.iter().enumerate() {
+        let n = values.len().max(1) as f64;
+        let dots = values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(|(k, &v)| {
+            // Spread the draws vertically within their row so they do not hide each other.
+            let y = row as f64 + 0.6 * (k as f64 / n - 0.5);
+            Circle::new((v, y), 3, color.mix(0.7).filled())
+        });
+        chart.draw_series(dots).map_err(|e| err(&e))?;
+    }
+    root.present().map_err(|e| err(&e))
+}

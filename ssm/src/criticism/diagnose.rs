@@ -1,0 +1,600 @@
+//! The diagnosis (SPEC §7): fit the base model, show what its simulation gets
+//! wrong, name the cause among the catalogue's extensions, and measure the gain.
+//!
+//! 1. **Split** the objects, seeded, into a training and a held-out part.
+//! 2. **Fit the base** (neural policy and the observation network of the data's
+//!    kind, from a standard initialisation) with PF-SEFI on the training part.
+//! 3. **Check it** on the held-out part ([`posterior_predictive_checks`]): the
+//!    filter's genealogy gives paths drawn from the particle smoother; along each
+//!    path the model simulates replicated observations and actions; every
+//!    statistic of [`super::checks`] is computed on the measured and the
+//!    replicated data and calibrated over the draws (z, p, Holm correction).
+//! 4. **Fit the plausible extensions**, each warm-started from the base, with
+//!    PF-SEFI: an extension is plausible when a check that suggests it has an
+//!    uncorrected p below [`DiagnoseConfig::plausible_p`] (or always, with
+//!    [`DiagnoseConfig::fit_all`]).
+//! 5. **Choose by held-out log-likelihood**: per held-out object, the filter's
+//!    log-likelihood under the extended minus the base model; the gain is their
+//!    sum per observed unit, its standard error from the spread over objects. The
+//!    cause is the extension with the largest gain among those whose gain exceeds
+//!    [`DiagnoseConfig::significance`] standard errors, else none.
+//! 6. **Re-check** the winner: the same checks on the extended model.
+//!
+//! Every training run writes its logs and checkpoints under the output
+//! directory, and a finished or interrupted run is resumed rather than redone.
+
+use std::path::Path;
+
+use autodiff::nn::ParamStore;
+use rand::rngs::{SmallRng, StdRng};
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+
+use super::checks::{calibrate, checks_for, statistics, CheckResult};
+use super::extensions::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
+use super::{ObjectObservations, ObjectSample};
+use crate::data::{Action, Dataset, ObservationKind, State};
+use crate::estimators::{Estimator, EstimatorConfig};
+use crate::filter::{run_filter, stream_seed, FilterConfig, Observer, StepView};
+use crate::objective::{ObjectiveConfig, SceneObjective};
+use crate::params::{AnyPolicy, ModelVisitor, Models};
+use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
+use crate::vehicle::NeuralPolicy;
+use crate::vehicle_ssm::VehicleSsm;
+
+/// Settings of a diagnosis.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DiagnoseConfig {
+    /// Fraction of the objects held out (at least one object on each side).
+    pub heldout_fraction: f64,
+    /// Seed of the split, the initialisation, training and the checks.
+    pub seed: u64,
+    /// PF-SEFI steps of the base fit.
+    pub base_steps: usize,
+    /// PF-SEFI steps of each extension's fit (warm-started from the base).
+    pub candidate_steps: usize,
+    /// Training particles.
+    pub particles: usize,
+    /// Particles of the held-out evaluation and of the smoother draws.
+    pub eval_particles: usize,
+    /// Fixed lag of PF-SEFI.
+    pub lag: usize,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Global gradient-norm clipping.
+    pub clip: Option<f64>,
+    /// Scenes per training step.
+    pub scenes_per_step: usize,
+    /// Paths drawn from the smoother per held-out object (the checks' replicates).
+    pub draws: usize,
+    /// Family-wise level of the checks (Holm-corrected).
+    pub alpha: f64,
+    /// An extension is fitted when a check that suggests it has an uncorrected p
+    /// below this.
+    pub plausible_p: f64,
+    /// Fit every extension that applies to the data, plausible or not.
+    pub fit_all: bool,
+    /// The cause's gain must exceed this many standard errors.
+    pub significance: f64,
+}
+
+impl Default for DiagnoseConfig {
+    /// The scale for measured data: 600 base steps, 300 per extension, 512
+    /// training and 2048 evaluation particles, L = 15, clipping at 0.5.
+    fn default() -> Self {
+        DiagnoseConfig {
+            heldout_fraction: 0.3,
+            seed: 0,
+            base_steps: 600,
+            candidate_steps: 300,
+            particles: 512,
+            eval_particles: 2048,
+            lag: 15,
+            lr: 0.01,
+            clip: Some(0.5),
+            scenes_per_step: 4,
+            draws: 50,
+            alpha: 0.05,
+            plausible_p: 0.1,
+            fit_all: false,
+            significance: 2.0,
+        }
+    }
+}
+
+impl DiagnoseConfig {
+    /// A small scale that runs in about a minute on generated data (tests, demos).
+    pub fn quick() -> Self {
+        DiagnoseConfig {
+            heldout_fraction: 0.5,
+            base_steps: 150,
+            candidate_steps: 80,
+            particles: 128,
+            eval_particles: 512,
+            lag: 8,
+            draws: 40,
+            ..DiagnoseConfig::default()
+        }
+    }
+
+    /// Checks every setting.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.heldout_fraction > 0.0 && self.heldout_fraction < 1.0) {
+            return Err(format!("held-out fraction must be in (0, 1), got {}", self.heldout_fraction));
+        }
+        if self.particles == 0 || self.eval_particles == 0 || self.draws < 3 {
+            return Err("particles and evaluation particles must be positive and draws at least 3".into());
+        }
+        if !(self.alpha > 0.0 && self.alpha < 1.0 && self.plausible_p > 0.0 && self.plausible_p <= 1.0) {
+            return Err(format!("alpha {} and plausible_p {} must be in (0, 1]", self.alpha, self.plausible_p));
+        }
+        if !(self.significance.is_finite() && self.significance >= 0.0) {
+            return Err(format!("significance must be a non-negative number of SEs, got {}", self.significance));
+        }
+        Ok(())
+    }
+}
+
+/// What [`diagnose`] is doing, for a progress display.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Stage {
+    /// A training run (`base` or an extension id) is at `step` of `total`.
+    Training {
+        /// `base` or the extension's id.
+        model: String,
+        /// Steps done.
+        step: usize,
+        /// Steps of the run.
+        total: usize,
+    },
+    /// Evaluating and checking a model on the held-out objects.
+    Checking {
+        /// `base` or the extension's id.
+        model: String,
+    },
+}
+
+/// One check before and after the extension.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CheckReport {
+    /// The statistic.
+    pub name: String,
+    /// What it measures.
+    pub description: String,
+    /// The extension it can reveal, if any.
+    pub suggests: Option<String>,
+    /// Calibrated on the base model.
+    pub before: CheckResult,
+    /// Calibrated on the chosen extension (none when the cause is `none`).
+    pub after: Option<CheckResult>,
+    /// Per draw, the statistic on measured and on replicated data (base model).
+    pub draws_before: Vec<(f64, f64)>,
+    /// The same on the extended model.
+    pub draws_after: Vec<(f64, f64)>,
+}
+
+/// One fitted extension.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CandidateReport {
+    /// The extension's id.
+    pub cause: String,
+    /// Held-out log-likelihood gain over the base (nats per observed unit).
+    pub gain: f64,
+    /// Its standard error (paired over held-out objects).
+    pub gain_se: f64,
+    /// The learned parameters in physical units: `(name, value, unit)`.
+    pub params: Vec<(String, f64, String)>,
+    /// The learned parameters in a sentence.
+    pub description: String,
+    /// The checks whose p made it plausible (empty when fitted because of `fit_all`).
+    pub flagged_by: Vec<String>,
+    /// Training steps skipped (non-finite estimates).
+    pub skipped_steps: usize,
+    /// Training time (s).
+    pub train_seconds: f64,
+}
+
+/// The result of [`diagnose`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    /// The chosen extension's id, or `none`.
+    pub cause: String,
+    /// Its held-out gain (nats per observed unit; 0 for `none`).
+    pub gain: f64,
+    /// The gain's standard error.
+    pub gain_se: f64,
+    /// The chosen extension's learned parameters in a sentence (empty for `none`).
+    pub finding: String,
+    /// Every check, before and after.
+    pub checks: Vec<CheckReport>,
+    /// Every fitted extension.
+    pub candidates: Vec<CandidateReport>,
+    /// Extensions that apply to the data but no check made plausible.
+    pub not_fitted: Vec<String>,
+    /// The data's kind.
+    pub kind: ObservationKind,
+    /// Objects in the training part.
+    pub train_objects: usize,
+    /// Objects in the held-out part.
+    pub heldout_objects: usize,
+    /// Observed units (points, detections) of the held-out part.
+    pub heldout_units: usize,
+    /// Held-out log-likelihood of the base (nats per observed unit).
+    pub base_mll: f64,
+    /// Held-out log-likelihood of the chosen model (the base's for `none`).
+    pub chosen_mll: f64,
+    /// Training steps of the base skipped (non-finite estimates).
+    pub base_skipped_steps: usize,
+    /// Training time of the base (s).
+    pub base_train_seconds: f64,
+    /// The settings.
+    pub config: DiagnoseConfig,
+}
+
+/// Splits `data`'s objects, seeded: `(train, held-out)` object indices, sorted.
+pub fn split_objects(data: &Dataset, heldout_fraction: f64, seed: u64) -> Result<(Vec<usize>, Vec<usize>), String> {
+    let n = data.objects().len();
+    let held = ((n as f64 * heldout_fraction).round() as usize).clamp(1, n.saturating_sub(1));
+    if n < 2 {
+        return Err(format!("the data hold {n} object(s): a diagnosis needs at least 2 to hold some out"));
+    }
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(&mut StdRng::seed_from_u64(seed));
+    let (mut h, mut t) = (order[..held].to_vec(), order[held..].to_vec());
+    h.sort_unstable();
+    t.sort_unstable();
+    Ok((t, h))
+}
+
+/// Runs the diagnosis of `data`, writing training runs under `out_dir`
+/// (`base/`, `candidates/<id>/`).
+pub fn diagnose(
+    data: &Dataset,
+    config: &DiagnoseConfig,
+    out_dir: &Path,
+    progress: &mut dyn FnMut(&Stage),
+) -> Result<Report, String> {
+    config.validate()?;
+    let (train_ids, heldout_ids) = split_objects(data, config.heldout_fraction, config.seed)?;
+    let train_data = data.select_objects(&train_ids);
+    let heldout = data.select_objects(&heldout_ids);
+    let kind = data.kind();
+
+    // 2. The base.
+    let initial = {
+        let mut rng = StdRng::seed_from_u64(config.seed);
+        Models::initial(kind, AnyPolicy::Neural(NeuralPolicy::new(&mut rng)), rng.random()).to_store()
+    };
+    let base = fit(&train_data, &heldout, None, initial, config.base_steps, config, &out_dir.join("base"), progress)?;
+
+    // 3. Checks of the base.
+    progress(&Stage::Checking { model: "base".into() });
+    let base_eval = evaluate(&heldout, &base.params, None, config)?;
+    let defs = checks_for(kind);
+    let before = calibrate(&defs, &base_eval.measured, &base_eval.replicated, config.alpha);
+
+    // 4. The plausible extensions.
+    let mut candidates = Vec::new();
+    let mut fitted = Vec::new();
+    let mut not_fitted = Vec::new();
+    for ext in Extension::for_kind(kind) {
+        let flagged_by: Vec<String> = before
+            .iter()
+            .filter(|c| c.suggests.as_deref() == Some(ext.id()) && c.p < config.plausible_p)
+            .map(|c| c.name.clone())
+            .collect();
+        if flagged_by.is_empty() && !config.fit_all {
+            not_fitted.push(ext.id().to_string());
+            continue;
+        }
+        let mut start = base.params.clone();
+        start.add(&ext.param_name(), ext.initial());
+        let dir = out_dir.join("candidates").join(ext.id());
+        let run = fit(&train_data, &heldout, Some(ext), start, config.candidate_steps, config, &dir, progress)?;
+        progress(&Stage::Checking { model: ext.id().into() });
+        let eval = evaluate(&heldout, &run.params, Some(ext), config)?;
+        let (gain, gain_se) = paired_gain(&eval.object_ll, &base_eval.object_ll, base_eval.units);
+        let raw = run.params.get(run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
+        candidates.push(CandidateReport {
+            cause: ext.id().into(),
+            gain,
+            gain_se,
+            params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
+            description: ext.describe(&raw)?,
+            flagged_by,
+            skipped_steps: run.skipped,
+            train_seconds: run.seconds,
+        });
+        fitted.push(eval);
+    }
+
+    // 5. The cause.
+    let winner = candidates
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.gain.is_finite() && c.gain > config.significance * c.gain_se && c.gain > 0.0)
+        .max_by(|a, b| a.1.gain.total_cmp(&b.1.gain))
+        .map(|(i, _)| i);
+
+    // 6. The checks after.
+    let after = winner.map(|i| calibrate(&defs, &fitted[i].measured, &fitted[i].replicated, config.alpha));
+    let checks = defs
+        .iter()
+        .enumerate()
+        .map(|(c, def)| CheckReport {
+            name: def.name.into(),
+            description: def.description.into(),
+            suggests: def.suggests.map(str::to_string),
+            before: before[c].clone(),
+            after: after.as_ref().map(|a| a[c].clone()),
+            draws_before: base_eval.draws_of(c),
+            draws_after: winner.map(|i| fitted[i].draws_of(c)).unwrap_or_default(),
+        })
+        .collect();
+    let units = base_eval.units.max(1) as f64;
+    let base_mll = base_eval.object_ll.iter().sum::<f64>() / units;
+    Ok(Report {
+        cause: winner.map_or("none".into(), |i| candidates[i].cause.clone()),
+        gain: winner.map_or(0.0, |i| candidates[i].gain),
+        gain_se: winner.map_or(0.0, |i| candidates[i].gain_se),
+        finding: winner.map_or(String::new(), |i| candidates[i].description.clone()),
+        chosen_mll: winner.map_or(base_mll, |i| fitted[i].object_ll.iter().sum::<f64>() / units),
+        checks,
+        candidates,
+        not_fitted,
+        kind,
+        train_objects: train_ids.len(),
+        heldout_objects: heldout_ids.len(),
+        heldout_units: base_eval.units,
+        base_mll,
+        base_skipped_steps: base.skipped,
+        base_train_seconds: base.seconds,
+        config: config.clone(),
+    })
+}
+
+/// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
+/// and its standard error, objects independent.
+pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    let n = d.len() as f64;
+    let units = units.max(1) as f64;
+    if d.len() < 2 {
+        return (d.iter().sum::<f64>() / units, f64::INFINITY);
+    }
+    let mean = d.iter().sum::<f64>() / n;
+    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (mean * n / units, (n * var).sqrt() / units)
+}
+
+/// A finished training run.
+struct Fitted {
+    params: ParamStore<f64>,
+    skipped: usize,
+    seconds: f64,
+}
+
+/// Trains `initial` (with `extension`, if any) by PF-SEFI, in `dir`, resuming a
+/// run found there.
+#[allow(clippy::too_many_arguments)]
+fn fit(
+    train_data: &Dataset,
+    heldout: &Dataset,
+    extension: Option<Extension>,
+    initial: ParamStore<f64>,
+    steps: usize,
+    config: &DiagnoseConfig,
+    dir: &Path,
+    progress: &mut dyn FnMut(&Stage),
+) -> Result<Fitted, String> {
+    let objective_config = ObjectiveConfig {
+        estimator: Estimator::pf_sefi(config.lag),
+        estimator_config: EstimatorConfig { particles: config.particles, ..EstimatorConfig::default() },
+        scenes_per_step: config.scenes_per_step,
+        eval_particles: config.eval_particles,
+        extension,
+    };
+    let mut objective = SceneObjective::new(train_data, heldout.clone(), objective_config)?;
+    let batches = crate::training::Objective::batches(&objective).max(1);
+    let train_config = TrainConfig {
+        lr: config.lr,
+        clip: config.clip,
+        epochs: steps.div_ceil(batches),
+        eval_every: 0,
+        checkpoint_every: 25,
+        seed: config.seed,
+        shuffle: true,
+    };
+    let model = extension.map_or("base".to_string(), |e| e.id().to_string());
+    let resume = dir.join(CHECKPOINT_FILE).exists();
+    let mut total = 0;
+    let mut on_event = |e: &TrainEvent| match e {
+        TrainEvent::Started { total_steps, .. } => total = *total_steps,
+        TrainEvent::Step { step, .. } => progress(&Stage::Training { model: model.clone(), step: *step, total }),
+        _ => {}
+    };
+    let outcome = train(&mut objective, initial, &train_config, dir, resume, &mut on_event)
+        .map_err(|e| format!("training the {model} model in {}: {e}", dir.display()))?;
+    Ok(Fitted { params: outcome.params, skipped: outcome.skipped_steps, seconds: outcome.seconds })
+}
+
+/// A model on the held-out objects: per-object log-likelihoods and the checks'
+/// statistics per draw.
+struct HeldOutEval {
+    object_ll: Vec<f64>,
+    units: usize,
+    /// `measured[k][c]`: statistic `c` of draw `k` on the measured data.
+    measured: Vec<Vec<f64>>,
+    /// `replicated[k][c]`: the same on replicated data.
+    replicated: Vec<Vec<f64>>,
+}
+
+impl HeldOutEval {
+    fn draws_of(&self, c: usize) -> Vec<(f64, f64)> {
+        self.measured.iter().zip(&self.replicated).map(|(m, r)| (m[c], r[c])).collect()
+    }
+}
+
+fn evaluate(
+    heldout: &Dataset,
+    params: &ParamStore<f64>,
+    extension: Option<Extension>,
+    config: &DiagnoseConfig,
+) -> Result<HeldOutEval, String> {
+    let models = Models::from_store(params, heldout.kind()).map_err(|e| e.to_string())?;
+    models.visit(heldout, Evaluate { params, extension, config })?
+}
+
+struct Evaluate<'a> {
+    params: &'a ParamStore<f64>,
+    extension: Option<Extension>,
+    config: &'a DiagnoseConfig,
+}
+
+impl ModelVisitor for Evaluate<'_> {
+    type Output = Result<HeldOutEval, String>;
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let model = ExtendedSsm::from_store(base, self.extension, self.params)?;
+        posterior_predictive_checks(&model, self.config.eval_particles, self.config.draws, self.config.seed)
+    }
+}
+
+/// Filters every object of `model`'s data with `particles`, draws `draws` paths
+/// per object from the smoother (the filter's genealogy), and evaluates the
+/// checks' statistics on measured and replicated data per draw.
+fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+    model: &ExtendedSsm<'_, '_, P, O>,
+    particles: usize,
+    draws: usize,
+    seed: u64,
+) -> Result<HeldOutEval, String> {
+    let steps = crate::model::ParticleModel::num_steps(model);
+    let filter = FilterConfig { particles, lag: 0, seed, ..FilterConfig::default() };
+    let run = run_filter(model, &filter, |object| PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object)));
+    let data = model.data();
+    let object_ll: Vec<f64> = run.objects.iter().map(|o| o.log_likelihood).collect();
+    if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
+        return Err(format!("the held-out log-likelihood of object {bad} is not finite"));
+    }
+    let mut measured = Vec::with_capacity(draws);
+    let mut replicated = Vec::with_capacity(draws);
+    for k in 0..draws {
+        let mut rng = SmallRng::seed_from_u64(stream_seed(seed ^ 0x7e71, k));
+        let real: Vec<ObjectSample> = run
+            .observers
+            .iter()
+            .enumerate()
+            .map(|(o, rec)| {
+                let (states, actions) = &rec.paths[k];
+                ObjectSample {
+                    object: o,
+                    states: states.clone(),
+                    actions: actions.clone(),
+                    observations: measured_observations::<O>(data, o),
+                }
+            })
+            .collect();
+        let rep: Vec<ObjectSample> = real.iter().map(|s| replicate(model, s, &mut rng)).collect();
+        measured.push(statistics(data, &real));
+        replicated.push(statistics(data, &rep));
+    }
+    Ok(HeldOutEval { object_ll, units: run.observed_units(), measured, replicated })
+}
+
+/// The dataset's observations of `object`.
+fn measured_observations<O: ExtensibleObservation>(data: &Dataset, object: usize) -> ObjectObservations {
+    O::to_observations((0..data.steps()).map(|t| O::items(data, object, t).to_vec()).collect())
+}
+
+/// A replicate of `sample` from `model`: actions drawn from the policy at the
+/// path's states, observations drawn at the path's states — except at `t = 0`,
+/// where the state is drawn from the object's prior (the `initial_lag` check
+/// compares the smoother's initial states with the prior's) and the observation
+/// at that state.
+fn replicate<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+    model: &ExtendedSsm<'_, '_, P, O>,
+    sample: &ObjectSample,
+    rng: &mut SmallRng,
+) -> ObjectSample {
+    let actions: Vec<Action> =
+        sample.states[..sample.states.len() - 1].iter().map(|s| model.sample_action(s, rng)).collect();
+    let mut states = sample.states.clone();
+    states[0] = model.sample_initial_state(sample.object, rng);
+    let mut items = Vec::new();
+    let mut per_step: Vec<Vec<O::Item>> = Vec::with_capacity(states.len());
+    for (t, s) in states.iter().enumerate() {
+        items.clear();
+        model.sample_observation(sample.object, t, s, rng, &mut items);
+        per_step.push(items.clone());
+    }
+    ObjectSample { object: sample.object, states, actions, observations: O::to_observations(per_step) }
+}
+
+/// Records one object's filter steps and, at the last, draws paths from the
+/// genealogy with the final weights (the particle approximation of the smoother).
+struct PathRecorder {
+    steps: usize,
+    draws: usize,
+    seed: u64,
+    states: Vec<Vec<f32>>,
+    actions: Vec<Vec<f32>>,
+    parents: Vec<Vec<usize>>,
+    /// The drawn paths: states `x_0..x_T` and actions `a_1..a_T`.
+    paths: Vec<(Vec<State>, Vec<Action>)>,
+}
+
+impl PathRecorder {
+    fn new(steps: usize, draws: usize, seed: u64) -> Self {
+        PathRecorder {
+            steps,
+            draws,
+            seed,
+            states: Vec::with_capacity(steps),
+            actions: Vec::with_capacity(steps),
+            parents: Vec::with_capacity(steps),
+            paths: Vec::new(),
+        }
+    }
+}
+
+impl Observer for PathRecorder {
+    fn step(&mut self, view: &StepView<'_>) {
+        self.states.push(view.states.to_vec());
+        self.actions.push(view.actions.to_vec());
+        self.parents.push(view.parents.to_vec());
+        if view.t + 1 < self.steps {
+            return;
+        }
+        let n = view.n;
+        let weights: Vec<f64> = view.log_weights.iter().map(|l| l.exp()).collect();
+        let total: f64 = weights.iter().sum();
+        let mut rng = SmallRng::seed_from_u64(self.seed);
+        for _ in 0..self.draws {
+            let mut u = rng.random::<f64>() * total;
+            let mut i = n - 1;
+            for (j, w) in weights.iter().enumerate() {
+                if u < *w {
+                    i = j;
+                    break;
+                }
+                u -= w;
+            }
+            let mut states = vec![State::default(); self.steps];
+            let mut actions = vec![Action::default(); self.steps - 1];
+            for t in (0..self.steps).rev() {
+                states[t] = state_at(&self.states[t], n, i);
+                if t > 0 {
+                    let a = &self.actions[t];
+                    actions[t - 1] = Action { accel: a[i] as f64, pinch: a[n + i] as f64 };
+                    i = self.parents[t][i];
+                }
+            }
+            self.paths.push((states, actions));
+        }
+        // The genealogy is no longer needed: free it.
+        self.states = Vec::new();
+        self.actions = Vec::new();
+        self.parents = Vec::new();
+    }
+}

@@ -1,0 +1,786 @@
+//! The catalogue of model extensions (SPEC §7): each is a hypothesis about what
+//! the base vehicle model gets wrong, made a model component with learnable
+//! parameters, so PF-SEFI fits it exactly as it fits the base.
+//!
+//! | id | what it adds | parameters (physical) |
+//! |---|---|---|
+//! | `latency` | the observation at `t` is of the pose [`lagged_pose`] a delay earlier | delay (s) |
+//! | `clutter` | a fraction of points are not on the box: an isotropic Gaussian around its centre | fraction, sd (m) |
+//! | `size_bias` | the true extents are the given ones times learnable factors | length and width factors |
+//! | `heavy_tailed_accel` | the acceleration's innovation is a scale mixture of two normals | fraction, sd ratio |
+//! | `heading_flip` | a fraction of detections report the heading reversed by pi | fraction |
+//!
+//! [`ExtendedSsm`] wraps a [`VehicleSsm`] with at most one extension: it is a
+//! [`ParticleModel`] (the filter), a [`DifferentiableModel`] (the estimators) and
+//! a simulator of replicated observations and actions (the checks). With no
+//! extension it is the base model, value for value.
+//!
+//! The extension's parameters live in the parameter store under
+//! [`Extension::param_name`] (`ext.<id>`), after the base model's. They are stored
+//! *scaled*: a stored value `r` means a natural value through a fixed map (for
+//! instance fraction `sigmoid(8 r)`), chosen so that Adam's steps of the base
+//! model's learning rate move each extension across its plausible range in tens
+//! of steps rather than hundreds.
+//!
+//! The reparameterised transition ([`DifferentiableModel::propagate_on_tape`],
+//! used only by the through-filter baselines) is the base one: the heavy-tailed
+//! component's mixture parameters get their gradient through the transition
+//! log-density, which is what PF-SEFI differentiates.
+
+use autodiff::nn::{BoundParams, ParamStore};
+use autodiff::{Float, Tensor, Var};
+use rand::rngs::SmallRng;
+use rand::Rng;
+use rand_distr::StandardNormal;
+use serde::{Deserialize, Serialize};
+
+use super::{lagged_pose, ObjectObservations};
+use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
+use crate::estimators::{Block, DifferentiableModel};
+use crate::model::ParticleModel;
+use crate::observation::boxes::wrap_angle;
+use crate::observation::points::Clutter;
+use crate::observation::{
+    BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
+};
+use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
+use crate::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
+use crate::vehicle_ssm::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
+
+/// Name prefix of the extensions' parameters.
+pub const EXTENSION_PREFIX: &str = "ext";
+
+/// Stored logits are multiplied by this: a fraction is `sigmoid(LOGIT_SCALE r)`.
+const LOGIT_SCALE: f64 = 8.0;
+/// Stored log-scales are multiplied by this: a positive quantity is `exp(LOG_SCALE r)`.
+const LOG_SCALE: f64 = 2.0;
+/// A stored delay is in units of this many seconds.
+const DELAY_SCALE: f64 = 1.0;
+/// Initial fraction of the mixture components (clutter, heavy tails, flips).
+const INITIAL_FRACTION: f64 = 0.02;
+/// Initial sd of the clutter Gaussian (m).
+const INITIAL_CLUTTER_SD: f64 = 2.0;
+/// Initial sd ratio of the heavy-tailed acceleration component.
+const INITIAL_TAIL_RATIO: f64 = 3.0;
+
+/// Mixture fractions are kept in `[FRACTION_GUARD, 1 - FRACTION_GUARD]` on the plain paths.
+const FRACTION_GUARD: f64 = 1e-12;
+
+const LN_2PI: f64 = 1.837_877_066_409_345_5;
+
+/// One entry of the catalogue.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Extension {
+    /// Observations lag the state by a learnable delay.
+    Latency,
+    /// A learnable fraction of points are clutter, not on the box (points only).
+    Clutter,
+    /// True extents differ from the given ones by learnable factors (points only).
+    SizeBias,
+    /// Accelerations are heavier-tailed than Gaussian.
+    HeavyTailedAccel,
+    /// A learnable fraction of detections have their heading reversed (boxes only).
+    HeadingFlip,
+}
+
+impl Extension {
+    /// The whole catalogue, in a fixed order.
+    pub const ALL: [Extension; 5] = [
+        Extension::Latency,
+        Extension::Clutter,
+        Extension::SizeBias,
+        Extension::HeavyTailedAccel,
+        Extension::HeadingFlip,
+    ];
+
+    /// The catalogue id (`latency`, `clutter`, `size_bias`, `heavy_tailed_accel`, `heading_flip`).
+    pub fn id(self) -> &'static str {
+        match self {
+            Extension::Latency => "latency",
+            Extension::Clutter => "clutter",
+            Extension::SizeBias => "size_bias",
+            Extension::HeavyTailedAccel => "heavy_tailed_accel",
+            Extension::HeadingFlip => "heading_flip",
+        }
+    }
+
+    /// The extension with catalogue id `id`.
+    pub fn from_id(id: &str) -> Result<Extension, String> {
+        Extension::ALL.into_iter().find(|e| e.id() == id).ok_or_else(|| {
+            let known: Vec<&str> = Extension::ALL.iter().map(|e| e.id()).collect();
+            format!("unknown model extension `{id}` (known: {})", known.join(", "))
+        })
+    }
+
+    /// Whether the extension means something for data of `kind`.
+    pub fn applies_to(self, kind: ObservationKind) -> bool {
+        match self {
+            Extension::Latency | Extension::HeavyTailedAccel => true,
+            Extension::Clutter | Extension::SizeBias => kind == ObservationKind::Points,
+            Extension::HeadingFlip => kind == ObservationKind::Boxes,
+        }
+    }
+
+    /// The catalogue entries for data of `kind`.
+    pub fn for_kind(kind: ObservationKind) -> Vec<Extension> {
+        Extension::ALL.into_iter().filter(|e| e.applies_to(kind)).collect()
+    }
+
+    /// The name of its parameter tensor in a store: `ext.<id>`.
+    pub fn param_name(self) -> String {
+        format!("{EXTENSION_PREFIX}.{}", self.id())
+    }
+
+    /// The stored initial values: close to the base model (no delay, 2% of a
+    /// mixture component, unit factors) but with non-zero gradients.
+    pub fn initial(self) -> Tensor<f64> {
+        let logit = |p: f64| (p / (1.0 - p)).ln() / LOGIT_SCALE;
+        let log = |x: f64| x.ln() / LOG_SCALE;
+        Tensor::from_vec(match self {
+            Extension::Latency => vec![0.0],
+            Extension::Clutter => vec![logit(INITIAL_FRACTION), log(INITIAL_CLUTTER_SD)],
+            Extension::SizeBias => vec![0.0, 0.0],
+            Extension::HeavyTailedAccel => vec![logit(INITIAL_FRACTION), log(INITIAL_TAIL_RATIO - 1.0)],
+            Extension::HeadingFlip => vec![logit(INITIAL_FRACTION)],
+        })
+    }
+
+    /// The natural values of stored parameters `raw`: `(name, value, unit)`.
+    /// Fails if `raw` has the wrong length or is not finite.
+    pub fn natural(self, raw: &[f64]) -> Result<Vec<(&'static str, f64, &'static str)>, String> {
+        let want = self.initial().numel();
+        if raw.len() != want || !raw.iter().all(|x| x.is_finite()) {
+            return Err(format!("parameter `{}` needs {want} finite values, got {raw:?}", self.param_name()));
+        }
+        let fraction = |r: f64| sigmoid(LOGIT_SCALE * r);
+        let positive = |r: f64| (LOG_SCALE * r).exp();
+        Ok(match self {
+            Extension::Latency => vec![("delay", DELAY_SCALE * raw[0], "s")],
+            Extension::Clutter => vec![("fraction", fraction(raw[0]), ""), ("sd", positive(raw[1]), "m")],
+            Extension::SizeBias => {
+                vec![("length_factor", positive(raw[0]), ""), ("width_factor", positive(raw[1]), "")]
+            }
+            Extension::HeavyTailedAccel => {
+                vec![("fraction", fraction(raw[0]), ""), ("sd_ratio", 1.0 + positive(raw[1]), "")]
+            }
+            Extension::HeadingFlip => vec![("fraction", fraction(raw[0]), "")],
+        })
+    }
+
+    /// One sentence in physical units, e.g. "observations lag the state by 0.12 s".
+    pub fn describe(self, raw: &[f64]) -> Result<String, String> {
+        let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
+        Ok(match self {
+            Extension::Latency if v[0] >= 0.0 => format!("observations lag the state by {:.3} s", v[0]),
+            Extension::Latency => format!("observations lead the state by {:.3} s", -v[0]),
+            Extension::Clutter => format!(
+                "{:.1}% of points are clutter, scattered with sd {:.2} m around the object's centre",
+                100.0 * v[0],
+                v[1]
+            ),
+            Extension::SizeBias => {
+                format!("true extents are {:.3} x the given length and {:.3} x the given width", v[0], v[1])
+            }
+            Extension::HeavyTailedAccel => format!(
+                "{:.1}% of accelerations have {:.2} x the policy's sd (excess kurtosis {:.2})",
+                100.0 * v[0],
+                v[1],
+                mixture_excess_kurtosis(v[0], v[1])
+            ),
+            Extension::HeadingFlip => format!("{:.1}% of detections report the heading reversed", 100.0 * v[0]),
+        })
+    }
+}
+
+fn sigmoid(x: f64) -> f64 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Excess kurtosis of `(1 - p) N(0, 1) + p N(0, k^2)`.
+pub fn mixture_excess_kurtosis(p: f64, k: f64) -> f64 {
+    let m2 = 1.0 - p + p * k * k;
+    let m4 = 3.0 * (1.0 - p + p * k.powi(4));
+    m4 / (m2 * m2) - 3.0
+}
+
+/// What an observation model offers the extensions beyond [`ObservationModel`]:
+/// clutter (point sets only) and heading reversal (detections only). Implemented by
+/// both observation models; an extension that does not apply to a model's kind is
+/// refused by [`ExtendedSsm::new`], so a model never runs the other's hooks.
+pub trait ExtensibleObservation: ObservationModel {
+    /// The item with its heading reversed by pi (items without a heading: unchanged).
+    fn reverse_heading(item: &Self::Item) -> Self::Item;
+
+    /// One object's observations from its items per step.
+    fn to_observations(per_step: Vec<Vec<Self::Item>>) -> ObjectObservations;
+
+    /// [`ObservationModel::log_likelihood`] with clutter mixed into every item.
+    #[allow(clippy::too_many_arguments)]
+    fn log_likelihood_with_clutter<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        items: &[Self::Item],
+        clutter: Clutter,
+        scratch: &mut Scratch<F>,
+        out: &mut [F],
+    );
+
+    /// [`ObservationModel::log_likelihood_rows`] with clutter (fraction
+    /// `sigmoid(logit_fraction)`, sd `exp(log_scale)`, both of shape `[1]`).
+    fn log_likelihood_rows_with_clutter<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[Self::Item]],
+        logit_fraction: Var<'t, F>,
+        log_scale: Var<'t, F>,
+    ) -> Var<'t, F>;
+
+    /// [`ObservationModel::sample`] with clutter.
+    #[allow(clippy::too_many_arguments)]
+    fn sample_with_clutter(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        n: usize,
+        clutter: Clutter,
+        rng: &mut SmallRng,
+        out: &mut Vec<Self::Item>,
+    );
+}
+
+impl ExtensibleObservation for PointObservationModel {
+    fn reverse_heading(item: &[f64; 2]) -> [f64; 2] {
+        *item
+    }
+
+    fn to_observations(per_step: Vec<Vec<[f64; 2]>>) -> ObjectObservations {
+        ObjectObservations::Points(per_step)
+    }
+
+    fn log_likelihood_with_clutter<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        items: &[[f64; 2]],
+        clutter: Clutter,
+        scratch: &mut Scratch<F>,
+        out: &mut [F],
+    ) {
+        PointObservationModel::log_likelihood_with_clutter(self, params, ctx, poses, items, clutter, scratch, out)
+    }
+
+    fn log_likelihood_rows_with_clutter<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[[f64; 2]]],
+        logit_fraction: Var<'t, F>,
+        log_scale: Var<'t, F>,
+    ) -> Var<'t, F> {
+        PointObservationModel::log_likelihood_rows_with_clutter(
+            self,
+            params,
+            rows,
+            av,
+            items,
+            logit_fraction,
+            log_scale,
+        )
+    }
+
+    fn sample_with_clutter(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        n: usize,
+        clutter: Clutter,
+        rng: &mut SmallRng,
+        out: &mut Vec<[f64; 2]>,
+    ) {
+        PointObservationModel::sample_with_clutter(self, params, ctx, pose, n, clutter, rng, out)
+    }
+}
+
+/// Detections have no clutter (at most one per step): the clutter hooks are the
+/// plain model, and [`ExtendedSsm::new`] refuses `clutter` for box data.
+impl ExtensibleObservation for BoxObservationModel {
+    fn reverse_heading(item: &BoxDetection) -> BoxDetection {
+        BoxDetection { yaw: wrap_angle(item.yaw + std::f64::consts::PI), ..*item }
+    }
+
+    fn to_observations(per_step: Vec<Vec<BoxDetection>>) -> ObjectObservations {
+        ObjectObservations::Boxes(per_step.into_iter().map(|v| v.first().copied()).collect())
+    }
+
+    fn log_likelihood_with_clutter<F: Float>(
+        &self,
+        params: &ParamStore<F>,
+        ctx: &ObsContext,
+        poses: PosesRef<'_, F>,
+        items: &[BoxDetection],
+        _clutter: Clutter,
+        scratch: &mut Scratch<F>,
+        out: &mut [F],
+    ) {
+        self.log_likelihood(params, ctx, poses, items, scratch, out)
+    }
+
+    fn log_likelihood_rows_with_clutter<'t, F: Float>(
+        &self,
+        params: &BoundParams<'t, F>,
+        rows: &RowVars<'t, F>,
+        av: &[Pose],
+        items: &[&[BoxDetection]],
+        _logit_fraction: Var<'t, F>,
+        _log_scale: Var<'t, F>,
+    ) -> Var<'t, F> {
+        self.log_likelihood_rows(params, rows, av, items)
+    }
+
+    fn sample_with_clutter(
+        &self,
+        params: &ParamStore<f64>,
+        ctx: &ObsContext,
+        pose: Pose,
+        n: usize,
+        _clutter: Clutter,
+        rng: &mut SmallRng,
+        out: &mut Vec<BoxDetection>,
+    ) {
+        self.sample(params, ctx, pose, n, rng, out)
+    }
+}
+
+/// An extension with its natural parameter values (f64), as the plain paths use them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Active {
+    None,
+    Latency { delay: f64 },
+    Clutter(Clutter),
+    SizeBias { length: f64, width: f64 },
+    HeavyTailedAccel { fraction: f64, ratio: f64 },
+    HeadingFlip { fraction: f64 },
+}
+
+/// The base vehicle model with at most one catalogue extension. See the
+/// [module docs](self).
+pub struct ExtendedSsm<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> {
+    base: &'m VehicleSsm<'a, P, O>,
+    extension: Option<Extension>,
+    /// Stored (scaled) values of the extension's parameter.
+    raw: Vec<f64>,
+    active: Active,
+}
+
+/// Per-thread working memory of [`ExtendedSsm`].
+pub struct ExtendedScratch<I> {
+    base: VehicleScratch,
+    /// Lagged poses, one value per particle each.
+    x: Vec<f32>,
+    y: Vec<f32>,
+    yaw: Vec<f32>,
+    /// The second term of a two-component observation mixture.
+    other: Vec<f32>,
+    /// Reversed-heading items.
+    reversed: Vec<I>,
+}
+
+impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P, O> {
+    /// `base` extended by `extension` with stored parameter values `raw` (the
+    /// tensor `ext.<id>` of a store); `None` is the base model itself. Fails if the
+    /// extension does not apply to the data's kind or `raw` is malformed.
+    pub fn new(base: &'m VehicleSsm<'a, P, O>, extension: Option<Extension>, raw: &[f64]) -> Result<Self, String> {
+        let active = match extension {
+            None => Active::None,
+            Some(ext) => {
+                if !ext.applies_to(O::KIND) {
+                    return Err(format!("the `{}` extension does not apply to {:?} data", ext.id(), O::KIND));
+                }
+                let v: Vec<f64> = ext.natural(raw)?.iter().map(|p| p.1).collect();
+                match ext {
+                    Extension::Latency => Active::Latency { delay: v[0] },
+                    // A fraction that rounds to 0 or 1 would make a log-weight infinite.
+                    Extension::Clutter => Active::Clutter(Clutter {
+                        fraction: v[0].clamp(FRACTION_GUARD, 1.0 - FRACTION_GUARD),
+                        scale: v[1],
+                    }),
+                    Extension::SizeBias => Active::SizeBias { length: v[0], width: v[1] },
+                    Extension::HeavyTailedAccel => Active::HeavyTailedAccel { fraction: v[0], ratio: v[1] },
+                    Extension::HeadingFlip => Active::HeadingFlip { fraction: v[0] },
+                }
+            }
+        };
+        Ok(ExtendedSsm { base, extension, raw: raw.to_vec(), active })
+    }
+
+    /// `base` extended by `extension`, reading its parameter from `store` (the
+    /// extension's initial values if the store has none).
+    pub fn from_store(
+        base: &'m VehicleSsm<'a, P, O>,
+        extension: Option<Extension>,
+        store: &ParamStore<f64>,
+    ) -> Result<Self, String> {
+        let raw = match extension {
+            None => Vec::new(),
+            Some(ext) => match store.id(&ext.param_name()) {
+                Some(id) => store.get(id).data().to_vec(),
+                None => ext.initial().data().to_vec(),
+            },
+        };
+        ExtendedSsm::new(base, extension, &raw)
+    }
+
+    /// The extension, if any.
+    pub fn extension(&self) -> Option<Extension> {
+        self.extension
+    }
+
+    /// The base model.
+    pub fn base(&self) -> &'m VehicleSsm<'a, P, O> {
+        self.base
+    }
+
+    /// The dataset.
+    pub fn data(&self) -> &'a Dataset {
+        self.base.data()
+    }
+
+    /// The observation context of `object` at `t` under the extension (scaled
+    /// extents for `size_bias`).
+    fn context(&self, object: usize, t: usize) -> ObsContext {
+        let mut ctx = self.base.context(object, t);
+        if let Active::SizeBias { length, width } = self.active {
+            ctx.length *= length;
+            ctx.width *= width;
+        }
+        ctx
+    }
+
+    /// Draws an initial state of `object` from its prior.
+    pub fn sample_initial_state(&self, object: usize, rng: &mut SmallRng) -> State {
+        let mut x = [0.0f32; STATE_DIM];
+        self.base.sample_prior(object, 1, rng, &mut x);
+        state_at(&x, 1, 0)
+    }
+
+    /// Draws an action at `state` from the policy (with the extension's heavy
+    /// tails, if any).
+    pub fn sample_action(&self, state: &State, rng: &mut SmallRng) -> Action {
+        let mut g = ActionGaussians::<f64>::default();
+        self.base.policy().gaussians(&[state.v], &[state.kappa], &mut g);
+        let (mut accel, mut pinch) = ([0.0], [0.0]);
+        let out = ActionsMut { accel: &mut accel, pinch: &mut pinch };
+        g.sample_with(rng, out, |rng| self.accel_innovation(rng));
+        Action { accel: accel[0], pinch: pinch[0] }
+    }
+
+    /// A standardised acceleration innovation: normal, or the heavy-tailed mixture.
+    fn accel_innovation(&self, rng: &mut SmallRng) -> f64 {
+        let z: f64 = rng.sample(StandardNormal);
+        match self.active {
+            Active::HeavyTailedAccel { fraction, ratio } if rng.random::<f64>() < fraction => ratio * z,
+            _ => z,
+        }
+    }
+
+    /// Appends to `out` a replicate of the observation of `object` at `t` (as many
+    /// items as the data hold there) drawn from the model at `state`.
+    pub fn sample_observation(
+        &self,
+        object: usize,
+        t: usize,
+        state: &State,
+        rng: &mut SmallRng,
+        out: &mut Vec<O::Item>,
+    ) {
+        let n = O::items(self.data(), object, t).len();
+        if n == 0 {
+            return;
+        }
+        let ctx = self.context(object, t);
+        let params = self.base.observation_params();
+        let obs = self.base.observation();
+        let pose = match self.active {
+            Active::Latency { delay } => lagged_pose(state, delay),
+            _ => Pose { x: state.x, y: state.y, yaw: state.yaw },
+        };
+        let start = out.len();
+        match self.active {
+            Active::Clutter(c) => obs.sample_with_clutter(params, &ctx, pose, n, c, rng, out),
+            _ => obs.sample(params, &ctx, pose, n, rng, out),
+        }
+        if let Active::HeadingFlip { fraction } = self.active {
+            for item in &mut out[start..] {
+                if rng.random::<f64>() < fraction {
+                    *item = O::reverse_heading(item);
+                }
+            }
+        }
+    }
+
+    /// The stored extension parameter as a `Var` among the bound `params`.
+    fn extension_var<'t, F: Float>(&self, params: &[Var<'t, F>]) -> Var<'t, F> {
+        params[params.len() - 1]
+    }
+}
+
+/// `ln(e^a + e^b)` per element, stable: `a + softplus(b - a)`.
+fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
+    a + (b - a).softplus()
+}
+
+/// `ln((1 - p) e^a + p e^b)` per element with `p = sigmoid(logit)` (plain).
+#[inline]
+fn mix_plain(a: f32, b: f32, ln_keep: f32, ln_p: f32) -> f32 {
+    let (u, v) = (ln_keep + a, ln_p + b);
+    let m = u.max(v);
+    m + ((u - m).exp() + (v - m).exp()).ln()
+}
+
+impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<'_, '_, P, O> {
+    type Scratch = ExtendedScratch<O::Item>;
+
+    fn new_scratch(&self) -> Self::Scratch {
+        ExtendedScratch {
+            base: self.base.new_scratch(),
+            x: Vec::new(),
+            y: Vec::new(),
+            yaw: Vec::new(),
+            other: Vec::new(),
+            reversed: Vec::new(),
+        }
+    }
+
+    fn state_dim(&self) -> usize {
+        self.base.state_dim()
+    }
+
+    fn action_dim(&self) -> usize {
+        self.base.action_dim()
+    }
+
+    fn angular_dims(&self) -> &[usize] {
+        self.base.angular_dims()
+    }
+
+    fn num_objects(&self) -> usize {
+        self.base.num_objects()
+    }
+
+    fn num_steps(&self) -> usize {
+        self.base.num_steps()
+    }
+
+    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
+        self.base.sample_prior(object, n, rng, states)
+    }
+
+    fn propagate(
+        &self,
+        object: usize,
+        t: usize,
+        n: usize,
+        prev: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        rng: &mut SmallRng,
+        scratch: &mut Self::Scratch,
+    ) {
+        if !matches!(self.active, Active::HeavyTailedAccel { .. }) {
+            return self.base.propagate(object, t, n, prev, next, actions, rng, &mut scratch.base);
+        }
+        let from = states_ref(prev, n);
+        let g = &mut scratch.base.gaussians;
+        g.resize(n);
+        self.base.policy().gaussians(from.v, from.kappa, g);
+        let (accel, pinch) = actions.split_at_mut(n);
+        g.sample_with(rng, ActionsMut { accel, pinch: &mut pinch[..n] }, |rng| self.accel_innovation(rng));
+        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
+        self.base.motion().propagate(from, acts, states_mut(next, n));
+    }
+
+    fn observation_loglik(
+        &self,
+        object: usize,
+        t: usize,
+        n: usize,
+        states: &[f32],
+        out: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) -> bool {
+        let items = O::items(self.data(), object, t);
+        if items.is_empty() {
+            return false;
+        }
+        let ctx = self.context(object, t);
+        let params = self.base.observation_params32();
+        let obs = self.base.observation();
+        let poses = PosesRef::from_dim_major(states, n);
+        let s = &mut scratch.base.observation;
+        match self.active {
+            Active::Latency { delay } => {
+                let s5 = states_ref(states, n);
+                for buf in [&mut scratch.x, &mut scratch.y, &mut scratch.yaw] {
+                    buf.resize(n, 0.0);
+                }
+                let d = delay as f32;
+                for i in 0..n {
+                    let dv = d * s5.v[i];
+                    let (sin, cos) = s5.yaw[i].sin_cos();
+                    scratch.x[i] = s5.x[i] - dv * cos;
+                    scratch.y[i] = s5.y[i] - dv * sin;
+                    scratch.yaw[i] = s5.yaw[i] - dv * s5.kappa[i];
+                }
+                let lagged = PosesRef::new(&scratch.x[..n], &scratch.y[..n], &scratch.yaw[..n]);
+                obs.log_likelihood(params, &ctx, lagged, items, s, out);
+            }
+            Active::Clutter(c) => obs.log_likelihood_with_clutter(params, &ctx, poses, items, c, s, out),
+            Active::HeadingFlip { fraction } => {
+                obs.log_likelihood(params, &ctx, poses, items, s, out);
+                scratch.reversed.clear();
+                scratch.reversed.extend(items.iter().map(O::reverse_heading));
+                scratch.other.resize(n, 0.0);
+                obs.log_likelihood(params, &ctx, poses, &scratch.reversed, s, &mut scratch.other[..n]);
+                let (ln_keep, ln_p) = ((1.0 - fraction).ln() as f32, fraction.ln() as f32);
+                for (o, &b) in out[..n].iter_mut().zip(&scratch.other[..n]) {
+                    *o = mix_plain(*o, b, ln_keep, ln_p);
+                }
+            }
+            Active::None | Active::SizeBias { .. } | Active::HeavyTailedAccel { .. } => {
+                obs.log_likelihood(params, &ctx, poses, items, s, out)
+            }
+        }
+        true
+    }
+
+    fn observation_count(&self, object: usize, t: usize) -> usize {
+        self.base.observation_count(object, t)
+    }
+}
+
+impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for ExtendedSsm<'_, '_, P, O> {
+    /// The base model's parameters, then the extension's (if any).
+    fn parameters(&self) -> Vec<Tensor<f64>> {
+        let mut p = self.base.parameters();
+        if self.extension.is_some() {
+            p.push(Tensor::from_vec(self.raw.clone()));
+        }
+        p
+    }
+
+    fn parameter_names(&self) -> Vec<String> {
+        let mut names = self.base.parameter_names();
+        if let Some(ext) = self.extension {
+            names.push(ext.param_name());
+        }
+        names
+    }
+
+    fn observation_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        let Some(ext) = self.extension else {
+            return self.base.observation_log_density(params, blocks, states);
+        };
+        let obs_params = self.base.observation_params_on_tape(params);
+        let rows = self.base.observation_rows(blocks);
+        let mut vars = rows.vars(states);
+        let model = self.base.observation();
+        let theta = self.extension_var(params);
+        let at = |k: usize| theta.slice(0, k, 1);
+        match ext {
+            Extension::Latency => {
+                let d = at(0).mul_scalar(DELAY_SCALE) * states[3];
+                vars.x = states[0] - d * states[YAW].cos();
+                vars.y = states[1] - d * states[YAW].sin();
+                vars.yaw = states[YAW] - d * states[4];
+                model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items)
+            }
+            Extension::SizeBias => {
+                vars.length = vars.length * at(0).mul_scalar(LOG_SCALE).exp();
+                vars.width = vars.width * at(1).mul_scalar(LOG_SCALE).exp();
+                model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items)
+            }
+            Extension::Clutter => model.log_likelihood_rows_with_clutter(
+                &obs_params,
+                &vars,
+                &rows.av,
+                &rows.items,
+                at(0).mul_scalar(LOGIT_SCALE),
+                at(1).mul_scalar(LOG_SCALE),
+            ),
+            Extension::HeadingFlip => {
+                let kept = model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items);
+                let reversed: Vec<Vec<O::Item>> =
+                    rows.items.iter().map(|its| its.iter().map(O::reverse_heading).collect()).collect();
+                let reversed: Vec<&[O::Item]> = reversed.iter().map(|v| v.as_slice()).collect();
+                let flipped = model.log_likelihood_rows(&obs_params, &vars, &rows.av, &reversed);
+                let logit = at(0).mul_scalar(LOGIT_SCALE);
+                // ln(1 - p) = -softplus(logit), ln p = -softplus(-logit).
+                log_add_exp(kept - logit.softplus(), flipped - logit.neg().softplus())
+            }
+            Extension::HeavyTailedAccel => model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items),
+        }
+    }
+
+    fn transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        next: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Var<'t, F> {
+        if self.extension != Some(Extension::HeavyTailedAccel) {
+            return self.base.transition_log_density(params, blocks, prev, next, actions);
+        }
+        let np = self.base.policy_param_count();
+        let g = self.base.policy().gaussians_on_tape(&params[..np], prev[3], prev[4]);
+        let a = ActionVars { accel: actions[0], pinch: actions[1] };
+        let z1 = (a.accel - g.mean_accel) / g.l11;
+        let r2 = a.pinch - g.mean_pinch;
+        let r2 = match g.l21 {
+            Some(l21) => r2 - l21 * z1,
+            None => r2,
+        };
+        let z2 = r2 / g.l22;
+        let theta = self.extension_var(params);
+        let logit = theta.slice(0, 0, 1).mul_scalar(LOGIT_SCALE);
+        let ratio = theta.slice(0, 1, 1).mul_scalar(LOG_SCALE).exp().add_scalar(1.0);
+        let half_sq = |z: Var<'t, F>| (z * z).mul_scalar(-0.5);
+        // (1 - p) N(z1; 0, 1) + p N(z1; 0, k^2), in log space.
+        let narrow = half_sq(z1) - logit.softplus();
+        let wide = half_sq(z1 / ratio) - ratio.ln() - logit.neg().softplus();
+        let accel = log_add_exp(narrow, wide);
+        (accel + half_sq(z2) - g.l11.ln() - g.l22.ln()).add_scalar(-LN_2PI)
+    }
+
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>> {
+        self.base.propagate_on_tape(params, blocks, prev, actions)
+    }
+}
+
+/// The stored state of one object's particle as a [`State`].
+pub(crate) fn state_at(states: &[f32], n: usize, i: usize) -> State {
+    let c = |k: usize| states[k * n + i] as f64;
+    debug_assert!(states.len() >= STATE_DIM * n);
+    State { x: c(0), y: c(1), yaw: c(YAW), v: c(3), kappa: c(4) }
+}

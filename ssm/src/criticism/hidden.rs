@@ -1,0 +1,563 @@
+//! Generated datasets with one hidden effect each (SPEC §7): the test bed of the
+//! diagnosis. This file owns the [`HiddenEffect`] vocabulary (the catalogue's
+//! effects with their sizes), the [`BoxGenerator`] that makes box detections of
+//! known quality, and [`generate_hidden`], which simulates scenes like the paper's
+//! synthetic data and hides one effect in them.
+//!
+//! # How the data are made
+//!
+//! * **Scenes** as in [`crate::synthetic`] ([`SceneConfig::paper`]: the AV drives
+//!   along +x at 5 m/s, car-sized objects with their priors), but with
+//!   [`HiddenConfig::objects_per_scene`] objects placed at 5–35 m so that point sets
+//!   are plentiful ([`HiddenConfig::scene_config`]).
+//! * **Dynamics**: the true [`HandCraftedPolicy`] and the exact motion model, by the
+//!   same code as the paper's data ([`simulate_object`]); only the acceleration
+//!   innovation changes under [`HiddenEffect::HeavyTailedAccel`] ([`ScaleMixture`]).
+//! * **Points** come from the physically motivated [`PointGenerator`] (its default),
+//!   not from a fitted network: nothing is fitted, so generation is fast.
+//! * **Boxes** come from [`BoxGenerator`] (its default).
+//!
+//! The ground truth (`states.csv`, `actions.csv`) is always the true motion; the
+//! effect changes only what is observed (or, for heavy tails, how the actions are
+//! drawn). The objects' stated length and width are the ones drawn for the scene.
+//!
+//! # Reproducibility
+//!
+//! Every draw comes from a [`StdRng`] seeded with [`HiddenConfig::seed`]: one `u64`
+//! per scene is drawn from it, and each scene draws from its own [`StdRng`] seeded
+//! with that value, object after object (placement and dynamics, then the
+//! observations of every step). The same configuration gives the same dataset.
+//!
+//! ```
+//! use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+//! use ssm::data::ObservationKind;
+//!
+//! let effect = HiddenEffect::by_id("latency").unwrap();
+//! assert_eq!(effect, HiddenEffect::Latency { delay: 0.15 });
+//! let config = HiddenConfig::quick(ObservationKind::Points, effect, 7);
+//! let data = generate_hidden(&config).unwrap();
+//! assert_eq!(data.objects().len(), config.scenes * config.objects_per_scene);
+//! assert!(data.states().unwrap().is_complete());
+//!
+//! // Clutter is a points-only effect.
+//! let boxes = HiddenConfig::quick(ObservationKind::Boxes, HiddenEffect::by_id("clutter").unwrap(), 7);
+//! assert!(generate_hidden(&boxes).is_err());
+//! ```
+
+use std::f64::consts::PI;
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use super::lagged_pose;
+use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
+use crate::observation::boxes::wrap_angle;
+use crate::observation::edges::sample_laplace;
+use crate::observation::{ObsContext, PointGenerator};
+use crate::synthetic::{
+    build_dataset, ground_truth_builder, scene_motion, simulate_object, SceneConfig, SimulatedObject, SyntheticError,
+    SyntheticScene,
+};
+use crate::vehicle::HandCraftedPolicy;
+
+/// The catalogue ids of the hidden effects, in catalogue order (`none` first).
+pub const HIDDEN_EFFECT_IDS: [&str; 6] =
+    ["none", "latency", "clutter", "size_bias", "heavy_tailed_accel", "heading_flip"];
+
+/// Range of the objects' prior mean positions from the AV (m): nearer than the
+/// paper's 5–50 m, so that every object receives plenty of points.
+pub const HIDDEN_RANGE: (f64, f64) = (5.0, 35.0);
+
+/// One hidden effect and its size (or none), as the catalogue of model extensions
+/// ([`super::extensions`]) defines it. Serialised with the catalogue ids as tags,
+/// e.g. `{"latency":{"delay":0.15}}` or `"none"`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum HiddenEffect {
+    /// No effect: the data follow the base model's assumptions.
+    None,
+    /// Observations lag the state: each step's observation is generated from
+    /// [`lagged_pose`]`(state, delay)`.
+    Latency {
+        /// The lag (s, finite, >= 0).
+        delay: f64,
+    },
+    /// Each point (points data only) is with probability `fraction` replaced by a
+    /// clutter point drawn from an isotropic Gaussian of sd `scale` around the box
+    /// centre (the true position).
+    Clutter {
+        /// Probability that a point is clutter (in `[0, 1]`).
+        fraction: f64,
+        /// Sd of a clutter point around the box centre (m, positive).
+        scale: f64,
+    },
+    /// The true extents are `length_factor * length` and `width_factor * width`
+    /// while the dataset states the unscaled length and width (points data only).
+    SizeBias {
+        /// True length over stated length (positive).
+        length_factor: f64,
+        /// True width over stated width (positive).
+        width_factor: f64,
+    },
+    /// The acceleration innovation of the hand-crafted policy is a scale mixture:
+    /// with probability `fraction` its sd is `ratio` times larger
+    /// (`accel = mean + sd z`, `z ~ (1 - f) N(0, 1) + f N(0, ratio^2)`; see
+    /// [`ScaleMixture`]).
+    HeavyTailedAccel {
+        /// Probability of the wide component (in `[0, 1]`).
+        fraction: f64,
+        /// Sd of the wide component over the policy's sd (positive).
+        ratio: f64,
+    },
+    /// With probability `fraction` a detection's yaw is reversed by pi (wrapped to
+    /// `(-pi, pi]`) (box data only).
+    HeadingFlip {
+        /// Probability that a detection is flipped (in `[0, 1]`).
+        fraction: f64,
+    },
+}
+
+fn config_err(m: impl Into<String>) -> SyntheticError {
+    SyntheticError::Config(m.into())
+}
+
+fn check_fraction(what: &str, f: f64) -> Result<(), SyntheticError> {
+    if (0.0..=1.0).contains(&f) {
+        Ok(())
+    } else {
+        Err(config_err(format!("{what} must be in [0, 1], got {f}")))
+    }
+}
+
+fn check_positive(what: &str, v: f64) -> Result<(), SyntheticError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(config_err(format!("{what} must be finite and positive, got {v}")))
+    }
+}
+
+impl HiddenEffect {
+    /// Catalogue id: `"none"`, `"latency"`, `"clutter"`, `"size_bias"`,
+    /// `"heavy_tailed_accel"` or `"heading_flip"` (see [`HIDDEN_EFFECT_IDS`]).
+    pub fn id(&self) -> &'static str {
+        match self {
+            HiddenEffect::None => "none",
+            HiddenEffect::Latency { .. } => "latency",
+            HiddenEffect::Clutter { .. } => "clutter",
+            HiddenEffect::SizeBias { .. } => "size_bias",
+            HiddenEffect::HeavyTailedAccel { .. } => "heavy_tailed_accel",
+            HiddenEffect::HeadingFlip { .. } => "heading_flip",
+        }
+    }
+
+    /// The effect with a clearly noticeable default size, by catalogue id: latency
+    /// 0.15 s; clutter 15 % of points at 2.5 m; size bias 1.25 (length) x 1.15
+    /// (width); heavy-tailed acceleration 10 % of innovations 6 times wider; heading
+    /// flips of 20 % of detections. An unknown id is an error that lists the known
+    /// ones.
+    ///
+    /// ```
+    /// use ssm::criticism::hidden::{HiddenEffect, HIDDEN_EFFECT_IDS};
+    /// for id in HIDDEN_EFFECT_IDS {
+    ///     assert_eq!(HiddenEffect::by_id(id).unwrap().id(), id);
+    /// }
+    /// assert!(HiddenEffect::by_id("gremlins").unwrap_err().to_string().contains("heading_flip"));
+    /// ```
+    pub fn by_id(id: &str) -> Result<HiddenEffect, SyntheticError> {
+        Ok(match id {
+            "none" => HiddenEffect::None,
+            "latency" => HiddenEffect::Latency { delay: 0.15 },
+            "clutter" => HiddenEffect::Clutter { fraction: 0.15, scale: 2.5 },
+            "size_bias" => HiddenEffect::SizeBias { length_factor: 1.25, width_factor: 1.15 },
+            "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 6.0 },
+            "heading_flip" => HiddenEffect::HeadingFlip { fraction: 0.2 },
+            _ => {
+                return Err(config_err(format!(
+                    "unknown hidden effect `{id}` (known: {})",
+                    HIDDEN_EFFECT_IDS.join(", ")
+                )))
+            }
+        })
+    }
+
+    /// Which observation kind it applies to (`None` = both).
+    pub fn applies_to(&self) -> Option<ObservationKind> {
+        match self {
+            HiddenEffect::None | HiddenEffect::Latency { .. } | HiddenEffect::HeavyTailedAccel { .. } => None,
+            HiddenEffect::Clutter { .. } | HiddenEffect::SizeBias { .. } => Some(ObservationKind::Points),
+            HiddenEffect::HeadingFlip { .. } => Some(ObservationKind::Boxes),
+        }
+    }
+
+    /// Checks the effect's size (finite; fractions in `[0, 1]`; scales, factors and
+    /// ratios positive; a delay `>= 0`).
+    pub fn validate(&self) -> Result<(), SyntheticError> {
+        match *self {
+            HiddenEffect::None => Ok(()),
+            HiddenEffect::Latency { delay } => {
+                if delay.is_finite() && delay >= 0.0 {
+                    Ok(())
+                } else {
+                    Err(config_err(format!("latency: delay must be finite and >= 0, got {delay}")))
+                }
+            }
+            HiddenEffect::Clutter { fraction, scale } => {
+                check_fraction("clutter: fraction", fraction)?;
+                check_positive("clutter: scale", scale)
+            }
+            HiddenEffect::SizeBias { length_factor, width_factor } => {
+                check_positive("size_bias: length_factor", length_factor)?;
+                check_positive("size_bias: width_factor", width_factor)
+            }
+            HiddenEffect::HeavyTailedAccel { fraction, ratio } => {
+                check_fraction("heavy_tailed_accel: fraction", fraction)?;
+                check_positive("heavy_tailed_accel: ratio", ratio)
+            }
+            HiddenEffect::HeadingFlip { fraction } => check_fraction("heading_flip: fraction", fraction),
+        }
+    }
+}
+
+/// A standard normal scale mixture: `z ~ (1 - fraction) N(0, 1) + fraction N(0, ratio^2)`
+/// (unit sd with probability `1 - fraction`, sd `ratio` otherwise). Its excess
+/// kurtosis is `3 ((1 - f) + f r^4) / ((1 - f) + f r^2)^2 - 3` (16.3 at the default
+/// `f = 0.1`, `r = 6`). Each draw takes a uniform (the component) then a standard
+/// normal.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScaleMixture {
+    /// Probability of the wide component.
+    pub fraction: f64,
+    /// Sd of the wide component.
+    pub ratio: f64,
+}
+
+impl Distribution<f64> for ScaleMixture {
+    fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> f64 {
+        let wide = rng.random::<f64>() < self.fraction;
+        let z: f64 = rng.sample(StandardNormal);
+        if wide {
+            self.ratio * z
+        } else {
+            z
+        }
+    }
+}
+
+/// A box detector of known quality, the box counterpart of [`PointGenerator`].
+///
+/// Given the object's pose and the AV's pose: the detection is missing with
+/// probability [`BoxGenerator::miss_probability`]; otherwise its centre is the
+/// object's position plus independent Laplace offsets along and across the line
+/// of sight from the AV, with zero means and scales growing with range `r`
+/// (`along_base + along_per_metre r`, `across_base + across_per_metre r`), and its
+/// yaw the object's plus zero-mean Gaussian noise, wrapped to `(-pi, pi]`. Length
+/// and width are the context's (the object's stated ones), the score 1.
+///
+/// ```
+/// use rand::{rngs::StdRng, SeedableRng};
+/// use ssm::criticism::hidden::BoxGenerator;
+/// use ssm::data::Pose;
+/// use ssm::observation::ObsContext;
+///
+/// let g = BoxGenerator::default();
+/// assert!((g.along_scale(20.0) - 0.35).abs() < 1e-12);
+/// let ctx = ObsContext::new(Pose::default(), 4.5, 1.8);
+/// let pose = Pose { x: 20.0, y: 0.0, yaw: 1.0 };
+/// let mut rng = StdRng::seed_from_u64(1);
+/// let dets: Vec<_> = (0..200).filter_map(|_| g.sample(&ctx, pose, &mut rng)).collect();
+/// assert!(dets.len() > 150 && dets.len() < 200);
+/// assert!(dets.iter().all(|d| d.length == 4.5 && d.score == 1.0));
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BoxGenerator {
+    /// Laplace scale of the offset along the line of sight at range 0 (m).
+    pub along_base: f64,
+    /// Its growth per metre of range.
+    pub along_per_metre: f64,
+    /// Laplace scale of the offset across the line of sight at range 0 (m).
+    pub across_base: f64,
+    /// Its growth per metre of range.
+    pub across_per_metre: f64,
+    /// Sd of the yaw noise (rad).
+    pub yaw_sd: f64,
+    /// Probability that a detection is missing.
+    pub miss_probability: f64,
+}
+
+impl Default for BoxGenerator {
+    /// Along 0.15 + 0.01 r m (0.35 m at 20 m), across 0.08 + 0.004 r m (0.16 m at
+    /// 20 m): depth is harder to measure than bearing. Yaw sd 0.04 rad; 10 % missed.
+    fn default() -> Self {
+        BoxGenerator {
+            along_base: 0.15,
+            along_per_metre: 0.01,
+            across_base: 0.08,
+            across_per_metre: 0.004,
+            yaw_sd: 0.04,
+            miss_probability: 0.1,
+        }
+    }
+}
+
+/// Guard of the line-of-sight normalisation (m): an object at the AV gets the
+/// +x axis as its line of sight.
+const LOS_EPS: f64 = 1e-6;
+
+impl BoxGenerator {
+    /// Laplace scale of the offset along the line of sight at `range` (m).
+    pub fn along_scale(&self, range: f64) -> f64 {
+        self.along_base + self.along_per_metre * range
+    }
+
+    /// Laplace scale of the offset across the line of sight at `range` (m).
+    pub fn across_scale(&self, range: f64) -> f64 {
+        self.across_base + self.across_per_metre * range
+    }
+
+    /// Checks every setting (scales and sd finite and positive at range 0 and not
+    /// shrinking with range; the miss probability in `[0, 1]`).
+    pub fn validate(&self) -> Result<(), SyntheticError> {
+        check_positive("box generator: along_base", self.along_base)?;
+        check_positive("box generator: across_base", self.across_base)?;
+        check_positive("box generator: yaw_sd", self.yaw_sd)?;
+        for (what, v) in [("along_per_metre", self.along_per_metre), ("across_per_metre", self.across_per_metre)] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(config_err(format!("box generator: {what} must be finite and >= 0, got {v}")));
+            }
+        }
+        check_fraction("box generator: miss_probability", self.miss_probability)
+    }
+
+    /// The detection of an object at `pose` seen from `ctx.av`, or `None` when it is
+    /// missed. Draws a uniform (missed or not), then, if detected, the along and
+    /// across offsets and the yaw noise.
+    ///
+    /// # Panics
+    /// If [`BoxGenerator::yaw_sd`] is negative or NaN (see [`BoxGenerator::validate`]).
+    #[track_caller]
+    pub fn sample<R: Rng + ?Sized>(&self, ctx: &ObsContext, pose: Pose, rng: &mut R) -> Option<BoxDetection> {
+        if rng.random::<f64>() < self.miss_probability {
+            return None;
+        }
+        let (dx, dy) = (pose.x - ctx.av.x, pose.y - ctx.av.y);
+        let r = dx.hypot(dy);
+        let (lx, ly) = if r > LOS_EPS { (dx / r, dy / r) } else { (1.0, 0.0) };
+        let along = sample_laplace(0.0, self.along_scale(r), rng);
+        let across = sample_laplace(0.0, self.across_scale(r), rng);
+        let dyaw = Normal::new(0.0, self.yaw_sd).expect("validated sd").sample(rng);
+        Some(BoxDetection {
+            x: pose.x + along * lx - across * ly,
+            y: pose.y + along * ly + across * lx,
+            yaw: wrap_angle(pose.yaw + dyaw),
+            length: ctx.length,
+            width: ctx.width,
+            score: 1.0,
+        })
+    }
+}
+
+/// Size and seed of a hidden-effect dataset.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HiddenConfig {
+    /// Which observations the dataset holds.
+    pub kind: ObservationKind,
+    /// The hidden effect.
+    pub effect: HiddenEffect,
+    /// Number of scenes (ids `0..scenes`, at least 1).
+    pub scenes: usize,
+    /// Objects per scene (at least 1).
+    pub objects_per_scene: usize,
+    /// Steps per scene, `T + 1` (at least 1).
+    pub steps: usize,
+    /// Seed of every random draw.
+    pub seed: u64,
+}
+
+impl HiddenConfig {
+    /// A small size for tests: 8 scenes of 6 objects, 16 steps (`T = 15`).
+    pub fn quick(kind: ObservationKind, effect: HiddenEffect, seed: u64) -> Self {
+        HiddenConfig { kind, effect, scenes: 8, objects_per_scene: 6, steps: 16, seed }
+    }
+
+    /// The scene settings used: the paper's ([`SceneConfig::paper`]) with
+    /// [`HiddenConfig::objects_per_scene`] objects at [`HIDDEN_RANGE`].
+    pub fn scene_config(&self) -> SceneConfig {
+        SceneConfig { objects: self.objects_per_scene, range: HIDDEN_RANGE, ..SceneConfig::paper(self.steps) }
+    }
+
+    /// Checks the sizes, the effect's size, and that the effect applies to the kind.
+    pub fn validate(&self) -> Result<(), SyntheticError> {
+        if self.scenes == 0 {
+            return Err(config_err("hidden-effect data: scenes must be at least 1"));
+        }
+        if self.objects_per_scene == 0 {
+            return Err(config_err("hidden-effect data: objects_per_scene must be at least 1"));
+        }
+        if self.steps == 0 {
+            return Err(config_err("hidden-effect data: steps must be at least 1"));
+        }
+        if i64::try_from(self.scenes).is_err() || i64::try_from(self.objects_per_scene).is_err() {
+            return Err(config_err("hidden-effect data: too many scenes or objects"));
+        }
+        self.effect.validate()?;
+        if let Some(kind) = self.effect.applies_to() {
+            if kind != self.kind {
+                return Err(config_err(format!(
+                    "hidden effect `{}` applies to {kind:?} data only, not to {:?} data",
+                    self.effect.id(),
+                    self.kind
+                )));
+            }
+        }
+        self.scene_config().validate()
+    }
+}
+
+/// Generates the dataset (with `states.csv` / `actions.csv` ground truth) of
+/// `config`: see the [module docs](self). Rejects bad sizes and an effect that
+/// does not apply to the kind with [`SyntheticError::Config`]; never panics.
+pub fn generate_hidden(config: &HiddenConfig) -> Result<Dataset, SyntheticError> {
+    config.validate()?;
+    let scene_config = config.scene_config();
+    let mut rng = StdRng::seed_from_u64(config.seed);
+    let seeds: Vec<u64> = (0..config.scenes).map(|_| rng.random()).collect();
+    let mut scenes = Vec::with_capacity(config.scenes);
+    let mut boxes = Vec::with_capacity(config.scenes);
+    for (k, &seed) in seeds.iter().enumerate() {
+        let (scene, dets) = simulate_hidden_scene(config, &scene_config, k as i64, &mut StdRng::seed_from_u64(seed))?;
+        scenes.push(scene);
+        boxes.push(dets);
+    }
+    match config.kind {
+        ObservationKind::Points => build_dataset(&scene_config, &scenes),
+        ObservationKind::Boxes => {
+            let meta = Meta { dt: scene_config.dt, steps: scene_config.steps };
+            let mut b = ground_truth_builder(meta, ObservationKind::Boxes, &scenes);
+            for (s, dets) in scenes.iter().zip(&boxes) {
+                for (o, per_step) in s.objects.iter().zip(dets) {
+                    for (t, d) in per_step.iter().enumerate() {
+                        if let Some(d) = d {
+                            b.detection(s.id, o.id, t, *d);
+                        }
+                    }
+                }
+            }
+            Ok(b.build()?)
+        }
+    }
+}
+
+/// Box detections of one scene, `detections[object][t]`.
+type SceneDetections = Vec<Vec<Option<BoxDetection>>>;
+
+/// One scene: the truth and, for points data, the points (in the scene); for box
+/// data the detections (returned beside it; the scene's point sets stay empty).
+fn simulate_hidden_scene(
+    config: &HiddenConfig,
+    scene_config: &SceneConfig,
+    id: i64,
+    rng: &mut StdRng,
+) -> Result<(SyntheticScene, SceneDetections), SyntheticError> {
+    let motion = scene_motion(scene_config)?;
+    let policy = HandCraftedPolicy::truth();
+    let steps = scene_config.steps;
+    let av: Vec<Pose> = (0..steps).map(|t| scene_config.av_pose(t)).collect();
+    let n = scene_config.objects;
+    let mut scene = SyntheticScene {
+        id,
+        av,
+        objects: Vec::with_capacity(n),
+        states: Vec::with_capacity(n),
+        actions: Vec::with_capacity(n),
+        points: Vec::with_capacity(n),
+    };
+    let mut detections = Vec::with_capacity(n);
+    let points = PointGenerator::default();
+    let boxes = BoxGenerator::default();
+    for k in 0..n {
+        let (start, k) = (scene.av[0], k as i64);
+        let SimulatedObject { object, states, actions } = match config.effect {
+            HiddenEffect::HeavyTailedAccel { fraction, ratio } => {
+                simulate_object(scene_config, &policy, &motion, start, id, k, &ScaleMixture { fraction, ratio }, rng)
+            }
+            _ => simulate_object(scene_config, &policy, &motion, start, id, k, &StandardNormal, rng),
+        };
+        let ctx_of = |t: usize| {
+            let ctx = ObsContext::of_object(scene.av[t], &object);
+            match config.effect {
+                HiddenEffect::SizeBias { length_factor, width_factor } => {
+                    ObsContext { length: ctx.length * length_factor, width: ctx.width * width_factor, ..ctx }
+                }
+                _ => ctx,
+            }
+        };
+        match config.kind {
+            ObservationKind::Points => {
+                let per_step =
+                    states.iter().enumerate().map(|(t, x)| hidden_points(&points, config.effect, &ctx_of(t), x, rng));
+                scene.points.push(per_step.collect());
+            }
+            ObservationKind::Boxes => {
+                let per_step =
+                    states.iter().enumerate().map(|(t, x)| hidden_box(&boxes, config.effect, &ctx_of(t), x, rng));
+                detections.push(per_step.collect());
+                scene.points.push(vec![Vec::new(); steps]);
+            }
+        }
+        scene.objects.push(object);
+        scene.states.push(states);
+        scene.actions.push(actions);
+    }
+    Ok((scene, detections))
+}
+
+/// The pose the sensor sees of the true state `x` under `effect`.
+fn observed_pose(effect: HiddenEffect, x: &State) -> Pose {
+    match effect {
+        HiddenEffect::Latency { delay } => lagged_pose(x, delay),
+        _ => Pose { x: x.x, y: x.y, yaw: x.yaw },
+    }
+}
+
+/// One step's points of the true state `x`: the generator's, at the observed pose
+/// and with the (possibly scaled) extents of `ctx`, then clutter replacement.
+fn hidden_points(
+    generator: &PointGenerator,
+    effect: HiddenEffect,
+    ctx: &ObsContext,
+    x: &State,
+    rng: &mut StdRng,
+) -> Vec<[f64; 2]> {
+    let mut pts = Vec::new();
+    generator.sample(ctx, observed_pose(effect, x), rng, &mut pts);
+    if let HiddenEffect::Clutter { fraction, scale } = effect {
+        for p in &mut pts {
+            if rng.random::<f64>() < fraction {
+                let (u, v): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
+                *p = [x.x + scale * u, x.y + scale * v];
+            }
+        }
+    }
+    pts
+}
+
+/// One step's detection of the true state `x` (if any), at the observed pose, with
+/// its yaw reversed with the heading-flip probability.
+fn hidden_box(
+    generator: &BoxGenerator,
+    effect: HiddenEffect,
+    ctx: &ObsContext,
+    x: &State,
+    rng: &mut StdRng,
+) -> Option<BoxDetection> {
+    let mut d = generator.sample(ctx, observed_pose(effect, x), rng)?;
+    if let HiddenEffect::HeadingFlip { fraction } = effect {
+        if rng.random::<f64>() < fraction {
+            d.yaw = wrap_angle(d.yaw + PI);
+        }
+    }
+    Some(d)
+}

@@ -1,0 +1,53 @@
+//! Model criticism (SPEC §7): what the fitted simulation gets wrong, which
+//! catalogue extension explains it, and how much it gains.
+//!
+//! * [`extensions`]: the catalogue — latency, clutter, size bias, heavy-tailed
+//!   acceleration, heading flips — each a model component with learnable
+//!   parameters ([`extensions::ExtendedSsm`]) that PF-SEFI trains like the base.
+//! * [`checks`]: discrepancy statistics of drawn paths and their observations,
+//!   computed alike on measured and replicated data (posterior predictive checks).
+//! * [`hidden`]: generated datasets with one hidden effect each, to test that the
+//!   diagnosis finds it.
+//! * [`diagnose`]: the procedure — fit the base, check it, fit the plausible
+//!   extensions, choose by held-out log-likelihood, re-check.
+
+pub mod checks;
+pub mod diagnose;
+pub mod extensions;
+pub mod hidden;
+
+use crate::data::{Action, BoxDetection, Pose, State};
+
+/// One object's observations, per step `t = 0..T`, of either kind.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ObjectObservations {
+    /// Point sets (possibly empty) per step.
+    Points(Vec<Vec<[f64; 2]>>),
+    /// At most one detection per step.
+    Boxes(Vec<Option<BoxDetection>>),
+}
+
+/// A path of one object with observations: what a discrepancy statistic looks at.
+/// For the measured data the observations are the dataset's and the path a draw
+/// from the smoother; for a replicate the same path's observations and actions
+/// are simulated from the fitted model.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObjectSample {
+    /// Index of the object in its dataset ([`crate::data::Dataset::objects`]).
+    pub object: usize,
+    /// States `x_0..x_T`.
+    pub states: Vec<State>,
+    /// Actions `a_1..a_T` (`actions[t - 1]` leads from `x_{t-1}` to `x_t`).
+    pub actions: Vec<Action>,
+    /// Observations `y_0..y_T`.
+    pub observations: ObjectObservations,
+}
+
+/// The pose seen by a sensor whose observations lag the state by `delay` seconds:
+/// the state extrapolated back along its own motion at constant speed and
+/// curvature, `x - delay v cos(yaw)`, `y - delay v sin(yaw)`, `yaw - delay v kappa`
+/// (first order in the delay; the `latency` extension and its generator share it).
+pub fn lagged_pose(state: &State, delay: f64) -> Pose {
+    let d = delay * state.v;
+    Pose { x: state.x - d * state.yaw.cos(), y: state.y - d * state.yaw.sin(), yaw: state.yaw - d * state.kappa }
+}

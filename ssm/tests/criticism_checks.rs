@@ -1,0 +1,326 @@
+//! Discrepancy statistics of posterior predictive checks (SPEC §7): each statistic
+//! on hand-built samples whose observations give it a known value, NaN (not a
+//! panic) without data, and the calibration — z, p, Holm adjustment, NaN draws.
+
+use std::f64::consts::{FRAC_PI_2, PI};
+
+use ssm::criticism::checks::{calibrate, checks_for, statistics, CheckDef};
+use ssm::criticism::{lagged_pose, ObjectObservations, ObjectSample};
+use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
+use ssm::observation::edges::from_box_frame;
+use ssm::stats::normal_cdf;
+
+const LENGTH: f64 = 4.0;
+const WIDTH: f64 = 2.0;
+const DT: f64 = 0.5;
+const STEPS: usize = 6;
+
+/// One scene, the AV at rest at the origin, `objects` objects of 4 m x 2 m.
+fn dataset(kind: ObservationKind, objects: usize) -> Dataset {
+    let mut b = Dataset::builder(Meta { dt: DT, steps: STEPS }, kind);
+    b.scene(0, &[Pose::default(); STEPS]);
+    for id in 0..objects {
+        let mean = State { x: 10.0, ..State::default() };
+        let sd = State { x: 1.0, y: 1.0, yaw: 0.1, v: 1.0, kappa: 0.01 };
+        b.object(Object { scene: 0, id: id as i64, length: LENGTH, width: WIDTH, prior: Prior { mean, sd } });
+    }
+    b.build().expect("valid dataset")
+}
+
+/// Heading east at `(10 + t, 0)`, speed `1 + t` (varies, so slopes are defined).
+fn states() -> Vec<State> {
+    (0..STEPS).map(|t| State { x: 10.0 + t as f64, y: 0.0, yaw: 0.0, v: 1.0 + t as f64, kappa: 0.0 }).collect()
+}
+
+fn pose(s: &State) -> Pose {
+    Pose { x: s.x, y: s.y, yaw: s.yaw }
+}
+
+/// Box-frame points `uv` of each state's box (or of `frame(state)`) as world points.
+fn points_at(states: &[State], frame: impl Fn(&State) -> Pose, uv: &[(f64, f64)]) -> ObjectObservations {
+    ObjectObservations::Points(
+        states.iter().map(|s| uv.iter().map(|&(u, v)| from_box_frame(frame(s), u, v)).collect()).collect(),
+    )
+}
+
+fn sample(object: usize, states: Vec<State>, actions: Vec<Action>, observations: ObjectObservations) -> ObjectSample {
+    ObjectSample { object, states, actions, observations }
+}
+
+/// The value of check `name` in `statistics(data, samples)`.
+fn stat(data: &Dataset, samples: &[ObjectSample], name: &str) -> f64 {
+    let defs = checks_for(data.kind());
+    let values = statistics(data, samples);
+    assert_eq!(values.len(), defs.len());
+    values[defs.iter().position(|d| d.name == name).unwrap_or_else(|| panic!("no check {name}"))]
+}
+
+const CORNERS: [(f64, f64); 4] = [(2.0, 1.0), (2.0, -1.0), (-2.0, 1.0), (-2.0, -1.0)];
+
+#[test]
+fn checks_per_kind_are_fixed_and_name_their_extensions() {
+    let names = |k| checks_for(k).iter().map(|d| d.name).collect::<Vec<_>>();
+    assert_eq!(
+        names(ObservationKind::Points),
+        [
+            "along_offset_vs_speed",
+            "far_point_fraction",
+            "length_extent_ratio",
+            "width_extent_ratio",
+            "accel_kurtosis",
+            "pinch_kurtosis",
+            "edge_residual_sd",
+            "across_offset_vs_speed",
+            "points_near_side_fraction",
+            "speed_change_sd"
+        ]
+    );
+    assert_eq!(
+        names(ObservationKind::Boxes),
+        [
+            "along_offset_vs_speed",
+            "yaw_reversal_fraction",
+            "accel_kurtosis",
+            "pinch_kurtosis",
+            "los_along_residual_sd",
+            "los_across_residual_sd",
+            "yaw_residual_sd"
+        ]
+    );
+    let suggests = |k| checks_for(k).iter().filter_map(|d| d.suggests).collect::<Vec<_>>();
+    assert_eq!(
+        suggests(ObservationKind::Points),
+        ["latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel"]
+    );
+    assert_eq!(suggests(ObservationKind::Boxes), ["latency", "heading_flip", "heavy_tailed_accel"]);
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        for d in checks_for(kind) {
+            assert!(d.kinds.contains(&kind), "{} listed for {kind:?}", d.name);
+            assert!(d.description.ends_with('.') && d.description.len() > 30, "{}", d.name);
+        }
+    }
+}
+
+#[test]
+fn latency_makes_the_along_offset_slope_minus_the_delay() {
+    let data = dataset(ObservationKind::Points, 2);
+    let delay = 0.3;
+    // The corners of the lagged box: mean u = -delay v exactly (kappa = 0).
+    let lagged = |delay: f64| {
+        let s = states();
+        sample(0, s.clone(), vec![], points_at(&s, |x| lagged_pose(x, delay), &CORNERS))
+    };
+    let along = stat(&data, &[lagged(delay)], "along_offset_vs_speed");
+    assert!((along - -delay).abs() < 1e-12, "slope {along}");
+    assert!(stat(&data, &[lagged(delay)], "across_offset_vs_speed").abs() < 1e-12);
+    assert!(stat(&data, &[lagged(0.0)], "along_offset_vs_speed").abs() < 1e-12);
+    // The same points seen from a path heading north (90 degrees left of the lag):
+    // the lag now lies to the left of the heading, so across takes the slope.
+    let mut turned = lagged(delay);
+    turned.states.iter_mut().for_each(|s| s.yaw = FRAC_PI_2);
+    let across = stat(&data, std::slice::from_ref(&turned), "across_offset_vs_speed");
+    assert!((across - delay).abs() < 1e-12, "slope {across}");
+    assert!(stat(&data, &[turned], "along_offset_vs_speed").abs() < 1e-12);
+    // Pooled with another object heading elsewhere, every step is on the same line.
+    let s2: Vec<State> = states().into_iter().map(|s| State { y: 5.0, yaw: 1.0, v: 2.0 * s.v, ..s }).collect();
+    let other = sample(1, s2.clone(), vec![], points_at(&s2, |x| lagged_pose(x, delay), &CORNERS));
+    let pooled = stat(&data, &[lagged(delay), other], "along_offset_vs_speed");
+    assert!((pooled - -delay).abs() < 1e-12, "slope {pooled}");
+}
+
+#[test]
+fn extents_span_the_points_relative_to_the_given_size() {
+    let data = dataset(ObservationKind::Points, 1);
+    let scaled: Vec<(f64, f64)> = CORNERS.iter().map(|&(u, v)| (1.2 * u, 0.9 * v)).collect();
+    let s = states();
+    let samples = [sample(0, s.clone(), vec![], points_at(&s, pose, &scaled))];
+    assert!((stat(&data, &samples, "length_extent_ratio") - 1.2).abs() < 1e-12);
+    assert!((stat(&data, &samples, "width_extent_ratio") - 0.9).abs() < 1e-12);
+    // Steps with fewer than 4 points do not count; without any, NaN.
+    let three = [sample(0, s.clone(), vec![], points_at(&s, pose, &scaled[..3]))];
+    assert!(stat(&data, &three, "length_extent_ratio").is_nan());
+}
+
+#[test]
+fn far_points_edge_residuals_and_the_near_side() {
+    let data = dataset(ObservationKind::Points, 1);
+    // Per step 10 points: 6 on the rear edge (facing the AV at the origin), 1 on
+    // the front edge and 3 at 2 m beyond the front edge (outside, 2 m from it).
+    let mut uv = vec![(-2.0, 0.5); 6];
+    uv.push((2.0, 0.0));
+    uv.extend([(4.0, 0.0); 3]);
+    let s = states();
+    let samples = [sample(0, s.clone(), vec![], points_at(&s, pose, &uv))];
+    assert!((stat(&data, &samples, "far_point_fraction") - 0.3).abs() < 1e-12);
+    assert!((stat(&data, &samples, "points_near_side_fraction") - 0.6).abs() < 1e-12);
+    // Signed distances: 7 x 0 and 3 x 2 per step (mean 0.6), sample sd over 60 points.
+    let n = 10.0 * STEPS as f64;
+    let sum_sq = STEPS as f64 * (7.0 * 0.36 + 3.0 * 1.96);
+    let sd = (sum_sq / (n - 1.0)).sqrt();
+    assert!((stat(&data, &samples, "edge_residual_sd") - sd).abs() < 1e-9);
+    // Inside the box the distance is negative: one point 0.5 m inside the left
+    // edge and one 1 m inside the front edge (sd of -0.5 and -1 is sqrt(1/8)).
+    let one = [sample(0, s[..1].to_vec(), vec![], points_at(&s[..1], pose, &[(0.0, 0.5), (1.0, 0.0)]))];
+    assert!((stat(&data, &one, "edge_residual_sd") - 0.125f64.sqrt()).abs() < 1e-12);
+    // A point 1 m past a corner diagonally is sqrt(2) m out: far.
+    let corner = [sample(0, s[..1].to_vec(), vec![], points_at(&s[..1], pose, &[(3.0, 2.0), (2.0, 1.5)]))];
+    assert!((stat(&data, &corner, "far_point_fraction") - 0.5).abs() < 1e-12);
+}
+
+#[test]
+fn accelerations_give_kurtosis_and_speed_change_sd() {
+    let data = dataset(ObservationKind::Points, 2);
+    let actions = |accels: &[f64]| accels.iter().map(|&a| Action { accel: a, pinch: 0.01 * a }).collect::<Vec<_>>();
+    let no_points = ObjectObservations::Points(vec![vec![]; STEPS]);
+    // Pooled over two samples: eight zeros and +-10: m2 = 20, m4 = 2000, so 2000/400 - 3 = 2.
+    let heavy = [
+        sample(0, states(), actions(&[0.0, 0.0, 0.0, 0.0, 10.0]), no_points.clone()),
+        sample(1, states(), actions(&[0.0, 0.0, 0.0, 0.0, -10.0]), no_points.clone()),
+    ];
+    assert!((stat(&data, &heavy, "accel_kurtosis") - 2.0).abs() < 1e-12);
+    assert!((stat(&data, &heavy, "pinch_kurtosis") - 2.0).abs() < 1e-9);
+    // A two-point distribution has excess kurtosis -2; accel dt = +-0.5, sd sqrt(1/3).
+    let light = [sample(0, states(), actions(&[-1.0, 1.0, -1.0, 1.0]), no_points.clone())];
+    assert!((stat(&data, &light, "accel_kurtosis") - -2.0).abs() < 1e-12);
+    assert!((stat(&data, &light, "speed_change_sd") - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
+    // Without points every point statistic is NaN, the action ones are not.
+    for (d, v) in checks_for(ObservationKind::Points).iter().zip(statistics(&data, &light)) {
+        let from_actions = ["accel_kurtosis", "pinch_kurtosis", "speed_change_sd"].contains(&d.name);
+        assert_eq!(v.is_finite(), from_actions, "{} = {v}", d.name);
+    }
+}
+
+/// A detection with centre `(x, y)` and heading `yaw`.
+fn detection(x: f64, y: f64, yaw: f64) -> BoxDetection {
+    BoxDetection { x, y, yaw, length: LENGTH, width: WIDTH, score: 1.0 }
+}
+
+#[test]
+fn box_statistics_see_lag_flips_and_line_of_sight_residuals() {
+    let data = dataset(ObservationKind::Boxes, 1);
+    // Heading north at (10, 0): the line of sight from the AV is +x, so along is
+    // +x and across is +y (to the left of the line of sight).
+    let s: Vec<State> =
+        (0..4).map(|t| State { x: 10.0, y: 0.0, yaw: FRAC_PI_2, v: 1.0 + t as f64, kappa: 0.0 }).collect();
+    let offsets = [(0.5, 0.2), (-0.5, -0.2), (0.5, 0.2), (-0.5, -0.2)];
+    let yaws = [0.1, -0.1, PI, 0.0];
+    let dets =
+        s.iter().zip(offsets).zip(yaws).map(|((x, (dx, dy)), dyaw)| Some(detection(x.x + dx, x.y + dy, x.yaw + dyaw)));
+    let mut dets: Vec<Option<BoxDetection>> = dets.collect();
+    dets.push(None); // a missed detection is skipped
+    let mut s5 = s.clone();
+    s5.push(s[0]);
+    let samples = [sample(0, s5, vec![], ObjectObservations::Boxes(dets))];
+    assert!((stat(&data, &samples, "yaw_reversal_fraction") - 0.25).abs() < 1e-12);
+    assert!((stat(&data, &samples, "los_along_residual_sd") - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
+    assert!((stat(&data, &samples, "los_across_residual_sd") - (0.16f64 / 3.0).sqrt()).abs() < 1e-12);
+    // Yaw residuals 0.1, -0.1, 0 (the flip is excluded): sd 0.1.
+    assert!((stat(&data, &samples, "yaw_residual_sd") - 0.1).abs() < 1e-12);
+    // Detections at the lagged centre: slope -delay.
+    let delay = 0.25;
+    let lagged = s.iter().map(|x| lagged_pose(x, delay)).map(|p| Some(detection(p.x, p.y, p.yaw))).collect();
+    let lag = [sample(0, s.clone(), vec![], ObjectObservations::Boxes(lagged))];
+    assert!((stat(&data, &lag, "along_offset_vs_speed") - -delay).abs() < 1e-12);
+}
+
+#[test]
+fn too_little_data_is_nan_never_a_panic() {
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        let data = dataset(kind, 1);
+        let empty = statistics(&data, &[]);
+        assert_eq!(empty.len(), checks_for(kind).len());
+        assert!(empty.iter().all(|v| v.is_nan()), "{kind:?}: {empty:?}");
+        // An unknown object, more observation steps than states or AV poses.
+        let obs = match kind {
+            ObservationKind::Points => ObjectObservations::Points(vec![vec![[11.0, 0.0]]; STEPS + 3]),
+            ObservationKind::Boxes => ObjectObservations::Boxes(vec![Some(detection(11.0, 0.0, 0.0)); STEPS + 3]),
+        };
+        let odd = [sample(7, states(), vec![], obs.clone()), sample(0, states()[..2].to_vec(), vec![], obs)];
+        assert_eq!(statistics(&data, &odd).len(), checks_for(kind).len());
+    }
+}
+
+// ---------------------------------------------------------------- calibration
+
+const A: CheckDef =
+    CheckDef { name: "a", description: "A.", kinds: &[ObservationKind::Points], suggests: Some("clutter") };
+const B: CheckDef = CheckDef { name: "b", description: "B.", kinds: &[ObservationKind::Points], suggests: None };
+const C: CheckDef = CheckDef { name: "c", description: "C.", kinds: &[ObservationKind::Points], suggests: None };
+
+/// Draw tables from per-check columns of (measured, replicated).
+fn tables(columns: &[Vec<(f64, f64)>]) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+    let draws = columns[0].len();
+    let m = (0..draws).map(|k| columns.iter().map(|c| c[k].0).collect()).collect();
+    let r = (0..draws).map(|k| columns.iter().map(|c| c[k].1).collect()).collect();
+    (m, r)
+}
+
+#[test]
+fn identical_data_is_not_significant_and_a_shift_is() {
+    let noise = |k: usize, phase: f64| (k as f64 * 1.7 + phase).sin();
+    let same: Vec<(f64, f64)> = (0..50).map(|k| (noise(k, 0.0), noise(k, 0.0))).collect();
+    let shifted: Vec<(f64, f64)> = (0..50).map(|k| (3.0 + noise(k, 0.3), noise(k, 1.1))).collect();
+    let (m, r) = tables(&[same, shifted]);
+    let res = calibrate(&[&A, &B], &m, &r, 0.05);
+    assert_eq!((res[0].name.as_str(), res[0].suggests.as_deref()), ("a", Some("clutter")));
+    assert_eq!((res[0].z, res[0].p, res[0].p_adjusted, res[0].significant), (0.0, 1.0, 1.0, false));
+    assert_eq!(res[0].draws, 50);
+    // D = 3 + (sin - sin) has sd about 1, so z is about 3 / 1 and far from 0.
+    assert!(res[1].z > 2.5, "z {}", res[1].z);
+    assert!(res[1].significant && res[1].p < 0.01 && res[1].p_adjusted >= res[1].p);
+    assert_eq!(res[1].name, "b");
+    assert!((res[1].measured - res[1].replicated - 3.0).abs() < 0.3);
+    assert!((res[1].replicated_sd - 0.7).abs() < 0.1, "sd of sin over many phases ~ 1/sqrt(2)");
+    // The sign of z follows the shift.
+    let res = calibrate(&[&A, &B], &r, &m, 0.05);
+    assert!(res[1].z < -2.5 && res[1].significant);
+}
+
+#[test]
+fn holm_adjusts_in_order_and_stays_monotone() {
+    // D = [z - 1, z, z + 1] has mean z and sd 1, so z is exact.
+    let column = |z: f64| vec![(z - 1.0, 0.0), (z, 0.0), (z + 1.0, 0.0)];
+    let (m, r) = tables(&[column(2.3), column(0.0), column(2.4)]);
+    let res = calibrate(&[&A, &B, &C], &m, &r, 0.05);
+    let p = |z: f64| 2.0 * normal_cdf(-z);
+    let zs: Vec<f64> = res.iter().map(|r| r.z).collect();
+    assert!((zs[0] - 2.3).abs() < 1e-12 && zs[1] == 0.0 && (zs[2] - 2.4).abs() < 1e-12, "{zs:?}");
+    assert!((res[0].p - p(2.3)).abs() < 1e-12 && res[1].p == 1.0 && (res[2].p - p(2.4)).abs() < 1e-12);
+    // Smallest p (z 2.4) times 3 = 0.049; next times 2 = 0.043 would be below it, so
+    // the step-down takes the running maximum; the last is min(1, 1 * 1).
+    assert!((res[2].p_adjusted - 3.0 * p(2.4)).abs() < 1e-12);
+    assert!(2.0 * p(2.3) < 3.0 * p(2.4));
+    assert_eq!(res[0].p_adjusted, res[2].p_adjusted);
+    assert_eq!(res[1].p_adjusted, 1.0);
+    assert_eq!(res.iter().map(|r| r.significant).collect::<Vec<_>>(), [true, false, true]);
+    let strict = calibrate(&[&A, &B, &C], &m, &r, 0.04);
+    assert!(strict.iter().all(|r| !r.significant));
+}
+
+#[test]
+fn non_finite_draws_are_ignored() {
+    let clean = vec![(1.0, 0.0), (2.0, 0.0), (3.0, 0.0), (2.5, 0.5)];
+    let mut dirty = clean.clone();
+    dirty.insert(1, (f64::NAN, 0.0));
+    dirty.push((5.0, f64::INFINITY));
+    let (mc, rc) = tables(&[clean]);
+    let (md, rd) = tables(&[dirty]);
+    let (c, d) = (&calibrate(&[&A], &mc, &rc, 0.05)[0], &calibrate(&[&A], &md, &rd, 0.05)[0]);
+    assert_eq!((c.draws, d.draws), (4, 4));
+    assert_eq!(c, d);
+    // D = [1, 2, 3, 2]: mean 2, sd sqrt(2/3).
+    assert!((d.z - 2.0 / (2.0f64 / 3.0).sqrt()).abs() < 1e-12 && d.measured == 2.125 && d.replicated == 0.125);
+    // Fewer than 3 usable draws: no evidence.
+    let two = calibrate(&[&A], &[vec![1.0], vec![5.0], vec![f64::NAN]], &[vec![0.0], vec![0.0], vec![0.0]], 0.05);
+    assert_eq!((two[0].z, two[0].p, two[0].draws), (0.0, 1.0, 2));
+    // No draws at all: NaN summaries, p = 1.
+    let none = calibrate(&[&A], &[], &[], 0.05);
+    assert_eq!((none[0].p, none[0].draws, none[0].significant), (1.0, 0, false));
+    assert!(none[0].measured.is_nan());
+}
+
+#[test]
+#[should_panic(expected = "calibrate: draw 1")]
+fn a_row_of_the_wrong_length_panics() {
+    calibrate(&[&A, &B], &[vec![0.0, 0.0], vec![0.0]], &[vec![0.0, 0.0], vec![0.0, 0.0]], 0.05);
+}
