@@ -177,6 +177,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
     let mut objective = SceneObjective::new(&data, test, config)?;
     let train_config = TrainConfig {
         lr: args.lr,
+        final_lr: None,
         clip: args.clip,
         epochs: args.epochs,
         eval_every: args.eval_every,

@@ -84,7 +84,7 @@ pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
 /// The parameter store alone, as [`ParamStore::save`] writes it.
 pub const PARAMS_FILE: &str = "params.bin";
 /// Format version of [`CHECKPOINT_FILE`] (checked by [`read_versioned`]).
-pub const CHECKPOINT_VERSION: u32 = 1;
+pub const CHECKPOINT_VERSION: u32 = 2;
 /// Columns of [`TRAIN_LOG`].
 ///
 /// `step` counts from 1; `epoch` counts from 0; `batch` is the objective's batch
@@ -165,6 +165,10 @@ pub trait Objective {
 pub struct TrainConfig {
     /// Adam learning rate (default 0.01).
     pub lr: f64,
+    /// If set, the learning rate falls linearly from `lr` at the first step to
+    /// this at the last (default none: constant), so the final parameters are
+    /// not a noisy snapshot of a still-moving run.
+    pub final_lr: Option<f64>,
     /// Global gradient-norm clipping, if any (default none; SPEC §6 uses 0.5 on
     /// measured data).
     pub clip: Option<f64>,
@@ -184,7 +188,16 @@ pub struct TrainConfig {
 
 impl Default for TrainConfig {
     fn default() -> Self {
-        TrainConfig { lr: 0.01, clip: None, epochs: 100, eval_every: 0, checkpoint_every: 10, seed: 0, shuffle: true }
+        TrainConfig {
+            lr: 0.01,
+            final_lr: None,
+            clip: None,
+            epochs: 100,
+            eval_every: 0,
+            checkpoint_every: 10,
+            seed: 0,
+            shuffle: true,
+        }
     }
 }
 
@@ -200,6 +213,7 @@ impl TrainConfig {
         // `{:?}` of a float is its shortest round-trip text: distinct values print
         // differently.
         cmp("lr", format!("{:?}", self.lr), format!("{:?}", other.lr));
+        cmp("final_lr", format!("{:?}", self.final_lr), format!("{:?}", other.final_lr));
         cmp("clip", format!("{:?}", self.clip), format!("{:?}", other.clip));
         cmp("epochs", self.epochs.to_string(), other.epochs.to_string());
         cmp("eval_every", self.eval_every.to_string(), other.eval_every.to_string());
@@ -213,12 +227,28 @@ impl TrainConfig {
         if !(self.lr.is_finite() && self.lr > 0.0) {
             return Err(TrainError::Config(format!("learning rate must be positive and finite, got {}", self.lr)));
         }
+        if let Some(end) = self.final_lr {
+            if !(end.is_finite() && end > 0.0) {
+                return Err(TrainError::Config(format!("final learning rate must be positive and finite, got {end}")));
+            }
+        }
         if let Some(c) = self.clip {
             if !(c.is_finite() && c > 0.0) {
                 return Err(TrainError::Config(format!("clip must be positive and finite, got {c}")));
             }
         }
         Ok(())
+    }
+
+    /// The learning rate of step `step` (from 1) of `total`.
+    pub fn lr_at(&self, step: usize, total: usize) -> f64 {
+        match self.final_lr {
+            Some(end) if total > 1 => {
+                let f = (step.saturating_sub(1) as f64 / (total - 1) as f64).min(1.0);
+                self.lr + (end - self.lr) * f
+            }
+            _ => self.lr,
+        }
     }
 
     fn eval_due(&self, step: usize, total: usize) -> bool {
@@ -661,6 +691,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                         for g in grad.iter_mut() {
                             g.data_mut().iter_mut().for_each(|x| *x = -*x);
                         }
+                        self.adam.lr = self.config.lr_at(step, self.config.epochs * self.batches);
                         match self.adam.step(&mut self.params, &grad) {
                             Ok(()) => {}
                             Err(StepError::NonFinite) => skipped = true,

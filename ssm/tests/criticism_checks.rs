@@ -44,7 +44,7 @@ fn points_at(states: &[State], frame: impl Fn(&State) -> Pose, uv: &[(f64, f64)]
 }
 
 fn sample(object: usize, states: Vec<State>, actions: Vec<Action>, observations: ObjectObservations) -> ObjectSample {
-    ObjectSample { object, states, actions, observations }
+    ObjectSample { object, states, actions, observations, accel_innovations: Vec::new() }
 }
 
 /// The value of check `name` in `statistics(data, samples)`.

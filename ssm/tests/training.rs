@@ -266,7 +266,16 @@ fn ascent_on_the_exact_score_reaches_the_maximum_likelihood_estimate() {
 /// Settings of the resume tests: 4 epochs of 3 shuffled batches, checkpoints every
 /// 5 steps, evaluations every 3, clipping on.
 fn resume_config() -> TrainConfig {
-    TrainConfig { lr: 0.05, clip: Some(20.0), epochs: 4, eval_every: 3, checkpoint_every: 5, seed: 42, shuffle: true }
+    TrainConfig {
+        lr: 0.05,
+        final_lr: None,
+        clip: Some(20.0),
+        epochs: 4,
+        eval_every: 3,
+        checkpoint_every: 5,
+        seed: 42,
+        shuffle: true,
+    }
 }
 
 #[test]

@@ -25,7 +25,7 @@ use crate::observation::edges::to_box_frame;
 use crate::stats::normal_cdf;
 
 /// A point farther than this outside its box (m) counts as far (`far_point_fraction`).
-pub const FAR_POINT_DISTANCE: f64 = 1.0;
+pub const FAR_POINT_DISTANCE: f64 = 2.5;
 /// Fewest points of an object-step for its extents to count (`*_extent_ratio`).
 pub const MIN_EXTENT_POINTS: usize = 4;
 /// Objects whose prior speed is below this (m/s) have no `initial_lag`.
@@ -92,7 +92,7 @@ static CHECKS: [Check; 15] = [
     ),
     check(
         "far_point_fraction",
-        "Fraction of points farther than 1 m outside the object's box (unitless).",
+        "Fraction of points farther than 2.5 m outside the object's box (unitless).",
         POINTS,
         Some("clutter"),
         far_point_fraction,
@@ -122,7 +122,9 @@ static CHECKS: [Check; 15] = [
     ),
     check(
         "accel_kurtosis",
-        "Sample excess kurtosis of the accelerations, pooled over objects and steps (unitless; 0 for a Gaussian).",
+        "Sample excess kurtosis of the accelerations' innovations standardised by the fitted policy's mean and sd \
+         at each state (the raw accelerations when the policy is not known), pooled over objects and steps \
+         (unitless; 0 for a Gaussian).",
         BOTH,
         Some("heavy_tailed_accel"),
         accel_kurtosis,
@@ -237,6 +239,8 @@ struct View {
     /// Per object: `(x_0 - prior mean) . prior heading / prior speed` (s).
     initial_lags: Vec<f64>,
     accels: Vec<f64>,
+    /// Standardised acceleration innovations (empty when the samples have none).
+    innovations: Vec<f64>,
     pinches: Vec<f64>,
     dt: f64,
 }
@@ -247,11 +251,13 @@ impl View {
             steps: Vec::new(),
             initial_lags: Vec::new(),
             accels: Vec::new(),
+            innovations: Vec::new(),
             pinches: Vec::new(),
             dt: data.dt(),
         };
         for s in samples {
             view.accels.extend(s.actions.iter().map(|a| a.accel));
+            view.innovations.extend(s.accel_innovations.iter().copied());
             view.pinches.extend(s.actions.iter().map(|a| a.pinch));
             let Some(object) = data.objects().get(s.object) else { continue };
             let prior = object.prior.mean;
@@ -341,7 +347,11 @@ fn width_extent_ratio(view: &View) -> f64 {
 }
 
 fn accel_kurtosis(view: &View) -> f64 {
-    excess_kurtosis(&view.accels)
+    if view.innovations.is_empty() {
+        excess_kurtosis(&view.accels)
+    } else {
+        excess_kurtosis(&view.innovations)
+    }
 }
 
 fn pinch_kurtosis(view: &View) -> f64 {

@@ -43,6 +43,12 @@ use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
 use crate::vehicle::NeuralPolicy;
 use crate::vehicle_ssm::VehicleSsm;
 
+/// The base policy starts with this accel sd (m/s²): a road user's typical
+/// acceleration, rather than the network's default.
+pub const INITIAL_SD_ACCEL: f64 = 0.5;
+/// The base policy starts with this pinch sd (1/(m s)).
+pub const INITIAL_SD_PINCH: f64 = 0.02;
+
 /// Settings of a diagnosis.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DiagnoseConfig {
@@ -108,10 +114,10 @@ impl DiagnoseConfig {
     pub fn quick() -> Self {
         DiagnoseConfig {
             heldout_fraction: 0.5,
-            base_steps: 150,
-            candidate_steps: 80,
-            particles: 128,
-            eval_particles: 512,
+            base_steps: 600,
+            candidate_steps: 200,
+            particles: 512,
+            eval_particles: 16384,
             lag: 8,
             draws: 40,
             ..DiagnoseConfig::default()
@@ -220,7 +226,9 @@ pub struct Report {
     pub heldout_objects: usize,
     /// Observed units (points, detections) of the held-out part.
     pub heldout_units: usize,
-    /// Held-out log-likelihood of the base (nats per observed unit).
+    /// Held-out log-likelihood of the base (nats per observed unit): the
+    /// comparator's (the base trained on alongside the candidates) when any
+    /// extension was fitted.
     pub base_mll: f64,
     /// Held-out log-likelihood of the chosen model (the base's for `none`).
     pub chosen_mll: f64,
@@ -264,9 +272,11 @@ pub fn diagnose(
     // 2. The base.
     let initial = {
         let mut rng = StdRng::seed_from_u64(config.seed);
-        Models::initial(kind, AnyPolicy::Neural(NeuralPolicy::new(&mut rng)), rng.random()).to_store()
+        let policy = NeuralPolicy::new(&mut rng).with_initial_sds(INITIAL_SD_ACCEL, INITIAL_SD_PINCH);
+        Models::initial(kind, AnyPolicy::Neural(policy), rng.random()).to_store()
     };
-    let base = fit(&train_data, &heldout, None, initial, config.base_steps, config, &out_dir.join("base"), progress)?;
+    let base_dir = out_dir.join("base");
+    let base = fit(&train_data, &heldout, None, initial, config.base_steps, config, &base_dir, progress)?;
 
     // 3. Checks of the base.
     progress(&Stage::Checking { model: "base".into() });
@@ -274,27 +284,43 @@ pub fn diagnose(
     let defs = checks_for(kind);
     let before = calibrate(&defs, &base_eval.measured, &base_eval.replicated, config.alpha);
 
-    // 4. The plausible extensions.
+    // 4. The plausible extensions, and the base trained on as their comparator.
+    let plausible: Vec<(Extension, Vec<String>)> = Extension::for_kind(kind)
+        .into_iter()
+        .map(|ext| {
+            let flagged_by = before
+                .iter()
+                .filter(|c| c.suggests.as_deref() == Some(ext.id()) && c.p < config.plausible_p)
+                .map(|c| c.name.clone())
+                .collect::<Vec<_>>();
+            (ext, flagged_by)
+        })
+        .collect();
+    let not_fitted: Vec<String> = plausible
+        .iter()
+        .filter(|(_, flagged)| flagged.is_empty() && !config.fit_all)
+        .map(|(ext, _)| ext.id().to_string())
+        .collect();
+    let to_fit: Vec<(Extension, Vec<String>)> =
+        plausible.into_iter().filter(|(_, flagged)| !flagged.is_empty() || config.fit_all).collect();
     let mut candidates = Vec::new();
     let mut fitted = Vec::new();
-    let mut not_fitted = Vec::new();
-    for ext in Extension::for_kind(kind) {
-        let flagged_by: Vec<String> = before
-            .iter()
-            .filter(|c| c.suggests.as_deref() == Some(ext.id()) && c.p < config.plausible_p)
-            .map(|c| c.name.clone())
-            .collect();
-        if flagged_by.is_empty() && !config.fit_all {
-            not_fitted.push(ext.id().to_string());
-            continue;
-        }
+    let mut comparator = None;
+    if !to_fit.is_empty() {
+        let dir = out_dir.join("candidates").join("base");
+        let run = refit(&train_data, &heldout, None, base.params.clone(), config, &dir, progress)?;
+        progress(&Stage::Checking { model: "base (trained on)".into() });
+        comparator = Some(evaluate(&heldout, &run.params, None, config)?);
+    }
+    for (ext, flagged_by) in to_fit {
         let mut start = base.params.clone();
         start.add(&ext.param_name(), ext.initial());
         let dir = out_dir.join("candidates").join(ext.id());
-        let run = fit(&train_data, &heldout, Some(ext), start, config.candidate_steps, config, &dir, progress)?;
+        let run = refit(&train_data, &heldout, Some(ext), start, config, &dir, progress)?;
         progress(&Stage::Checking { model: ext.id().into() });
         let eval = evaluate(&heldout, &run.params, Some(ext), config)?;
-        let (gain, gain_se) = paired_gain(&eval.object_ll, &base_eval.object_ll, base_eval.units);
+        let against = comparator.as_ref().expect("the comparator is fitted before any candidate");
+        let (gain, gain_se) = paired_gain(&eval.object_ll, &against.object_ll, against.units);
         let raw = run.params.get(run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         candidates.push(CandidateReport {
             cause: ext.id().into(),
@@ -333,7 +359,7 @@ pub fn diagnose(
         })
         .collect();
     let units = base_eval.units.max(1) as f64;
-    let base_mll = base_eval.object_ll.iter().sum::<f64>() / units;
+    let base_mll = comparator.as_ref().unwrap_or(&base_eval).object_ll.iter().sum::<f64>() / units;
     Ok(Report {
         cause: winner.map_or("none".into(), |i| candidates[i].cause.clone()),
         gain: winner.map_or(0.0, |i| candidates[i].gain),
@@ -368,6 +394,23 @@ pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
     (mean * n / units, (n * var).sqrt() / units)
 }
 
+/// Training runs end at this fraction of the initial learning rate.
+const FINAL_LR_FRACTION: f64 = 0.1;
+
+/// A candidate's (or the comparator's) fit: `initial` trained for
+/// [`DiagnoseConfig::candidate_steps`] with the same seeds as every other candidate.
+fn refit(
+    train_data: &Dataset,
+    heldout: &Dataset,
+    extension: Option<Extension>,
+    initial: ParamStore<f64>,
+    config: &DiagnoseConfig,
+    dir: &Path,
+    progress: &mut dyn FnMut(&Stage),
+) -> Result<Fitted, String> {
+    fit(train_data, heldout, extension, initial, config.candidate_steps, config, dir, progress)
+}
+
 /// A finished training run.
 struct Fitted {
     params: ParamStore<f64>,
@@ -399,6 +442,7 @@ fn fit(
     let batches = crate::training::Objective::batches(&objective).max(1);
     let train_config = TrainConfig {
         lr: config.lr,
+        final_lr: Some(config.lr * FINAL_LR_FRACTION),
         clip: config.clip,
         epochs: steps.div_ceil(batches),
         eval_every: 0,
@@ -492,6 +536,7 @@ fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleO
                     states: states.clone(),
                     actions: actions.clone(),
                     observations: measured_observations::<O>(data, o),
+                    accel_innovations: innovations(model, states, actions),
                 }
             })
             .collect();
@@ -528,7 +573,23 @@ fn replicate<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
         model.sample_observation(sample.object, t, s, rng, &mut items);
         per_step.push(items.clone());
     }
-    ObjectSample { object: sample.object, states, actions, observations: O::to_observations(per_step) }
+    let accel_innovations = innovations(model, &sample.states, &actions);
+    ObjectSample {
+        object: sample.object,
+        states,
+        actions,
+        observations: O::to_observations(per_step),
+        accel_innovations,
+    }
+}
+
+/// The standardised acceleration innovations of a path's actions.
+fn innovations<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+    model: &ExtendedSsm<'_, '_, P, O>,
+    states: &[State],
+    actions: &[Action],
+) -> Vec<f64> {
+    states.iter().zip(actions).map(|(s, a)| model.accel_innovation_of(s, a)).collect()
 }
 
 /// Records one object's filter steps and, at the last, draws paths from the

@@ -483,6 +483,14 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         Action { accel: accel[0], pinch: pinch[0] }
     }
 
+    /// The innovation of `action`'s acceleration at `state` standardised by the
+    /// policy's Gaussian: `(accel - mean) / sd`.
+    pub fn accel_innovation_of(&self, state: &State, action: &Action) -> f64 {
+        let mut g = ActionGaussians::<f64>::default();
+        self.base.policy().gaussians(&[state.v], &[state.kappa], &mut g);
+        (action.accel - g.mean_accel[0]) / g.l11[0]
+    }
+
     /// A standardised acceleration innovation: normal, or the heavy-tailed mixture.
     fn accel_innovation(&self, rng: &mut SmallRng) -> f64 {
         let z: f64 = rng.sample(StandardNormal);

@@ -41,6 +41,10 @@ pub struct ObjectSample {
     pub actions: Vec<Action>,
     /// Observations `y_0..y_T`.
     pub observations: ObjectObservations,
+    /// The accelerations' innovations standardised by the checked model's
+    /// Gaussian policy, `(accel - mean(x_{t-1})) / sd(x_{t-1})`, one per action;
+    /// empty when unknown (the checks then use the raw accelerations).
+    pub accel_innovations: Vec<f64>,
 }
 
 /// The pose seen by a sensor whose observations lag the state by `delay` seconds:

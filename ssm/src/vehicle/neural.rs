@@ -69,6 +69,26 @@ impl NeuralPolicy {
         NeuralPolicy { store, mlp, par: Parallelism::Serial }
     }
 
+    /// The same network with the output biases set so that, where the hidden
+    /// layers' contribution is small, the accel sd is about `sd_accel` (m/s²) and
+    /// the pinch's conditional sd about `sd_pinch` (1/(m s)): a start at physical
+    /// scales rather than at the network's default (accel sd 0.69, pinch 0.069).
+    /// Panics unless both exceed their floors ([`MIN_SD_ACCEL`], [`MIN_SD_PINCH`]).
+    #[track_caller]
+    pub fn with_initial_sds(mut self, sd_accel: f64, sd_pinch: f64) -> Self {
+        assert!(
+            sd_accel > MIN_SD_ACCEL && sd_pinch > MIN_SD_PINCH,
+            "NeuralPolicy::with_initial_sds: sds must exceed their floors, got {sd_accel}, {sd_pinch}"
+        );
+        // softplus^{-1}(y) = ln(e^y - 1).
+        let inverse_softplus = |y: f64| y.exp_m1().ln();
+        let bias = self.mlp.layers.last().expect("the network has layers").b;
+        let b = self.store.get_mut(bias).data_mut();
+        b[2] = inverse_softplus(sd_accel - MIN_SD_ACCEL);
+        b[4] = inverse_softplus((sd_pinch - MIN_SD_PINCH) / PINCH_OUTPUT_SCALE);
+        self
+    }
+
     /// How the plain path's matrix products use threads: `Serial` (default; the
     /// filter parallelises over objects) or `Rayon`.
     pub fn with_parallelism(mut self, par: Parallelism) -> Self {
