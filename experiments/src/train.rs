@@ -173,6 +173,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         scenes_per_step: args.scenes_per_step,
         eval_particles: args.eval_particles,
         extension: None,
+        extension_only: false,
     };
     let mut objective = SceneObjective::new(&data, test, config)?;
     let train_config = TrainConfig {

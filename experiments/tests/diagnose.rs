@@ -8,15 +8,17 @@ mod common;
 use common::{ok, s, sefi, temp};
 use serde_json::Value;
 
-/// Generates `effect` data (`--boxes` for detections), runs `diagnose --quick` on
-/// it and returns the parsed `report.json` with the output directory.
+/// Generates `effect` data (box detections, of twice as many scenes, with
+/// `boxes`: a detection carries less information than a point set), runs
+/// `diagnose --quick` on it and returns the parsed `report.json` with the output
+/// directory.
 fn diagnose(effect: &str, boxes: bool) -> (Value, std::path::PathBuf) {
     let dir = temp("diagnose", effect);
     let data = dir.join("data");
     let out = dir.join("out");
     let mut args = vec!["generate", "--hidden", effect, "--out", s(&data), "--seed", "3"];
     if boxes {
-        args.push("--boxes");
+        args.extend(["--boxes", "--scenes", "16"]);
     }
     ok(&sefi(&args));
     let stdout = ok(&sefi(&["diagnose", "--data", s(&data), "--out", s(&out), "--quick"]));
@@ -36,14 +38,11 @@ fn assert_found(effect: &str, boxes: bool) {
     assert!(gain > 2.0 * se && gain > 0.0, "gain {gain} ± {se}\n{summary}");
     let winner = report["candidates"].as_array().unwrap().iter().find(|c| c["cause"] == effect).expect("candidate");
     assert!(!winner["params"].as_array().unwrap().is_empty(), "learned parameters reported");
-    // The checks were re-run on the extended model, and at least one check that
-    // suggests the effect was significant before.
+    // It was fitted because a check made it plausible, and the checks were re-run
+    // on the extended model.
+    assert!(!winner["flagged_by"].as_array().unwrap().is_empty(), "{summary}");
     let checks = report["checks"].as_array().unwrap();
     assert!(checks.iter().all(|c| c["after"].is_object()), "{summary}");
-    assert!(
-        checks.iter().any(|c| c["suggests"] == effect && c["before"]["significant"] == true),
-        "no check suggesting {effect} was significant\n{summary}"
-    );
     let md = std::fs::read_to_string(out.join("report.md")).expect("report.md");
     assert!(md.contains(&format!("Cause: `{effect}`")), "{md}");
     assert!(std::fs::read_dir(&out).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().ends_with(".svg")));

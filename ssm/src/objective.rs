@@ -38,6 +38,10 @@ pub struct ObjectiveConfig {
     /// ([`crate::criticism::extensions`]); its parameter is `ext.<id>` in the store.
     #[serde(default)]
     pub extension: Option<Extension>,
+    /// With an extension: learn only its parameter, the base model held fixed
+    /// (every other parameter's gradient is zero).
+    #[serde(default)]
+    pub extension_only: bool,
 }
 
 /// Training scenes in batches, test data, and an estimator.
@@ -140,8 +144,10 @@ impl Objective for SceneObjective {
         }
         let units = estimate.observed_units.max(1) as f64;
         let mut gradient = gradient_in_store_order(params, &names, estimate.gradient)?;
-        for g in &mut gradient {
-            g.data_mut().iter_mut().for_each(|x| *x /= units);
+        let learned = self.config.extension.filter(|_| self.config.extension_only).map(|e| e.param_name());
+        for (i, g) in gradient.iter_mut().enumerate() {
+            let frozen = learned.as_ref().is_some_and(|name| params.name(autodiff::nn::ParamId(i)) != name);
+            g.data_mut().iter_mut().for_each(|x| *x = if frozen { 0.0 } else { *x / units });
         }
         Ok(BatchEstimate {
             log_likelihood: estimate.log_likelihood,

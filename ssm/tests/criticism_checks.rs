@@ -64,6 +64,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
         names(ObservationKind::Points),
         [
             "along_offset_vs_speed",
+            "initial_lag",
             "far_point_fraction",
             "length_extent_ratio",
             "width_extent_ratio",
@@ -79,6 +80,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
         names(ObservationKind::Boxes),
         [
             "along_offset_vs_speed",
+            "initial_lag",
             "yaw_reversal_fraction",
             "accel_kurtosis",
             "pinch_kurtosis",
@@ -90,9 +92,9 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
     let suggests = |k| checks_for(k).iter().filter_map(|d| d.suggests).collect::<Vec<_>>();
     assert_eq!(
         suggests(ObservationKind::Points),
-        ["latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel"]
+        ["latency", "latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel"]
     );
-    assert_eq!(suggests(ObservationKind::Boxes), ["latency", "heading_flip", "heavy_tailed_accel"]);
+    assert_eq!(suggests(ObservationKind::Boxes), ["latency", "latency", "heading_flip", "heavy_tailed_accel"]);
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
         for d in checks_for(kind) {
             assert!(d.kinds.contains(&kind), "{} listed for {kind:?}", d.name);
@@ -145,25 +147,26 @@ fn extents_span_the_points_relative_to_the_given_size() {
 fn far_points_edge_residuals_and_the_near_side() {
     let data = dataset(ObservationKind::Points, 1);
     // Per step 10 points: 6 on the rear edge (facing the AV at the origin), 1 on
-    // the front edge and 3 at 2 m beyond the front edge (outside, 2 m from it).
+    // the front edge and 3 at 3 m beyond the front edge (outside, 3 m from it).
     let mut uv = vec![(-2.0, 0.5); 6];
     uv.push((2.0, 0.0));
-    uv.extend([(4.0, 0.0); 3]);
+    uv.extend([(5.0, 0.0); 3]);
     let s = states();
     let samples = [sample(0, s.clone(), vec![], points_at(&s, pose, &uv))];
     assert!((stat(&data, &samples, "far_point_fraction") - 0.3).abs() < 1e-12);
     assert!((stat(&data, &samples, "points_near_side_fraction") - 0.6).abs() < 1e-12);
-    // Signed distances: 7 x 0 and 3 x 2 per step (mean 0.6), sample sd over 60 points.
+    // Signed distances: 7 x 0 and 3 x 3 per step (mean 0.9), sample sd over 60 points.
     let n = 10.0 * STEPS as f64;
-    let sum_sq = STEPS as f64 * (7.0 * 0.36 + 3.0 * 1.96);
+    let sum_sq = STEPS as f64 * (7.0 * 0.81 + 3.0 * 2.1 * 2.1);
     let sd = (sum_sq / (n - 1.0)).sqrt();
     assert!((stat(&data, &samples, "edge_residual_sd") - sd).abs() < 1e-9);
     // Inside the box the distance is negative: one point 0.5 m inside the left
     // edge and one 1 m inside the front edge (sd of -0.5 and -1 is sqrt(1/8)).
     let one = [sample(0, s[..1].to_vec(), vec![], points_at(&s[..1], pose, &[(0.0, 0.5), (1.0, 0.0)]))];
     assert!((stat(&data, &one, "edge_residual_sd") - 0.125f64.sqrt()).abs() < 1e-12);
-    // A point 1 m past a corner diagonally is sqrt(2) m out: far.
-    let corner = [sample(0, s[..1].to_vec(), vec![], points_at(&s[..1], pose, &[(3.0, 2.0), (2.0, 1.5)]))];
+    // A point 2 m past a corner diagonally is 2 sqrt(2) m out: far (2 m past an
+    // edge alone would not be).
+    let corner = [sample(0, s[..1].to_vec(), vec![], points_at(&s[..1], pose, &[(4.0, 3.0), (2.0, 1.5)]))];
     assert!((stat(&data, &corner, "far_point_fraction") - 0.5).abs() < 1e-12);
 }
 
@@ -323,4 +326,45 @@ fn non_finite_draws_are_ignored() {
 #[should_panic(expected = "calibrate: draw 1")]
 fn a_row_of_the_wrong_length_panics() {
     calibrate(&[&A, &B], &[vec![0.0, 0.0], vec![0.0]], &[vec![0.0, 0.0], vec![0.0, 0.0]], 0.05);
+}
+
+#[test]
+fn initial_lag_is_the_initial_offset_from_the_prior_over_the_prior_speed() {
+    // Two objects with prior speeds 8 and 4 m/s heading north; their initial states
+    // lie 0.15 s of travel behind the prior means.
+    let mut b = Dataset::builder(Meta { dt: DT, steps: STEPS }, ObservationKind::Points);
+    b.scene(0, &[Pose::default(); STEPS]);
+    let sd = State { x: 1.0, y: 1.0, yaw: 0.1, v: 1.0, kappa: 0.01 };
+    for (id, v) in [(0, 8.0), (1, 4.0), (2, 0.5)] {
+        let mean = State { x: 10.0, y: 5.0, yaw: FRAC_PI_2, v, kappa: 0.0 };
+        b.object(Object { scene: 0, id, length: LENGTH, width: WIDTH, prior: Prior { mean, sd } });
+    }
+    let data = b.build().expect("valid dataset");
+    let behind = |o: usize| {
+        let prior = data.objects()[o].prior.mean;
+        let p = lagged_pose(&prior, 0.15);
+        vec![State { x: p.x, y: p.y, ..prior }; STEPS]
+    };
+    let no_points = || ObjectObservations::Points(vec![vec![]; STEPS]);
+    let samples: Vec<ObjectSample> = (0..2).map(|o| sample(o, behind(o), vec![], no_points())).collect();
+    assert!((stat(&data, &samples, "initial_lag") + 0.15).abs() < 1e-12);
+    // The slow object (0.5 m/s) is left out whatever its offset.
+    let slow = [sample(2, vec![State { x: 0.0, ..data.objects()[2].prior.mean }; STEPS], vec![], no_points())];
+    assert!(stat(&data, &slow, "initial_lag").is_nan());
+}
+
+#[test]
+fn accel_kurtosis_uses_standardised_innovations_when_given() {
+    let data = dataset(ObservationKind::Points, 1);
+    let no_points = ObjectObservations::Points(vec![vec![]; STEPS]);
+    // Raw accelerations are a two-point distribution (kurtosis -2); the innovations
+    // given are eight zeros and +-10 (kurtosis 2): the check uses the innovations.
+    let accels = [1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0];
+    let actions: Vec<Action> = accels.iter().map(|&a| Action { accel: a, pinch: 0.0 }).collect();
+    let mut innovations = vec![0.0; 8];
+    innovations.extend([10.0, -10.0]);
+    let raw = [sample(0, states(), actions.clone(), no_points.clone())];
+    assert!((stat(&data, &raw, "accel_kurtosis") + 2.0).abs() < 1e-12);
+    let with = [ObjectSample { accel_innovations: innovations, ..sample(0, states(), actions, no_points) }];
+    assert!((stat(&data, &with, "accel_kurtosis") - 2.0).abs() < 1e-12);
 }

@@ -66,14 +66,19 @@ pub struct DiagnoseConfig {
     pub eval_particles: usize,
     /// Fixed lag of PF-SEFI.
     pub lag: usize,
-    /// Adam learning rate.
+    /// Adam learning rate of the base fit.
     pub lr: f64,
+    /// Adam learning rate of the extensions' parameters (their stored values are
+    /// scaled, see [`super::extensions`]).
+    pub candidate_lr: f64,
     /// Global gradient-norm clipping.
     pub clip: Option<f64>,
     /// Scenes per training step.
     pub scenes_per_step: usize,
     /// Paths drawn from the smoother per held-out object (the checks' replicates).
     pub draws: usize,
+    /// Filter runs (seeds) averaged for each held-out object's log-likelihood.
+    pub eval_runs: usize,
     /// Family-wise level of the checks (Holm-corrected).
     pub alpha: f64,
     /// An extension is fitted when a check that suggests it has an uncorrected p
@@ -98,11 +103,13 @@ impl Default for DiagnoseConfig {
             eval_particles: 2048,
             lag: 15,
             lr: 0.01,
+            candidate_lr: 0.02,
             clip: Some(0.5),
-            scenes_per_step: 4,
+            scenes_per_step: 16,
             draws: 50,
+            eval_runs: 1,
             alpha: 0.05,
-            plausible_p: 0.1,
+            plausible_p: 0.2,
             fit_all: false,
             significance: 2.0,
         }
@@ -115,11 +122,13 @@ impl DiagnoseConfig {
         DiagnoseConfig {
             heldout_fraction: 0.5,
             base_steps: 600,
-            candidate_steps: 200,
+            candidate_steps: 150,
             particles: 512,
             eval_particles: 16384,
             lag: 8,
             draws: 40,
+            eval_runs: 2,
+            scenes_per_step: 4,
             ..DiagnoseConfig::default()
         }
     }
@@ -129,11 +138,14 @@ impl DiagnoseConfig {
         if !(self.heldout_fraction > 0.0 && self.heldout_fraction < 1.0) {
             return Err(format!("held-out fraction must be in (0, 1), got {}", self.heldout_fraction));
         }
-        if self.particles == 0 || self.eval_particles == 0 || self.draws < 3 {
-            return Err("particles and evaluation particles must be positive and draws at least 3".into());
+        if self.particles == 0 || self.eval_particles == 0 || self.eval_runs == 0 || self.draws < 3 {
+            return Err("particles, evaluation particles and runs must be positive and draws at least 3".into());
         }
         if !(self.alpha > 0.0 && self.alpha < 1.0 && self.plausible_p > 0.0 && self.plausible_p <= 1.0) {
             return Err(format!("alpha {} and plausible_p {} must be in (0, 1]", self.alpha, self.plausible_p));
+        }
+        if !(self.lr > 0.0 && self.candidate_lr > 0.0 && self.lr.is_finite() && self.candidate_lr.is_finite()) {
+            return Err(format!("learning rates must be positive, got {} and {}", self.lr, self.candidate_lr));
         }
         if !(self.significance.is_finite() && self.significance >= 0.0) {
             return Err(format!("significance must be a non-negative number of SEs, got {}", self.significance));
@@ -189,12 +201,17 @@ pub struct CandidateReport {
     pub gain: f64,
     /// Its standard error (paired over held-out objects).
     pub gain_se: f64,
+    /// Per held-out object, its log-likelihood gain (nats).
+    pub object_gains: Vec<f64>,
     /// The learned parameters in physical units: `(name, value, unit)`.
     pub params: Vec<(String, f64, String)>,
     /// The learned parameters in a sentence.
     pub description: String,
     /// The checks whose p made it plausible (empty when fitted because of `fit_all`).
     pub flagged_by: Vec<String>,
+    /// Whether the learned parameters change the model materially
+    /// ([`Extension::is_material`]); only a material extension can be the cause.
+    pub material: bool,
     /// Training steps skipped (non-finite estimates).
     pub skipped_steps: usize,
     /// Training time (s).
@@ -226,9 +243,7 @@ pub struct Report {
     pub heldout_objects: usize,
     /// Observed units (points, detections) of the held-out part.
     pub heldout_units: usize,
-    /// Held-out log-likelihood of the base (nats per observed unit): the
-    /// comparator's (the base trained on alongside the candidates) when any
-    /// extension was fitted.
+    /// Held-out log-likelihood of the base (nats per observed unit).
     pub base_mll: f64,
     /// Held-out log-likelihood of the chosen model (the base's for `none`).
     pub chosen_mll: f64,
@@ -265,9 +280,34 @@ pub fn diagnose(
 ) -> Result<Report, String> {
     config.validate()?;
     let (train_ids, heldout_ids) = split_objects(data, config.heldout_fraction, config.seed)?;
-    let train_data = data.select_objects(&train_ids);
-    let heldout = data.select_objects(&heldout_ids);
-    let kind = data.kind();
+    diagnose_split(&data.select_objects(&train_ids), &data.select_objects(&heldout_ids), config, out_dir, progress)
+}
+
+/// [`diagnose`] with a given split: fit on `train_data`, check and compare on
+/// `heldout` (e.g. KITTI's train and val sequences). Both must hold the same kind
+/// of observations and time step.
+pub fn diagnose_split(
+    train_data: &Dataset,
+    heldout: &Dataset,
+    config: &DiagnoseConfig,
+    out_dir: &Path,
+    progress: &mut dyn FnMut(&Stage),
+) -> Result<Report, String> {
+    config.validate()?;
+    let kind = train_data.kind();
+    if heldout.kind() != kind || heldout.dt() != train_data.dt() || heldout.steps() != train_data.steps() {
+        return Err(format!(
+            "the held-out data ({:?}, dt {}, {} steps) differ from the training data ({kind:?}, dt {}, {} steps)",
+            heldout.kind(),
+            heldout.dt(),
+            heldout.steps(),
+            train_data.dt(),
+            train_data.steps()
+        ));
+    }
+    if train_data.objects().is_empty() || heldout.objects().is_empty() {
+        return Err("the training and the held-out data need at least one object each".into());
+    }
 
     // 2. The base.
     let initial = {
@@ -276,7 +316,7 @@ pub fn diagnose(
         Models::initial(kind, AnyPolicy::Neural(policy), rng.random()).to_store()
     };
     let base_dir = out_dir.join("base");
-    let base = fit(&train_data, &heldout, None, initial, config.base_steps, config, &base_dir, progress)?;
+    let base = fit(train_data, heldout, None, initial, config.base_steps, config.lr, config, &base_dir, progress)?;
 
     // 3. Checks of the base.
     progress(&Stage::Checking { model: "base".into() });
@@ -284,7 +324,7 @@ pub fn diagnose(
     let defs = checks_for(kind);
     let before = calibrate(&defs, &base_eval.measured, &base_eval.replicated, config.alpha);
 
-    // 4. The plausible extensions, and the base trained on as their comparator.
+    // 4. The plausible extensions, each on top of the base.
     let plausible: Vec<(Extension, Vec<String>)> = Extension::for_kind(kind)
         .into_iter()
         .map(|ext| {
@@ -303,31 +343,27 @@ pub fn diagnose(
         .collect();
     let to_fit: Vec<(Extension, Vec<String>)> =
         plausible.into_iter().filter(|(_, flagged)| !flagged.is_empty() || config.fit_all).collect();
+    let discrepancies: Vec<(&str, f64)> = before.iter().map(|c| (c.name.as_str(), c.measured - c.replicated)).collect();
     let mut candidates = Vec::new();
     let mut fitted = Vec::new();
-    let mut comparator = None;
-    if !to_fit.is_empty() {
-        let dir = out_dir.join("candidates").join("base");
-        let run = refit(&train_data, &heldout, None, base.params.clone(), config, &dir, progress)?;
-        progress(&Stage::Checking { model: "base (trained on)".into() });
-        comparator = Some(evaluate(&heldout, &run.params, None, config)?);
-    }
     for (ext, flagged_by) in to_fit {
         let mut start = base.params.clone();
-        start.add(&ext.param_name(), ext.initial());
+        start.add(&ext.param_name(), ext.initial_from_checks(&discrepancies));
         let dir = out_dir.join("candidates").join(ext.id());
         let run = refit(&train_data, &heldout, Some(ext), start, config, &dir, progress)?;
         progress(&Stage::Checking { model: ext.id().into() });
         let eval = evaluate(&heldout, &run.params, Some(ext), config)?;
-        let against = comparator.as_ref().expect("the comparator is fitted before any candidate");
+        let against = &base_eval;
         let (gain, gain_se) = paired_gain(&eval.object_ll, &against.object_ll, against.units);
         let raw = run.params.get(run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         candidates.push(CandidateReport {
             cause: ext.id().into(),
             gain,
             gain_se,
+            object_gains: eval.object_ll.iter().zip(&against.object_ll).map(|(a, b)| a - b).collect(),
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
             description: ext.describe(&raw)?,
+            material: ext.is_material(&raw)?,
             flagged_by,
             skipped_steps: run.skipped,
             train_seconds: run.seconds,
@@ -339,7 +375,7 @@ pub fn diagnose(
     let winner = candidates
         .iter()
         .enumerate()
-        .filter(|(_, c)| c.gain.is_finite() && c.gain > config.significance * c.gain_se && c.gain > 0.0)
+        .filter(|(_, c)| c.material && c.gain.is_finite() && c.gain > config.significance * c.gain_se && c.gain > 0.0)
         .max_by(|a, b| a.1.gain.total_cmp(&b.1.gain))
         .map(|(i, _)| i);
 
@@ -359,7 +395,7 @@ pub fn diagnose(
         })
         .collect();
     let units = base_eval.units.max(1) as f64;
-    let base_mll = comparator.as_ref().unwrap_or(&base_eval).object_ll.iter().sum::<f64>() / units;
+    let base_mll = base_eval.object_ll.iter().sum::<f64>() / units;
     Ok(Report {
         cause: winner.map_or("none".into(), |i| candidates[i].cause.clone()),
         gain: winner.map_or(0.0, |i| candidates[i].gain),
@@ -370,8 +406,8 @@ pub fn diagnose(
         candidates,
         not_fitted,
         kind,
-        train_objects: train_ids.len(),
-        heldout_objects: heldout_ids.len(),
+        train_objects: train_data.objects().len(),
+        heldout_objects: heldout.objects().len(),
         heldout_units: base_eval.units,
         base_mll,
         base_skipped_steps: base.skipped,
@@ -397,8 +433,8 @@ pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
 /// Training runs end at this fraction of the initial learning rate.
 const FINAL_LR_FRACTION: f64 = 0.1;
 
-/// A candidate's (or the comparator's) fit: `initial` trained for
-/// [`DiagnoseConfig::candidate_steps`] with the same seeds as every other candidate.
+/// A candidate's fit: the extension's parameter of `initial` trained for
+/// [`DiagnoseConfig::candidate_steps`], the base held fixed.
 fn refit(
     train_data: &Dataset,
     heldout: &Dataset,
@@ -408,7 +444,8 @@ fn refit(
     dir: &Path,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Fitted, String> {
-    fit(train_data, heldout, extension, initial, config.candidate_steps, config, dir, progress)
+    let steps = config.candidate_steps;
+    fit(train_data, heldout, extension, initial, steps, config.candidate_lr, config, dir, progress)
 }
 
 /// A finished training run.
@@ -418,8 +455,8 @@ struct Fitted {
     seconds: f64,
 }
 
-/// Trains `initial` (with `extension`, if any) by PF-SEFI, in `dir`, resuming a
-/// run found there.
+/// Trains `initial` (with `extension`, if any) by PF-SEFI for `steps` at learning
+/// rate `lr` decaying to a tenth, in `dir`, resuming a run found there.
 #[allow(clippy::too_many_arguments)]
 fn fit(
     train_data: &Dataset,
@@ -427,6 +464,7 @@ fn fit(
     extension: Option<Extension>,
     initial: ParamStore<f64>,
     steps: usize,
+    lr: f64,
     config: &DiagnoseConfig,
     dir: &Path,
     progress: &mut dyn FnMut(&Stage),
@@ -437,12 +475,13 @@ fn fit(
         scenes_per_step: config.scenes_per_step,
         eval_particles: config.eval_particles,
         extension,
+        extension_only: extension.is_some(),
     };
     let mut objective = SceneObjective::new(train_data, heldout.clone(), objective_config)?;
     let batches = crate::training::Objective::batches(&objective).max(1);
     let train_config = TrainConfig {
-        lr: config.lr,
-        final_lr: Some(config.lr * FINAL_LR_FRACTION),
+        lr,
+        final_lr: Some(lr * FINAL_LR_FRACTION),
         clip: config.clip,
         epochs: steps.div_ceil(batches),
         eval_every: 0,
@@ -500,16 +539,20 @@ impl ModelVisitor for Evaluate<'_> {
     type Output = Result<HeldOutEval, String>;
     fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
         let model = ExtendedSsm::from_store(base, self.extension, self.params)?;
-        posterior_predictive_checks(&model, self.config.eval_particles, self.config.draws, self.config.seed)
+        let c = self.config;
+        posterior_predictive_checks(&model, c.eval_particles, c.eval_runs, c.draws, c.seed)
     }
 }
 
-/// Filters every object of `model`'s data with `particles`, draws `draws` paths
-/// per object from the smoother (the filter's genealogy), and evaluates the
-/// checks' statistics on measured and replicated data per draw.
+/// Filters every object of `model`'s data with `particles`, `runs` times with
+/// seeds `seed..seed + runs` (each object's log-likelihood is the mean over the
+/// runs), draws `draws` paths per object from the first run's smoother (the
+/// filter's genealogy), and evaluates the checks' statistics on measured and
+/// replicated data per draw.
 fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
     particles: usize,
+    runs: usize,
     draws: usize,
     seed: u64,
 ) -> Result<HeldOutEval, String> {
@@ -517,7 +560,12 @@ fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleO
     let filter = FilterConfig { particles, lag: 0, seed, ..FilterConfig::default() };
     let run = run_filter(model, &filter, |object| PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object)));
     let data = model.data();
-    let object_ll: Vec<f64> = run.objects.iter().map(|o| o.log_likelihood).collect();
+    let mut object_ll: Vec<f64> = run.objects.iter().map(|o| o.log_likelihood).collect();
+    for r in 1..runs {
+        let again = run_filter(model, &FilterConfig { seed: seed + r as u64, ..filter.clone() }, |_| ());
+        object_ll.iter_mut().zip(&again.objects).for_each(|(l, o)| *l += o.log_likelihood);
+    }
+    object_ll.iter_mut().for_each(|l| *l /= runs as f64);
     if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
         return Err(format!("the held-out log-likelihood of object {bad} is not finite"));
     }

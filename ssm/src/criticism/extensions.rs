@@ -7,7 +7,7 @@
 //! | `latency` | the observation at `t` is of the pose [`lagged_pose`] a delay earlier | delay (s) |
 //! | `clutter` | a fraction of points are not on the box: an isotropic Gaussian around its centre | fraction, sd (m) |
 //! | `size_bias` | the true extents are the given ones times learnable factors | length and width factors |
-//! | `heavy_tailed_accel` | the acceleration's innovation is a scale mixture of two normals | fraction, sd ratio |
+//! | `heavy_tailed_accel` | the acceleration's innovation is a unit-variance scale mixture of two normals | fraction, sd ratio |
 //! | `heading_flip` | a fraction of detections report the heading reversed by pi | fraction |
 //!
 //! [`ExtendedSsm`] wraps a [`VehicleSsm`] with at most one extension: it is a
@@ -54,8 +54,14 @@ pub const EXTENSION_PREFIX: &str = "ext";
 const LOGIT_SCALE: f64 = 8.0;
 /// Stored log-scales are multiplied by this: a positive quantity is `exp(LOG_SCALE r)`.
 const LOG_SCALE: f64 = 2.0;
-/// A stored delay is in units of this many seconds.
-const DELAY_SCALE: f64 = 1.0;
+/// A delay is `softplus(DELAY_SHARPNESS r) / DELAY_SHARPNESS` seconds: never
+/// negative (observations cannot lead the state), about `r` once above a few
+/// hundredths of a second.
+const DELAY_SHARPNESS: f64 = 20.0;
+/// Initial delay (s).
+const INITIAL_DELAY: f64 = 0.01;
+/// Largest delay a check may suggest as a start (s).
+const MAX_INITIAL_DELAY: f64 = 1.0;
 /// Initial fraction of the mixture components (clutter, heavy tails, flips).
 const INITIAL_FRACTION: f64 = 0.02;
 /// Initial sd of the clutter Gaussian (m).
@@ -78,7 +84,9 @@ pub enum Extension {
     Clutter,
     /// True extents differ from the given ones by learnable factors (points only).
     SizeBias,
-    /// Accelerations are heavier-tailed than Gaussian.
+    /// Accelerations are heavier-tailed than Gaussian: the policy's standardised
+    /// acceleration innovation is `(1 - p) N(0, c^2) + p N(0, (k c)^2)` with `c` such
+    /// that its variance stays 1 (the policy's sd is the overall sd).
     HeavyTailedAccel,
     /// A learnable fraction of detections have their heading reversed (boxes only).
     HeadingFlip,
@@ -138,12 +146,33 @@ impl Extension {
         let logit = |p: f64| (p / (1.0 - p)).ln() / LOGIT_SCALE;
         let log = |x: f64| x.ln() / LOG_SCALE;
         Tensor::from_vec(match self {
-            Extension::Latency => vec![0.0],
+            Extension::Latency => vec![(DELAY_SHARPNESS * INITIAL_DELAY).exp_m1().ln() / DELAY_SHARPNESS],
             Extension::Clutter => vec![logit(INITIAL_FRACTION), log(INITIAL_CLUTTER_SD)],
             Extension::SizeBias => vec![0.0, 0.0],
             Extension::HeavyTailedAccel => vec![logit(INITIAL_FRACTION), log(INITIAL_TAIL_RATIO - 1.0)],
             Extension::HeadingFlip => vec![logit(INITIAL_FRACTION)],
         })
+    }
+
+    /// Stored initial values informed by what the checks measured: for each check
+    /// `(name, measured - replicated)`. A sensor lag shows directly in
+    /// `initial_lag` (about minus the delay) and reversed headings in
+    /// `yaw_reversal_fraction` (the excess fraction), so those extensions start
+    /// there; the others (and these without the check) start at
+    /// [`Extension::initial`]. Training then takes it from there.
+    pub fn initial_from_checks(self, discrepancies: &[(&str, f64)]) -> Tensor<f64> {
+        let find = |name: &str| discrepancies.iter().find(|(n, _)| *n == name).map(|d| d.1).filter(|d| d.is_finite());
+        match (self, find("initial_lag"), find("yaw_reversal_fraction")) {
+            (Extension::Latency, Some(lag), _) if -lag > INITIAL_DELAY => {
+                let delay = (-lag).min(MAX_INITIAL_DELAY);
+                Tensor::from_vec(vec![(DELAY_SHARPNESS * delay).exp_m1().ln() / DELAY_SHARPNESS])
+            }
+            (Extension::HeadingFlip, _, Some(excess)) if excess > INITIAL_FRACTION => {
+                let p = excess.min(0.5);
+                Tensor::from_vec(vec![(p / (1.0 - p)).ln() / LOGIT_SCALE])
+            }
+            _ => self.initial(),
+        }
     }
 
     /// The natural values of stored parameters `raw`: `(name, value, unit)`.
@@ -156,7 +185,7 @@ impl Extension {
         let fraction = |r: f64| sigmoid(LOGIT_SCALE * r);
         let positive = |r: f64| (LOG_SCALE * r).exp();
         Ok(match self {
-            Extension::Latency => vec![("delay", DELAY_SCALE * raw[0], "s")],
+            Extension::Latency => vec![("delay", softplus(DELAY_SHARPNESS * raw[0]) / DELAY_SHARPNESS, "s")],
             Extension::Clutter => vec![("fraction", fraction(raw[0]), ""), ("sd", positive(raw[1]), "m")],
             Extension::SizeBias => {
                 vec![("length_factor", positive(raw[0]), ""), ("width_factor", positive(raw[1]), "")]
@@ -168,12 +197,26 @@ impl Extension {
         })
     }
 
+    /// Whether stored values `raw` make a material change to the base model: a
+    /// delay of at least 30 ms, a mixture fraction of at least 3% (above the 2%
+    /// start) with, for heavy tails, an sd ratio of at least 2, or an extent off by
+    /// at least 3%. An extension that stayed at its start cannot be a cause,
+    /// whatever the held-out comparison says (two fits differ a little anyway).
+    pub fn is_material(self, raw: &[f64]) -> Result<bool, String> {
+        let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
+        Ok(match self {
+            Extension::Latency => v[0] >= 0.03,
+            Extension::Clutter | Extension::HeadingFlip => v[0] >= 0.03,
+            Extension::SizeBias => v.iter().any(|f| (f - 1.0).abs() >= 0.03),
+            Extension::HeavyTailedAccel => v[0] >= 0.03 && v[1] >= 2.0,
+        })
+    }
+
     /// One sentence in physical units, e.g. "observations lag the state by 0.12 s".
     pub fn describe(self, raw: &[f64]) -> Result<String, String> {
         let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
         Ok(match self {
-            Extension::Latency if v[0] >= 0.0 => format!("observations lag the state by {:.3} s", v[0]),
-            Extension::Latency => format!("observations lead the state by {:.3} s", -v[0]),
+            Extension::Latency => format!("observations lag the state by {:.3} s", v[0]),
             Extension::Clutter => format!(
                 "{:.1}% of points are clutter, scattered with sd {:.2} m around the object's centre",
                 100.0 * v[0],
@@ -183,7 +226,8 @@ impl Extension {
                 format!("true extents are {:.3} x the given length and {:.3} x the given width", v[0], v[1])
             }
             Extension::HeavyTailedAccel => format!(
-                "{:.1}% of accelerations have {:.2} x the policy's sd (excess kurtosis {:.2})",
+                "{:.1}% of accelerations have {:.2} x the sd of the others, at the policy's overall sd (excess \
+                 kurtosis {:.2})",
                 100.0 * v[0],
                 v[1],
                 mixture_excess_kurtosis(v[0], v[1])
@@ -191,6 +235,10 @@ impl Extension {
             Extension::HeadingFlip => format!("{:.1}% of detections report the heading reversed", 100.0 * v[0]),
         })
     }
+}
+
+fn softplus(x: f64) -> f64 {
+    x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
 fn sigmoid(x: f64) -> f64 {
@@ -491,11 +539,19 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         (action.accel - g.mean_accel[0]) / g.l11[0]
     }
 
-    /// A standardised acceleration innovation: normal, or the heavy-tailed mixture.
+    /// A standardised acceleration innovation: normal, or the heavy-tailed mixture
+    /// of unit variance.
     fn accel_innovation(&self, rng: &mut SmallRng) -> f64 {
         let z: f64 = rng.sample(StandardNormal);
         match self.active {
-            Active::HeavyTailedAccel { fraction, ratio } if rng.random::<f64>() < fraction => ratio * z,
+            Active::HeavyTailedAccel { fraction, ratio } => {
+                let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
+                if rng.random::<f64>() < fraction {
+                    ratio * core * z
+                } else {
+                    core * z
+                }
+            }
             _ => z,
         }
     }
@@ -710,7 +766,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         let at = |k: usize| theta.slice(0, k, 1);
         match ext {
             Extension::Latency => {
-                let d = at(0).mul_scalar(DELAY_SCALE) * states[3];
+                let d = at(0).mul_scalar(DELAY_SHARPNESS).softplus().mul_scalar(1.0 / DELAY_SHARPNESS) * states[3];
                 vars.x = states[0] - d * states[YAW].cos();
                 vars.y = states[1] - d * states[YAW].sin();
                 vars.yaw = states[YAW] - d * states[4];
@@ -768,9 +824,14 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         let logit = theta.slice(0, 0, 1).mul_scalar(LOGIT_SCALE);
         let ratio = theta.slice(0, 1, 1).mul_scalar(LOG_SCALE).exp().add_scalar(1.0);
         let half_sq = |z: Var<'t, F>| (z * z).mul_scalar(-0.5);
-        // (1 - p) N(z1; 0, 1) + p N(z1; 0, k^2), in log space.
-        let narrow = half_sq(z1) - logit.softplus();
-        let wide = half_sq(z1 / ratio) - ratio.ln() - logit.neg().softplus();
+        // (1 - p) N(z1; 0, c^2) + p N(z1; 0, (k c)^2) with c^2 = 1 / m2 and
+        // m2 = 1 + p (k^2 - 1): unit variance, in log space.
+        let m2 = (ratio * ratio).add_scalar(-1.0) * logit.sigmoid();
+        let m2 = m2.add_scalar(1.0);
+        let half_ln_m2 = m2.ln().mul_scalar(0.5);
+        let z1_scaled = z1 * m2.sqrt();
+        let narrow = half_sq(z1_scaled) + half_ln_m2 - logit.softplus();
+        let wide = half_sq(z1_scaled / ratio) + half_ln_m2 - ratio.ln() - logit.neg().softplus();
         let accel = log_add_exp(narrow, wide);
         (accel + half_sq(z2) - g.l11.ln() - g.l22.ln()).add_scalar(-LN_2PI)
     }

@@ -70,6 +70,11 @@ pub const HIDDEN_EFFECT_IDS: [&str; 6] =
 /// paper's 5–50 m, so that every object receives plenty of points.
 pub const HIDDEN_RANGE: (f64, f64) = (5.0, 35.0);
 
+/// Sd of the prior of the initial position (m): a tracker's handover, tighter than
+/// the paper's 0.5 m, so that the prior says where an object is at `t = 0` well
+/// enough for observations lagging behind it to show.
+pub const HIDDEN_PRIOR_SD_POSITION: f64 = 0.2;
+
 /// One hidden effect and its size (or none), as the catalogue of model extensions
 /// ([`super::extensions`]) defines it. Serialised with the catalogue ids as tags,
 /// e.g. `{"latency":{"delay":0.15}}` or `"none"`.
@@ -155,7 +160,7 @@ impl HiddenEffect {
 
     /// The effect with a clearly noticeable default size, by catalogue id: latency
     /// 0.15 s; clutter 15 % of points at 2.5 m; size bias 1.25 (length) x 1.15
-    /// (width); heavy-tailed acceleration 10 % of innovations 6 times wider; heading
+    /// (width); heavy-tailed acceleration 10 % of innovations 10 times wider (5 m/s² with the true 0.5); heading
     /// flips of 20 % of detections. An unknown id is an error that lists the known
     /// ones.
     ///
@@ -172,7 +177,7 @@ impl HiddenEffect {
             "latency" => HiddenEffect::Latency { delay: 0.15 },
             "clutter" => HiddenEffect::Clutter { fraction: 0.15, scale: 2.5 },
             "size_bias" => HiddenEffect::SizeBias { length_factor: 1.25, width_factor: 1.15 },
-            "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 6.0 },
+            "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 10.0 },
             "heading_flip" => HiddenEffect::HeadingFlip { fraction: 0.2 },
             _ => {
                 return Err(config_err(format!(
@@ -383,9 +388,12 @@ impl HiddenConfig {
     }
 
     /// The scene settings used: the paper's ([`SceneConfig::paper`]) with
-    /// [`HiddenConfig::objects_per_scene`] objects at [`HIDDEN_RANGE`].
+    /// [`HiddenConfig::objects_per_scene`] objects at [`HIDDEN_RANGE`] and prior
+    /// position sds of [`HIDDEN_PRIOR_SD_POSITION`].
     pub fn scene_config(&self) -> SceneConfig {
-        SceneConfig { objects: self.objects_per_scene, range: HIDDEN_RANGE, ..SceneConfig::paper(self.steps) }
+        let paper = SceneConfig::paper(self.steps);
+        let prior_sd = State { x: HIDDEN_PRIOR_SD_POSITION, y: HIDDEN_PRIOR_SD_POSITION, ..paper.prior_sd };
+        SceneConfig { objects: self.objects_per_scene, range: HIDDEN_RANGE, prior_sd, ..paper }
     }
 
     /// Checks the sizes, the effect's size, and that the effect applies to the kind.

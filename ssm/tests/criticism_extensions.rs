@@ -1,0 +1,252 @@
+//! The catalogue's model extensions (`ssm::criticism::extensions`): the filter's
+//! f32 path and the estimators' tape path compute the same log-densities, their
+//! tape gradients match finite differences in f64, no extension changes the base
+//! model before it is switched on, and the replicate sampler agrees with the
+//! densities.
+
+use autodiff::gradcheck::GradCheck;
+use autodiff::{Tape, Tensor, Var};
+use rand::rngs::SmallRng;
+use rand::SeedableRng;
+use ssm::criticism::extensions::{mixture_excess_kurtosis, ExtendedSsm, ExtensibleObservation, Extension};
+use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+use ssm::data::{Action, Dataset, ObservationKind, State};
+use ssm::estimators::{Block, DifferentiableModel};
+use ssm::model::ParticleModel;
+use ssm::params::{AnyPolicy, ModelVisitor, Models};
+use ssm::vehicle::NeuralPolicy;
+use ssm::vehicle_ssm::VehicleSsm;
+
+/// A small dataset of `kind` (2 scenes of 2 objects, 5 steps).
+fn data(kind: ObservationKind) -> Dataset {
+    let config =
+        HiddenConfig { scenes: 2, objects_per_scene: 2, steps: 5, ..HiddenConfig::quick(kind, HiddenEffect::None, 1) };
+    generate_hidden(&config).expect("generated")
+}
+
+fn models(kind: ObservationKind) -> Models {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(2);
+    Models::initial(kind, AnyPolicy::Neural(NeuralPolicy::new(&mut rng).with_initial_sds(0.7, 0.03)), 3)
+}
+
+/// Stored values away from the initial ones, so every term is exercised.
+fn raw(ext: Extension) -> Vec<f64> {
+    let mut v = ext.initial().data().to_vec();
+    for (k, x) in v.iter_mut().enumerate() {
+        *x += 0.15 + 0.05 * k as f64;
+    }
+    v
+}
+
+/// Rows of the true states of `data` at every observed step (one block per step),
+/// with the actions that led there.
+fn rows(data: &Dataset, model: &impl ParticleModel) -> (Vec<Block>, Vec<[f64; 5]>, Vec<[f64; 5]>, Vec<[f64; 2]>) {
+    let states = data.states().expect("ground truth");
+    let actions = data.actions().expect("ground truth");
+    let (mut blocks, mut now, mut prev, mut acts) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for o in 0..data.objects().len() {
+        for t in 1..data.steps() {
+            if model.observation_count(o, t) == 0 {
+                continue;
+            }
+            let s = states.get(o, t).expect("state");
+            let p = states.get(o, t - 1).expect("state");
+            let a = actions.get(o, t).expect("action");
+            blocks.push(Block { object: o, t, len: 1 });
+            now.push(s.to_array());
+            prev.push(p.to_array());
+            acts.push([a.accel, a.pinch]);
+        }
+    }
+    (blocks, now, prev, acts)
+}
+
+fn columns<'t>(tape: &'t Tape<f64>, rows: &[[f64; 5]], dims: usize) -> Vec<Var<'t, f64>> {
+    (0..dims).map(|k| tape.constant(Tensor::from_vec(rows.iter().map(|r| r[k]).collect()))).collect()
+}
+
+struct Check {
+    ext: Extension,
+}
+
+impl ModelVisitor for Check {
+    type Output = ();
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) {
+        let model = ExtendedSsm::new(base, Some(self.ext), &raw(self.ext)).expect("applies");
+        let data = model.data();
+        let (blocks, now, prev, acts) = rows(data, &model);
+        assert!(!blocks.is_empty());
+
+        // The filter's f32 path and the tape's f64 path agree, row by row.
+        let tape = Tape::<f64>::no_record();
+        let params = model.bind(&tape);
+        let tape_values = model.observation_log_density(&params, &blocks, &columns(&tape, &now, 5)).value().clone();
+        let mut scratch = model.new_scratch();
+        for (r, b) in blocks.iter().enumerate() {
+            let x: Vec<f32> = now[r].iter().map(|&v| v as f32).collect();
+            let mut out = [0.0f32];
+            assert!(model.observation_loglik(b.object, b.t, 1, &x, &mut out, &mut scratch));
+            let want = tape_values.data()[r];
+            assert!(
+                (out[0] as f64 - want).abs() < 2e-3 * want.abs().max(1.0),
+                "{:?} row {r}: f32 {} vs tape {want}",
+                self.ext,
+                out[0]
+            );
+        }
+
+        // Tape gradients in the extension's parameter and the states match finite
+        // differences (the observation term), and in every parameter for the
+        // transition term.
+        let theta = model.parameters();
+        let ext_index = theta.len() - 1;
+        // A small step: the delay's softplus(20 r) is sharply curved.
+        let check = GradCheck { step: 1e-5, rel_tol: 1e-5, ..GradCheck::default() };
+        let (now_c, prev_c, acts_c) = (now.clone(), prev.clone(), acts.clone());
+        let report = check
+            .check(
+                |tape, vars| {
+                    let mut params: Vec<Var<'_, f64>> =
+                        theta.iter().map(|p| tape.constant(p.clone())).collect::<Vec<_>>();
+                    params[ext_index] = vars[0];
+                    let states: Vec<Var<'_, f64>> = (0..5).map(|k| vars[1 + k]).collect();
+                    model.observation_log_density(&params, &blocks, &states).sum()
+                },
+                &std::iter::once(theta[ext_index].clone())
+                    .chain((0..5).map(|k| Tensor::from_vec(now_c.iter().map(|r| r[k]).collect())))
+                    .collect::<Vec<_>>(),
+            )
+            .unwrap_or_else(|e| panic!("{:?}, observation: {e}", self.ext));
+        assert!(report.comparisons > 5);
+        let report = check
+            .check(
+                |tape, vars| {
+                    let prev = columns(tape, &prev_c, 5);
+                    let next = columns(tape, &now_c, 5);
+                    let a = (0..2)
+                        .map(|k| tape.constant(Tensor::from_vec(acts_c.iter().map(|r| r[k]).collect())))
+                        .collect::<Vec<_>>();
+                    model.transition_log_density(vars, &blocks, &prev, &next, &a).sum()
+                },
+                &theta,
+            )
+            .unwrap_or_else(|e| panic!("{:?}, transition: {e}", self.ext));
+        assert!(report.comparisons > 5);
+    }
+}
+
+#[test]
+fn plain_and_tape_paths_agree_and_gradients_match_finite_differences() {
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        let d = data(kind);
+        for ext in Extension::for_kind(kind) {
+            models(kind).visit(&d, Check { ext }).expect("model");
+        }
+    }
+}
+
+struct Inert;
+
+impl ModelVisitor for Inert {
+    type Output = ();
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) {
+        let data = base.data();
+        let plain = ExtendedSsm::new(base, None, &[]).expect("base");
+        let (blocks, now, prev, acts) = rows(data, &plain);
+        let tape = Tape::<f64>::no_record();
+        let states = columns(&tape, &now, 5);
+        let base_obs = base.observation_log_density(&base.bind(&tape), &blocks, &states).value().clone();
+        let p = columns(&tape, &prev, 5);
+        let a =
+            (0..2).map(|k| tape.constant(Tensor::from_vec(acts.iter().map(|r| r[k]).collect()))).collect::<Vec<_>>();
+        let base_tr = base.transition_log_density(&base.bind(&tape), &blocks, &p, &states, &a).value().clone();
+        // No extension: the base model, value for value.
+        let same = plain.observation_log_density(&plain.bind(&tape), &blocks, &states).value().clone();
+        assert_eq!(same.data(), base_obs.data());
+        // An extension at a null value changes nothing (size factors of 1, a fraction
+        // of practically 0, a delay of practically 0).
+        for ext in Extension::for_kind(O::KIND) {
+            let null: Vec<f64> = match ext {
+                Extension::SizeBias => vec![0.0, 0.0],
+                Extension::Latency => vec![-5.0],
+                _ => {
+                    let mut v = ext.initial().data().to_vec();
+                    v[0] = -5.0; // sigmoid(-40)
+                    v
+                }
+            };
+            let model = ExtendedSsm::new(base, Some(ext), &null).expect("applies");
+            let params = model.bind(&tape);
+            let obs = model.observation_log_density(&params, &blocks, &states).value().clone();
+            let tr = model.transition_log_density(&params, &blocks, &p, &states, &a).value().clone();
+            for (x, y) in obs.data().iter().zip(base_obs.data()).chain(tr.data().iter().zip(base_tr.data())) {
+                assert!((x - y).abs() < 1e-9 * y.abs().max(1.0), "{ext:?}: {x} vs {y}");
+            }
+        }
+    }
+}
+
+#[test]
+fn extensions_at_their_null_values_are_the_base_model() {
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        models(kind).visit(&data(kind), Inert).expect("model");
+    }
+}
+
+struct Sampler;
+
+impl ModelVisitor for Sampler {
+    type Output = ();
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) {
+        // The heavy-tailed sampler: standardised innovations with unit variance and
+        // the mixture's excess kurtosis.
+        let ext = Extension::HeavyTailedAccel;
+        let logit = (0.1f64 / 0.9).ln() / 8.0;
+        let ratio = (5.0f64 - 1.0).ln() / 2.0;
+        let model = ExtendedSsm::new(base, Some(ext), &[logit, ratio]).expect("applies");
+        let state = State { x: 0.0, y: 0.0, yaw: 0.0, v: 8.0, kappa: 0.0 };
+        let mut rng = SmallRng::seed_from_u64(4);
+        let z: Vec<f64> = (0..200_000)
+            .map(|_| {
+                let a: Action = model.sample_action(&state, &mut rng);
+                model.accel_innovation_of(&state, &a)
+            })
+            .collect();
+        let n = z.len() as f64;
+        let mean = z.iter().sum::<f64>() / n;
+        let m2 = z.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
+        let m4 = z.iter().map(|x| (x - mean).powi(4)).sum::<f64>() / n;
+        assert!((m2 - 1.0).abs() < 0.02, "variance {m2}");
+        let want = mixture_excess_kurtosis(0.1, 5.0);
+        assert!((m4 / (m2 * m2) - 3.0 - want).abs() < 0.15 * want, "kurtosis {} vs {want}", m4 / (m2 * m2) - 3.0);
+    }
+}
+
+#[test]
+fn heavy_tailed_sampler_has_unit_variance_and_the_mixture_kurtosis() {
+    models(ObservationKind::Points).visit(&data(ObservationKind::Points), Sampler).expect("model");
+}
+
+#[test]
+fn extensions_apply_to_their_kinds_and_describe_themselves() {
+    assert_eq!(Extension::for_kind(ObservationKind::Points).len(), 4);
+    assert_eq!(Extension::for_kind(ObservationKind::Boxes).len(), 3);
+    assert_eq!(Extension::from_id("latency"), Ok(Extension::Latency));
+    assert!(Extension::from_id("wobble").unwrap_err().contains("heading_flip"));
+    let delay = Extension::Latency.describe(&[0.12]).unwrap();
+    assert!(delay.starts_with("observations lag the state by 0.12"), "{delay}");
+    assert!(Extension::Latency.is_material(&[0.12]).unwrap());
+    assert!(!Extension::Latency.is_material(&Extension::Latency.initial().data().to_vec()).unwrap());
+    assert!(Extension::Clutter.natural(&[0.0]).is_err(), "wrong length");
+    assert!(Extension::Clutter.natural(&[f64::NAN, 0.0]).is_err(), "not finite");
+    // Clutter does not apply to detections.
+    let d = data(ObservationKind::Boxes);
+    struct Refused;
+    impl ModelVisitor for Refused {
+        type Output = bool;
+        fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> bool {
+            ExtendedSsm::new(base, Some(Extension::Clutter), &Extension::Clutter.initial().data().to_vec()).is_err()
+        }
+    }
+    assert!(models(ObservationKind::Boxes).visit(&d, Refused).unwrap());
+}
