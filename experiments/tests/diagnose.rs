@@ -8,7 +8,7 @@ mod common;
 use common::{ok, s, sefi, temp};
 use serde_json::Value;
 
-/// Generates `effect` data (box detections, of twice as many scenes, with
+/// Generates `effect` data (box detections, of four times as many scenes, with
 /// `boxes`: a detection carries less information than a point set), runs
 /// `diagnose --quick` on it and returns the parsed `report.json` with the output
 /// directory.
@@ -18,7 +18,7 @@ fn diagnose(effect: &str, boxes: bool) -> (Value, std::path::PathBuf) {
     let out = dir.join("out");
     let mut args = vec!["generate", "--hidden", effect, "--out", s(&data), "--seed", "3"];
     if boxes {
-        args.extend(["--boxes", "--scenes", "16"]);
+        args.extend(["--boxes", "--scenes", "32"]);
     }
     ok(&sefi(&args));
     let stdout = ok(&sefi(&["diagnose", "--data", s(&data), "--out", s(&out), "--quick"]));

@@ -38,9 +38,12 @@ fn raw(ext: Extension) -> Vec<f64> {
     v
 }
 
+/// Blocks with their states, previous states and actions.
+type Rows = (Vec<Block>, Vec<[f64; 5]>, Vec<[f64; 5]>, Vec<[f64; 2]>);
+
 /// Rows of the true states of `data` at every observed step (one block per step),
 /// with the actions that led there.
-fn rows(data: &Dataset, model: &impl ParticleModel) -> (Vec<Block>, Vec<[f64; 5]>, Vec<[f64; 5]>, Vec<[f64; 2]>) {
+fn rows(data: &Dataset, model: &impl ParticleModel) -> Rows {
     let states = data.states().expect("ground truth");
     let actions = data.actions().expect("ground truth");
     let (mut blocks, mut now, mut prev, mut acts) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -236,7 +239,7 @@ fn extensions_apply_to_their_kinds_and_describe_themselves() {
     let delay = Extension::Latency.describe(&[0.12]).unwrap();
     assert!(delay.starts_with("observations lag the state by 0.12"), "{delay}");
     assert!(Extension::Latency.is_material(&[0.12]).unwrap());
-    assert!(!Extension::Latency.is_material(&Extension::Latency.initial().data().to_vec()).unwrap());
+    assert!(!Extension::Latency.is_material(Extension::Latency.initial().data()).unwrap());
     assert!(Extension::Clutter.natural(&[0.0]).is_err(), "wrong length");
     assert!(Extension::Clutter.natural(&[f64::NAN, 0.0]).is_err(), "not finite");
     // Clutter does not apply to detections.
@@ -245,7 +248,7 @@ fn extensions_apply_to_their_kinds_and_describe_themselves() {
     impl ModelVisitor for Refused {
         type Output = bool;
         fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> bool {
-            ExtendedSsm::new(base, Some(Extension::Clutter), &Extension::Clutter.initial().data().to_vec()).is_err()
+            ExtendedSsm::new(base, Some(Extension::Clutter), Extension::Clutter.initial().data()).is_err()
         }
     }
     assert!(models(ObservationKind::Boxes).visit(&d, Refused).unwrap());

@@ -77,7 +77,8 @@ pub struct DiagnoseConfig {
     pub scenes_per_step: usize,
     /// Paths drawn from the smoother per held-out object (the checks' replicates).
     pub draws: usize,
-    /// Filter runs (seeds) averaged for each held-out object's log-likelihood.
+    /// Filter runs (seeds) whose likelihood estimates are averaged for each held-out
+    /// object.
     pub eval_runs: usize,
     /// Family-wise level of the checks (Holm-corrected).
     pub alpha: f64,
@@ -127,7 +128,7 @@ impl DiagnoseConfig {
             eval_particles: 16384,
             lag: 8,
             draws: 40,
-            eval_runs: 2,
+            eval_runs: 3,
             scenes_per_step: 4,
             ..DiagnoseConfig::default()
         }
@@ -320,7 +321,7 @@ pub fn diagnose_split(
 
     // 3. Checks of the base.
     progress(&Stage::Checking { model: "base".into() });
-    let base_eval = evaluate(&heldout, &base.params, None, config)?;
+    let base_eval = evaluate(heldout, &base.params, None, config)?;
     let defs = checks_for(kind);
     let before = calibrate(&defs, &base_eval.measured, &base_eval.replicated, config.alpha);
 
@@ -350,9 +351,9 @@ pub fn diagnose_split(
         let mut start = base.params.clone();
         start.add(&ext.param_name(), ext.initial_from_checks(&discrepancies));
         let dir = out_dir.join("candidates").join(ext.id());
-        let run = refit(&train_data, &heldout, Some(ext), start, config, &dir, progress)?;
+        let run = refit(train_data, heldout, Some(ext), start, config, &dir, progress)?;
         progress(&Stage::Checking { model: ext.id().into() });
-        let eval = evaluate(&heldout, &run.params, Some(ext), config)?;
+        let eval = evaluate(heldout, &run.params, Some(ext), config)?;
         let against = &base_eval;
         let (gain, gain_se) = paired_gain(&eval.object_ll, &against.object_ll, against.units);
         let raw = run.params.get(run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
@@ -414,6 +415,15 @@ pub fn diagnose_split(
         base_train_seconds: base.seconds,
         config: config.clone(),
     })
+}
+
+/// `ln((1/n) sum_i e^{x_i})`, stable.
+fn log_mean_exp(x: &[f64]) -> f64 {
+    let m = x.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !m.is_finite() {
+        return m;
+    }
+    m + (x.iter().map(|v| (v - m).exp()).sum::<f64>() / x.len() as f64).ln()
 }
 
 /// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
@@ -545,8 +555,8 @@ impl ModelVisitor for Evaluate<'_> {
 }
 
 /// Filters every object of `model`'s data with `particles`, `runs` times with
-/// seeds `seed..seed + runs` (each object's log-likelihood is the mean over the
-/// runs), draws `draws` paths per object from the first run's smoother (the
+/// seeds `seed..seed + runs` (each object's log-likelihood is that of the mean of
+/// the runs' likelihood estimates), draws `draws` paths per object from the first run's smoother (the
 /// filter's genealogy), and evaluates the checks' statistics on measured and
 /// replicated data per draw.
 fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
@@ -560,12 +570,16 @@ fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleO
     let filter = FilterConfig { particles, lag: 0, seed, ..FilterConfig::default() };
     let run = run_filter(model, &filter, |object| PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object)));
     let data = model.data();
-    let mut object_ll: Vec<f64> = run.objects.iter().map(|o| o.log_likelihood).collect();
+    // Per object, the runs' likelihood estimates are averaged (not their logs):
+    // each is unbiased, so their mean is an estimate with `runs` times the
+    // particles, and one run that missed the likelihood's peak does not drag the
+    // object's value down (log p_hat has a long lower tail).
+    let mut per_run: Vec<Vec<f64>> = run.objects.iter().map(|o| vec![o.log_likelihood]).collect();
     for r in 1..runs {
         let again = run_filter(model, &FilterConfig { seed: seed + r as u64, ..filter.clone() }, |_| ());
-        object_ll.iter_mut().zip(&again.objects).for_each(|(l, o)| *l += o.log_likelihood);
+        per_run.iter_mut().zip(&again.objects).for_each(|(l, o)| l.push(o.log_likelihood));
     }
-    object_ll.iter_mut().for_each(|l| *l /= runs as f64);
+    let object_ll: Vec<f64> = per_run.iter().map(|l| log_mean_exp(l)).collect();
     if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
         return Err(format!("the held-out log-likelihood of object {bad} is not finite"));
     }
