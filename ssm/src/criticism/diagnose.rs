@@ -183,6 +183,10 @@ pub struct CheckReport {
     pub description: String,
     /// The extension it can reveal, if any.
     pub suggests: Option<String>,
+    /// Its z-score on the base model (`before.z`).
+    pub z: f64,
+    /// Its Holm-adjusted p-value on the base model (`before.p_adjusted`).
+    pub p: f64,
     /// Calibrated on the base model.
     pub before: CheckResult,
     /// Calibrated on the chosen extension (none when the cause is `none`).
@@ -389,6 +393,8 @@ pub fn diagnose_split(
             name: def.name.into(),
             description: def.description.into(),
             suggests: def.suggests.map(str::to_string),
+            z: before[c].z,
+            p: before[c].p_adjusted,
             before: before[c].clone(),
             after: after.as_ref().map(|a| a[c].clone()),
             draws_before: base_eval.draws_of(c),

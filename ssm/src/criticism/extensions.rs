@@ -812,14 +812,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         }
         let np = self.base.policy_param_count();
         let g = self.base.policy().gaussians_on_tape(&params[..np], prev[3], prev[4]);
-        let a = ActionVars { accel: actions[0], pinch: actions[1] };
-        let z1 = (a.accel - g.mean_accel) / g.l11;
-        let r2 = a.pinch - g.mean_pinch;
-        let r2 = match g.l21 {
-            Some(l21) => r2 - l21 * z1,
-            None => r2,
-        };
-        let z2 = r2 / g.l22;
+        let (z1, z2) = g.standardise(&ActionVars { accel: actions[0], pinch: actions[1] });
         let theta = self.extension_var(params);
         let logit = theta.slice(0, 0, 1).mul_scalar(LOGIT_SCALE);
         let ratio = theta.slice(0, 1, 1).mul_scalar(LOG_SCALE).exp().add_scalar(1.0);

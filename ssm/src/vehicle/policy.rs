@@ -167,14 +167,20 @@ pub struct ActionGaussianVars<'t, F: Float> {
 impl<'t, F: Float> ActionGaussianVars<'t, F> {
     /// Log-densities of `actions` (shape `[n]`), differentiable in everything.
     pub fn log_density(&self, actions: &ActionVars<'t, F>) -> Var<'t, F> {
+        let (z1, z2) = self.standardise(actions);
+        (z1.square() + z2.square()).mul_scalar(-0.5) - self.l11.ln() - self.l22.ln() - LN_2PI
+    }
+
+    /// The noise `eps = L^{-1} (a - mu)` that [`ActionGaussianVars::actions_from_noise`]
+    /// maps to `actions`: `(eps_accel, eps_pinch)`, differentiable in both.
+    pub fn standardise(&self, actions: &ActionVars<'t, F>) -> (Var<'t, F>, Var<'t, F>) {
         let z1 = (actions.accel - self.mean_accel) / self.l11;
         let r2 = actions.pinch - self.mean_pinch;
         let r2 = match self.l21 {
             Some(l21) => r2 - l21 * z1,
             None => r2,
         };
-        let z2 = r2 / self.l22;
-        (z1.square() + z2.square()).mul_scalar(-0.5) - self.l11.ln() - self.l22.ln() - LN_2PI
+        (z1, r2 / self.l22)
     }
 
     /// Reparameterised actions `a = mu + L eps` (shape `[n]`), differentiable in the
