@@ -199,7 +199,7 @@ static CHECKS: [Check; 15] = [
 /// use ssm::criticism::checks::checks_for;
 /// use ssm::data::ObservationKind;
 /// let names: Vec<_> = checks_for(ObservationKind::Boxes).iter().map(|c| c.name).collect();
-/// assert_eq!(names[..2], ["along_offset_vs_speed", "yaw_reversal_fraction"]);
+/// assert_eq!(names[..3], ["along_offset_vs_speed", "initial_lag", "yaw_reversal_fraction"]);
 /// ```
 pub fn checks_for(kind: ObservationKind) -> Vec<&'static CheckDef> {
     active(kind).map(|c| &c.def).collect()
