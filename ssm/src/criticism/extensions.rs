@@ -182,10 +182,10 @@ impl Extension {
         if raw.len() != want || !raw.iter().all(|x| x.is_finite()) {
             return Err(format!("parameter `{}` needs {want} finite values, got {raw:?}", self.param_name()));
         }
-        let fraction = |r: f64| sigmoid(LOGIT_SCALE * r);
+        let fraction = |r: f64| (LOGIT_SCALE * r).sigmoid();
         let positive = |r: f64| (LOG_SCALE * r).exp();
         Ok(match self {
-            Extension::Latency => vec![("delay", softplus(DELAY_SHARPNESS * raw[0]) / DELAY_SHARPNESS, "s")],
+            Extension::Latency => vec![("delay", (DELAY_SHARPNESS * raw[0]).softplus() / DELAY_SHARPNESS, "s")],
             Extension::Clutter => vec![("fraction", fraction(raw[0]), ""), ("sd", positive(raw[1]), "m")],
             Extension::SizeBias => {
                 vec![("length_factor", positive(raw[0]), ""), ("width_factor", positive(raw[1]), "")]
@@ -235,14 +235,6 @@ impl Extension {
             Extension::HeadingFlip => format!("{:.1}% of detections report the heading reversed", 100.0 * v[0]),
         })
     }
-}
-
-fn softplus(x: f64) -> f64 {
-    x.max(0.0) + (-x.abs()).exp().ln_1p()
-}
-
-fn sigmoid(x: f64) -> f64 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 /// Excess kurtosis of `(1 - p) N(0, 1) + p N(0, k^2)`.
