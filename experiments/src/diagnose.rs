@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use plotters::prelude::*;
-use ssm::criticism::diagnose::{diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage};
+use ssm::criticism::diagnose::{diagnose, diagnose_split, CheckReport, DiagnoseConfig, EvalPrecision, Report, Stage};
 use ssm::data::Dataset;
 
 use crate::output::{ensure_dir, write_atomic, write_json, write_with};
@@ -50,6 +50,19 @@ pub struct DiagnoseArgs {
     /// Particles of the held-out evaluation and the smoother draws.
     #[arg(long)]
     eval_particles: Option<usize>,
+    /// Most particles for a held-out object whose runs disagree (re-run with twice the particles until they agree
+    /// or this is reached; at least --eval-particles).
+    #[arg(long)]
+    max_eval_particles: Option<usize>,
+    /// Filter runs averaged per held-out object (at least 2).
+    #[arg(long)]
+    eval_runs: Option<usize>,
+    /// Filter the held-out data with the model's transition alone, without the defensive proposal for the actions.
+    #[arg(long)]
+    no_proposal: bool,
+    /// Train (PF-SEFI) with the defensive proposal too.
+    #[arg(long)]
+    train_proposal: bool,
     /// Smoother draws per held-out object.
     #[arg(long)]
     draws: Option<usize>,
@@ -78,6 +91,13 @@ impl DiagnoseArgs {
         set(&mut c.candidate_steps, self.candidate_steps);
         set(&mut c.particles, self.particles);
         set(&mut c.eval_particles, self.eval_particles);
+        c.max_eval_particles = c.max_eval_particles.max(c.eval_particles);
+        set(&mut c.max_eval_particles, self.max_eval_particles);
+        set(&mut c.eval_runs, self.eval_runs);
+        if self.no_proposal {
+            c.proposal = None;
+        }
+        c.train_with_proposal = self.train_proposal;
         set(&mut c.draws, self.draws);
         set(&mut c.scenes_per_step, self.scenes_per_step);
         if let Some(f) = self.heldout_fraction {
@@ -142,6 +162,11 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
         plots.push((c.name.clone(), name));
     }
     write_atomic(&out.join("report.md"), markdown(report, data, &plots).as_bytes())
+}
+
+/// `refined / imprecise (max particles)` of one model's held-out evaluation.
+fn precision(p: &EvalPrecision) -> String {
+    format!("{} / {} ({})", p.refined_objects, p.imprecise_objects, p.max_particles)
 }
 
 fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
@@ -210,20 +235,33 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
          the held-out log-likelihood against the base, paired per object. Only a material change (a delay of at \
          least 30 ms, a fraction of at least 3%, an extent off by at least 3%) can be the cause.\n"
     );
-    let _ = writeln!(s, "| extension | gain (nats/unit) | SE | learned | material | flagged by |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|");
+    let _ =
+        writeln!(s, "| extension | gain (nats/unit) | SE | learned | material | flagged by | refined / imprecise |");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|");
     for c in &r.candidates {
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} |",
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} |",
             c.cause,
             c.gain,
             c.gain_se,
             c.description,
             if c.material { "yes" } else { "no" },
-            if c.flagged_by.is_empty() { "(fit all)".into() } else { c.flagged_by.join(", ") }
+            if c.flagged_by.is_empty() { "(fit all)".into() } else { c.flagged_by.join(", ") },
+            precision(&c.precision)
         );
     }
+    let _ = writeln!(
+        s,
+        "\nEach object's log-likelihood is that of the mean likelihood of {} filter runs of {} particles; an object \
+         whose runs' log-likelihoods had an sd above {} nats was re-run with twice the particles, up to {} \
+         (refined / still imprecise objects, most particles used). Base: {}.",
+        r.config.eval_runs,
+        r.config.eval_particles,
+        r.config.eval_tolerance,
+        r.config.max_eval_particles,
+        precision(&r.base_precision)
+    );
     if !r.not_fitted.is_empty() {
         let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
     }

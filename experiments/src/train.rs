@@ -174,6 +174,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         eval_particles: args.eval_particles,
         extension: None,
         extension_only: false,
+        proposal: None,
     };
     let mut objective = SceneObjective::new(&data, test, config)?;
     let train_config = TrainConfig {

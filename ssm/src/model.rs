@@ -54,6 +54,17 @@ pub trait ParticleModel: Sync {
         scratch: &mut Self::Scratch,
     );
 
+    /// For a model whose [`ParticleModel::propagate`] draws from a proposal `q`
+    /// other than its transition `f` (to reach what the transition rarely does):
+    /// writes `ln f(x_t | x_{t-1}) - ln q(x_t | x_{t-1})` for the `n` particles the
+    /// last `propagate` with this `scratch` drew into `out` and returns `true`; the
+    /// filter multiplies the weights by it. The default, for a `propagate` that
+    /// draws from the transition, returns `false` and leaves `out` alone.
+    fn proposal_log_weights(&self, n: usize, out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
+        let _ = (n, out, scratch);
+        false
+    }
+
     /// Writes `log g(y_t | x_t^i)` for `n` particles into `out` and returns `true`, or
     /// returns `false` (leaving `out` alone) when there is no observation at `t`.
     fn observation_loglik(

@@ -14,7 +14,7 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::criticism::extensions::{ExtendedSsm, ExtensibleObservation, Extension};
+use crate::criticism::extensions::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::data::Dataset;
 use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
 use crate::filter::{run_filter, FilterConfig};
@@ -42,6 +42,10 @@ pub struct ObjectiveConfig {
     /// (every other parameter's gradient is zero).
     #[serde(default)]
     pub extension_only: bool,
+    /// The filter's proposal for the actions, if not the transition (PF-SEFI and
+    /// the evaluation only: the through-filter baselines replay the transition).
+    #[serde(default)]
+    pub proposal: Option<DefensiveProposal>,
 }
 
 /// Training scenes in batches, test data, and an estimator.
@@ -77,6 +81,7 @@ struct Estimate<'a> {
     estimator: &'a Estimator,
     config: &'a EstimatorConfig,
     extension: Option<Extension>,
+    proposal: Option<DefensiveProposal>,
     params: &'a ParamStore<f64>,
     seed: u64,
 }
@@ -84,7 +89,10 @@ struct Estimate<'a> {
 impl ModelVisitor for Estimate<'_> {
     type Output = Result<(ScoreEstimate, Vec<String>), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        let model = ExtendedSsm::from_store(model, self.extension, self.params)?;
+        let model = ExtendedSsm::from_store(model, self.extension, self.params)?.with_proposal(self.proposal)?;
+        if self.proposal.is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
+            return Err("a filter proposal other than the transition works with PF-SEFI only".into());
+        }
         Ok((self.estimator.estimate(&model, self.config, self.seed), model.parameter_names()))
     }
 }
@@ -98,12 +106,14 @@ pub struct LogLikelihood<'a> {
     pub extension: Option<Extension>,
     /// The store holding the extension's parameter.
     pub params: &'a ParamStore<f64>,
+    /// The filter's proposal for the actions, if not the transition.
+    pub proposal: Option<DefensiveProposal>,
 }
 
 impl ModelVisitor for LogLikelihood<'_> {
     type Output = Result<(f64, usize, usize), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        let model = ExtendedSsm::from_store(model, self.extension, self.params)?;
+        let model = ExtendedSsm::from_store(model, self.extension, self.params)?.with_proposal(self.proposal)?;
         let run = run_filter(&model, self.config, |_| ());
         Ok((run.log_likelihood(), run.observed_units(), run.collapsed_steps()))
     }
@@ -135,6 +145,7 @@ impl Objective for SceneObjective {
             estimator: &self.config.estimator,
             config: &self.config.estimator_config,
             extension: self.config.extension,
+            proposal: self.config.proposal,
             params,
             seed,
         };
@@ -162,7 +173,8 @@ impl Objective for SceneObjective {
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
         let config = FilterConfig { particles: self.config.eval_particles, lag: 0, seed, ..FilterConfig::default() };
-        let visit = LogLikelihood { config: &config, extension: self.config.extension, params };
+        let visit =
+            LogLikelihood { config: &config, extension: self.config.extension, params, proposal: self.config.proposal };
         let (ll, units, collapsed) = models.visit(&self.test, visit)??;
         let mut metrics = vec![
             ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),

@@ -8,10 +8,13 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
-use ssm::criticism::extensions::{mixture_excess_kurtosis, ExtendedSsm, ExtensibleObservation, Extension};
+use ssm::criticism::extensions::{
+    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
+};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Action, Dataset, ObservationKind, State};
 use ssm::estimators::{Block, DifferentiableModel};
+use ssm::filter::{run_filter, FilterConfig};
 use ssm::model::ParticleModel;
 use ssm::params::{AnyPolicy, ModelVisitor, Models};
 use ssm::vehicle::NeuralPolicy;
@@ -228,6 +231,91 @@ impl ModelVisitor for Sampler {
 #[test]
 fn heavy_tailed_sampler_has_unit_variance_and_the_mixture_kurtosis() {
     models(ObservationKind::Points).visit(&data(ObservationKind::Points), Sampler).expect("model");
+}
+
+struct Defensive;
+
+impl ModelVisitor for Defensive {
+    type Output = ();
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) {
+        let proposal = DefensiveProposal { fraction: 0.1, widening: 8.0 };
+        let heavy = [(0.1f64 / 0.9).ln() / 8.0, (5.0f64 - 1.0).ln() / 2.0];
+        for (ext, raw) in [(None, &[][..]), (Some(Extension::HeavyTailedAccel), &heavy[..])] {
+            let plain = ExtendedSsm::new(base, ext, raw).expect("applies");
+            let model = ExtendedSsm::new(base, ext, raw).unwrap().with_proposal(Some(proposal)).unwrap();
+            // Particles drawn from the proposal, weighted by transition over
+            // proposal, give the transition's expectations: of 1, of z^2 (unit
+            // variance) and of the tail mass P(|z| > 3).
+            let n = 200_000;
+            let state = State { x: 0.0, y: 0.0, yaw: 0.0, v: 8.0, kappa: 0.0 };
+            let mut prev = vec![0.0f32; 5 * n];
+            for (k, v) in state.to_array().iter().enumerate() {
+                prev[k * n..(k + 1) * n].fill(*v as f32);
+            }
+            let (mut next, mut actions, mut log_w) = (vec![0.0f32; 5 * n], vec![0.0f32; 2 * n], vec![0.0f32; n]);
+            let mut scratch = model.new_scratch();
+            let mut rng = SmallRng::seed_from_u64(5);
+            model.propagate(0, 1, n, &prev, &mut next, &mut actions, &mut rng, &mut scratch);
+            assert!(model.proposal_log_weights(n, &mut log_w, &mut scratch));
+            let mut plain_scratch = plain.new_scratch();
+            assert!(!plain.proposal_log_weights(n, &mut log_w.clone(), &mut plain_scratch), "no proposal, no weights");
+            let (mut w_sum, mut w_z2, mut w_tail, mut wide) = (0.0, 0.0, 0.0, 0usize);
+            for i in 0..n {
+                let a = Action { accel: actions[i] as f64, pinch: actions[n + i] as f64 };
+                let z = model.accel_innovation_of(&state, &a);
+                let w = (log_w[i] as f64).exp();
+                assert!(w.is_finite() && w > 0.0 && w < 1.0 / 0.9 + 1e-4, "weight {w} at z {z}");
+                w_sum += w;
+                w_z2 += w * z * z;
+                w_tail += if z.abs() > 3.0 { w } else { 0.0 };
+                wide += usize::from(z.abs() > 8.0);
+            }
+            let nf = n as f64;
+            assert!((w_sum / nf - 1.0).abs() < 0.01, "{ext:?}: mean weight {}", w_sum / nf);
+            assert!((w_z2 / nf - 1.0).abs() < 0.03, "{ext:?}: weighted variance {}", w_z2 / nf);
+            let tail = match ext {
+                // (1 - p) P(|z| > 3 / c) + p P(|z| > 3 / (k c)) for p = 0.1, k = 5, c = 1 / sqrt(3.4).
+                Some(_) => 0.9 * two_sided_tail(3.0 * 3.4f64.sqrt()) + 0.1 * two_sided_tail(3.0 * 3.4f64.sqrt() / 5.0),
+                None => two_sided_tail(3.0),
+            };
+            assert!((w_tail / nf - tail).abs() < 0.1 * tail + 5e-4, "{ext:?}: tail {} vs {tail}", w_tail / nf);
+            assert!(wide > n / 100, "{ext:?}: the proposal reaches far into the tails ({wide} beyond 8 sd)");
+        }
+
+        // Filtering with the proposal estimates the same likelihood: the runs'
+        // means agree within their Monte Carlo error.
+        let [with, without] = [Some(proposal), None].map(|p| {
+            let model = ExtendedSsm::new(base, None, &[]).unwrap().with_proposal(p).unwrap();
+            let runs: Vec<f64> = (0..6)
+                .map(|seed| {
+                    let config = FilterConfig { particles: 16384, seed, ..FilterConfig::default() };
+                    run_filter(&model, &config, |_| ()).log_likelihood()
+                })
+                .collect();
+            let mean = runs.iter().sum::<f64>() / 6.0;
+            let var = runs.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / 5.0;
+            (mean, var / 6.0)
+        });
+        let se = (with.1 + without.1).sqrt();
+        assert!(
+            (with.0 - without.0).abs() < 4.0 * se + 0.5,
+            "log-likelihood {with:?} with the proposal, {without:?} without (mean, squared SE)"
+        );
+        assert!(ExtendedSsm::new(base, None, &[])
+            .unwrap()
+            .with_proposal(Some(DefensiveProposal { fraction: 1.5, widening: 8.0 }))
+            .is_err());
+    }
+}
+
+/// `P(|z| > x)` for a standard normal `z`.
+fn two_sided_tail(x: f64) -> f64 {
+    2.0 * ssm::stats::normal_cdf(-x)
+}
+
+#[test]
+fn defensive_proposal_weights_give_the_transitions_expectations() {
+    models(ObservationKind::Points).visit(&data(ObservationKind::Points), Defensive).expect("model");
 }
 
 #[test]

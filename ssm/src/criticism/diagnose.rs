@@ -18,6 +18,14 @@
 //!    sum per observed unit, its standard error from the spread over objects. The
 //!    cause is the extension with the largest gain among those whose gain exceeds
 //!    [`DiagnoseConfig::significance`] standard errors, else none.
+//!
+//!    Each object's likelihood is the mean of [`DiagnoseConfig::eval_runs`]
+//!    filter estimates; objects whose runs disagree get more particles
+//!    ([`refine_imprecise`]). Training and evaluation filter with a defensive
+//!    proposal for the actions ([`DiagnoseConfig::proposal`]), so that an
+//!    acceleration in a model's tail does not make its estimate collapse: the
+//!    comparison is between models, not between how well a bootstrap filter
+//!    follows them.
 //! 6. **Re-check** the winner: the same checks on the extended model.
 //!
 //! Every training run writes its logs and checkpoints under the output
@@ -29,14 +37,16 @@ use autodiff::nn::ParamStore;
 use rand::rngs::{SmallRng, StdRng};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::checks::{calibrate, checks_for, statistics, CheckResult};
-use super::extensions::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
+use super::extensions::{state_at, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use super::{ObjectObservations, ObjectSample};
 use crate::data::{Action, Dataset, ObservationKind, State};
 use crate::estimators::{Estimator, EstimatorConfig};
-use crate::filter::{run_filter, stream_seed, FilterConfig, Observer, StepView};
+use crate::filter::{filter_object, run_filter, stream_seed, FilterConfig, Observer, StepView};
+use crate::model::ParticleModel;
 use crate::objective::{ObjectiveConfig, SceneObjective};
 use crate::params::{AnyPolicy, ModelVisitor, Models};
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
@@ -78,8 +88,20 @@ pub struct DiagnoseConfig {
     /// Paths drawn from the smoother per held-out object (the checks' replicates).
     pub draws: usize,
     /// Filter runs (seeds) whose likelihood estimates are averaged for each held-out
-    /// object.
+    /// object (at least 2: their spread measures the estimate's precision).
     pub eval_runs: usize,
+    /// A held-out object's runs are redone with twice the particles while their
+    /// log-likelihoods have an sd above this (nats)...
+    pub eval_tolerance: f64,
+    /// ... up to this many particles (see [`refine_imprecise`]).
+    pub max_eval_particles: usize,
+    /// The held-out filter's proposal for the actions (the transition if none): a
+    /// few wide draws let every model's filter follow an action in its tail, so
+    /// that its likelihood estimate does not collapse there.
+    pub proposal: Option<DefensiveProposal>,
+    /// Train (PF-SEFI) with the same proposal too, so that the smoother shows the
+    /// fit what lies in the model's tails.
+    pub train_with_proposal: bool,
     /// Family-wise level of the checks (Holm-corrected).
     pub alpha: f64,
     /// An extension is fitted when a check that suggests it has an uncorrected p
@@ -93,7 +115,8 @@ pub struct DiagnoseConfig {
 
 impl Default for DiagnoseConfig {
     /// The scale for measured data: 600 base steps, 300 per extension, 512
-    /// training and 2048 evaluation particles, L = 15, clipping at 0.5.
+    /// training and 2048 evaluation particles (2 runs, up to 16384 where they
+    /// disagree by more than 2 nats), L = 15, clipping at 0.5.
     fn default() -> Self {
         DiagnoseConfig {
             heldout_fraction: 0.3,
@@ -108,7 +131,11 @@ impl Default for DiagnoseConfig {
             clip: Some(0.5),
             scenes_per_step: 16,
             draws: 50,
-            eval_runs: 1,
+            eval_runs: 2,
+            eval_tolerance: 2.0,
+            max_eval_particles: 16384,
+            proposal: Some(DefensiveProposal { fraction: 0.1, widening: 8.0 }),
+            train_with_proposal: false,
             alpha: 0.05,
             plausible_p: 0.2,
             fit_all: false,
@@ -126,6 +153,7 @@ impl DiagnoseConfig {
             candidate_steps: 150,
             particles: 512,
             eval_particles: 16384,
+            max_eval_particles: 16384,
             lag: 8,
             draws: 40,
             eval_runs: 3,
@@ -139,11 +167,22 @@ impl DiagnoseConfig {
         if !(self.heldout_fraction > 0.0 && self.heldout_fraction < 1.0) {
             return Err(format!("held-out fraction must be in (0, 1), got {}", self.heldout_fraction));
         }
-        if self.particles == 0 || self.eval_particles == 0 || self.eval_runs == 0 || self.draws < 3 {
-            return Err("particles, evaluation particles and runs must be positive and draws at least 3".into());
+        if self.particles == 0 || self.eval_particles == 0 || self.eval_runs < 2 || self.draws < 3 {
+            return Err("particles and evaluation particles must be positive, evaluation runs at least 2 and draws \
+                        at least 3"
+                .into());
+        }
+        if self.max_eval_particles < self.eval_particles || self.eval_tolerance.is_nan() || self.eval_tolerance <= 0.0 {
+            return Err(format!(
+                "max_eval_particles ({}) must be at least eval_particles ({}) and eval_tolerance positive, got {}",
+                self.max_eval_particles, self.eval_particles, self.eval_tolerance
+            ));
         }
         if !(self.alpha > 0.0 && self.alpha < 1.0 && self.plausible_p > 0.0 && self.plausible_p <= 1.0) {
             return Err(format!("alpha {} and plausible_p {} must be in (0, 1]", self.alpha, self.plausible_p));
+        }
+        if let Some(p) = &self.proposal {
+            p.validate()?;
         }
         if !(self.lr > 0.0 && self.candidate_lr > 0.0 && self.lr.is_finite() && self.candidate_lr.is_finite()) {
             return Err(format!("learning rates must be positive, got {} and {}", self.lr, self.candidate_lr));
@@ -221,6 +260,8 @@ pub struct CandidateReport {
     pub skipped_steps: usize,
     /// Training time (s).
     pub train_seconds: f64,
+    /// How precise its held-out log-likelihoods are.
+    pub precision: EvalPrecision,
 }
 
 /// The result of [`diagnose`].
@@ -250,6 +291,8 @@ pub struct Report {
     pub heldout_units: usize,
     /// Held-out log-likelihood of the base (nats per observed unit).
     pub base_mll: f64,
+    /// How precise the base's held-out log-likelihoods are.
+    pub base_precision: EvalPrecision,
     /// Held-out log-likelihood of the chosen model (the base's for `none`).
     pub chosen_mll: f64,
     /// Training steps of the base skipped (non-finite estimates).
@@ -372,6 +415,7 @@ pub fn diagnose_split(
             flagged_by,
             skipped_steps: run.skipped,
             train_seconds: run.seconds,
+            precision: eval.precision,
         });
         fitted.push(eval);
     }
@@ -417,6 +461,7 @@ pub fn diagnose_split(
         heldout_objects: heldout.objects().len(),
         heldout_units: base_eval.units,
         base_mll,
+        base_precision: base_eval.precision,
         base_skipped_steps: base.skipped,
         base_train_seconds: base.seconds,
         config: config.clone(),
@@ -430,6 +475,82 @@ fn log_mean_exp(x: &[f64]) -> f64 {
         return m;
     }
     m + (x.iter().map(|v| (v - m).exp()).sum::<f64>() / x.len() as f64).ln()
+}
+
+/// How precise a model's held-out log-likelihoods are (see [`refine_imprecise`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct EvalPrecision {
+    /// Objects re-estimated with more particles because their runs disagreed.
+    pub refined_objects: usize,
+    /// Objects whose runs still disagreed by more than the tolerance at the cap.
+    pub imprecise_objects: usize,
+    /// The most particles any object needed.
+    pub max_particles: usize,
+    /// The largest sd (nats) of an object's runs' log-likelihoods, after refining.
+    pub max_run_sd: f64,
+}
+
+/// Sample sd of `x` (0 for fewer than two values).
+fn sample_sd(x: &[f64]) -> f64 {
+    if x.len() < 2 {
+        return 0.0;
+    }
+    let mean = x.iter().sum::<f64>() / x.len() as f64;
+    (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt()
+}
+
+/// Redoes, with twice the particles each round up to `max_particles`, the runs of
+/// every object whose runs' log-likelihoods (`per_run[object]`, one per seed of
+/// `filter.seed..`) have an sd above `tolerance` nats.
+///
+/// A bootstrap filter's log-likelihood estimate has a long lower tail when the
+/// observations are sharp and the model rarely proposes what they show (a jump
+/// in the acceleration, say): one such object can differ by hundreds of nats
+/// between runs and swamp a paired comparison of two models, although its
+/// estimate is unbiased. More particles for the few objects whose runs disagree
+/// is the remedy (as in choosing the particle count for a target variance of the
+/// log-likelihood, Pitt et al. 2012); every model gets the same rule and seeds.
+fn refine_imprecise<M: ParticleModel>(
+    model: &M,
+    filter: &FilterConfig,
+    per_run: &mut [Vec<f64>],
+    max_particles: usize,
+    tolerance: f64,
+) -> EvalPrecision {
+    let mut precision = EvalPrecision { max_particles: filter.particles, ..EvalPrecision::default() };
+    let mut particles = filter.particles;
+    let mut refined = vec![false; per_run.len()];
+    loop {
+        let imprecise: Vec<usize> = (0..per_run.len()).filter(|&o| sample_sd(&per_run[o]) > tolerance).collect();
+        if imprecise.is_empty() || particles.saturating_mul(2) > max_particles {
+            precision.imprecise_objects = imprecise.len();
+            break;
+        }
+        particles *= 2;
+        let runs = per_run.first().map_or(0, Vec::len);
+        let redone: Vec<Vec<f64>> = imprecise
+            .par_iter()
+            .map_init(
+                || model.new_scratch(),
+                |scratch, &object| {
+                    (0..runs)
+                        .map(|r| {
+                            let config = FilterConfig { particles, seed: filter.seed + r as u64, ..filter.clone() };
+                            filter_object(model, &config, object, scratch, &mut ()).0.log_likelihood
+                        })
+                        .collect()
+                },
+            )
+            .collect();
+        for (&object, lls) in imprecise.iter().zip(redone) {
+            per_run[object] = lls;
+            refined[object] = true;
+        }
+        precision.max_particles = particles;
+    }
+    precision.refined_objects = refined.iter().filter(|&&r| r).count();
+    precision.max_run_sd = per_run.iter().map(|l| sample_sd(l)).fold(0.0, f64::max);
+    precision
 }
 
 /// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
@@ -492,6 +613,7 @@ fn fit(
         eval_particles: config.eval_particles,
         extension,
         extension_only: extension.is_some(),
+        proposal: config.proposal.filter(|_| config.train_with_proposal),
     };
     let mut objective = SceneObjective::new(train_data, heldout.clone(), objective_config)?;
     let batches = crate::training::Objective::batches(&objective).max(1);
@@ -523,6 +645,7 @@ fn fit(
 struct HeldOutEval {
     object_ll: Vec<f64>,
     units: usize,
+    precision: EvalPrecision,
     /// `measured[k][c]`: statistic `c` of draw `k` on the measured data.
     measured: Vec<Vec<f64>>,
     /// `replicated[k][c]`: the same on replicated data.
@@ -554,26 +677,24 @@ struct Evaluate<'a> {
 impl ModelVisitor for Evaluate<'_> {
     type Output = Result<HeldOutEval, String>;
     fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        let model = ExtendedSsm::from_store(base, self.extension, self.params)?;
-        let c = self.config;
-        posterior_predictive_checks(&model, c.eval_particles, c.eval_runs, c.draws, c.seed)
+        let model = ExtendedSsm::from_store(base, self.extension, self.params)?.with_proposal(self.config.proposal)?;
+        posterior_predictive_checks(&model, self.config)
     }
 }
 
-/// Filters every object of `model`'s data with `particles`, `runs` times with
-/// seeds `seed..seed + runs` (each object's log-likelihood is that of the mean of
-/// the runs' likelihood estimates), draws `draws` paths per object from the first run's smoother (the
-/// filter's genealogy), and evaluates the checks' statistics on measured and
-/// replicated data per draw.
+/// Filters every object of `model`'s data with `config.eval_particles`,
+/// `config.eval_runs` times with seeds `seed..seed + runs` (each object's
+/// log-likelihood is that of the mean of the runs' likelihood estimates, refined
+/// by [`refine_imprecise`] where the runs disagree), draws `config.draws` paths
+/// per object from the first run's smoother (the filter's genealogy), and
+/// evaluates the checks' statistics on measured and replicated data per draw.
 fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
-    particles: usize,
-    runs: usize,
-    draws: usize,
-    seed: u64,
+    config: &DiagnoseConfig,
 ) -> Result<HeldOutEval, String> {
-    let steps = crate::model::ParticleModel::num_steps(model);
-    let filter = FilterConfig { particles, lag: 0, seed, ..FilterConfig::default() };
+    let (draws, seed) = (config.draws, config.seed);
+    let steps = ParticleModel::num_steps(model);
+    let filter = FilterConfig { particles: config.eval_particles, lag: 0, seed, ..FilterConfig::default() };
     let run = run_filter(model, &filter, |object| PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object)));
     let data = model.data();
     // Per object, the runs' likelihood estimates are averaged (not their logs):
@@ -581,10 +702,11 @@ fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleO
     // particles, and one run that missed the likelihood's peak does not drag the
     // object's value down (log p_hat has a long lower tail).
     let mut per_run: Vec<Vec<f64>> = run.objects.iter().map(|o| vec![o.log_likelihood]).collect();
-    for r in 1..runs {
+    for r in 1..config.eval_runs {
         let again = run_filter(model, &FilterConfig { seed: seed + r as u64, ..filter.clone() }, |_| ());
         per_run.iter_mut().zip(&again.objects).for_each(|(l, o)| l.push(o.log_likelihood));
     }
+    let precision = refine_imprecise(model, &filter, &mut per_run, config.max_eval_particles, config.eval_tolerance);
     let object_ll: Vec<f64> = per_run.iter().map(|l| log_mean_exp(l)).collect();
     if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
         return Err(format!("the held-out log-likelihood of object {bad} is not finite"));
@@ -612,7 +734,7 @@ fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleO
         measured.push(statistics(data, &real));
         replicated.push(statistics(data, &rep));
     }
-    Ok(HeldOutEval { object_ll, units: run.observed_units(), measured, replicated })
+    Ok(HeldOutEval { object_ll, units: run.observed_units(), precision, measured, replicated })
 }
 
 /// The dataset's observations of `object`.

@@ -67,7 +67,7 @@ const INITIAL_FRACTION: f64 = 0.02;
 /// Initial sd of the clutter Gaussian (m).
 const INITIAL_CLUTTER_SD: f64 = 2.0;
 /// Initial sd ratio of the heavy-tailed acceleration component.
-const INITIAL_TAIL_RATIO: f64 = 3.0;
+const INITIAL_TAIL_RATIO: f64 = 8.0;
 
 /// Mixture fractions are kept in `[FRACTION_GUARD, 1 - FRACTION_GUARD]` on the plain paths.
 const FRACTION_GUARD: f64 = 1e-12;
@@ -419,6 +419,43 @@ pub struct ExtendedSsm<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> {
     /// Stored (scaled) values of the extension's parameter.
     raw: Vec<f64>,
     active: Active,
+    /// The filter's proposal for the acceleration, if not the transition.
+    defensive: Option<DefensiveProposal>,
+}
+
+/// A defensive proposal for the action's innovations (Hesterberg 1995): with
+/// probability `fraction` a particle's standardised innovations (acceleration and
+/// pinch) are drawn `widening` times wider than the policy's, otherwise from the
+/// model; the filter weights each
+/// particle by transition over proposal, so the likelihood estimate stays unbiased
+/// for the same model.
+///
+/// A bootstrap filter follows only what its transition proposes: where the data
+/// hold an acceleration far in the model's tail (a hard brake under a Gaussian
+/// policy), no particle follows it and the likelihood estimate collapses by
+/// hundreds of nats, differently from run to run. A few wide particles keep every
+/// model's estimate near its true value at a cost of `fraction` of the particles
+/// elsewhere, and give models with and without heavy tails a like-for-like
+/// comparison.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DefensiveProposal {
+    /// Probability of a wide draw (in `(0, 1)`).
+    pub fraction: f64,
+    /// Sd of a wide draw over the model's (at least 1).
+    pub widening: f64,
+}
+
+impl DefensiveProposal {
+    /// Checks the fraction and the widening.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.fraction > 0.0 && self.fraction < 1.0 && self.widening >= 1.0 && self.widening.is_finite()) {
+            return Err(format!(
+                "defensive proposal: fraction must be in (0, 1) and widening at least 1, got {} and {}",
+                self.fraction, self.widening
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// Per-thread working memory of [`ExtendedSsm`].
@@ -432,6 +469,8 @@ pub struct ExtendedScratch<I> {
     other: Vec<f32>,
     /// Reversed-heading items.
     reversed: Vec<I>,
+    /// Standardised acceleration innovations of the last `propagate`.
+    innovations: Vec<[f64; 2]>,
 }
 
 impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P, O> {
@@ -459,7 +498,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
                 }
             }
         };
-        Ok(ExtendedSsm { base, extension, raw: raw.to_vec(), active })
+        Ok(ExtendedSsm { base, extension, raw: raw.to_vec(), active, defensive: None })
     }
 
     /// `base` extended by `extension`, reading its parameter from `store` (the
@@ -477,6 +516,16 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
             },
         };
         ExtendedSsm::new(base, extension, &raw)
+    }
+
+    /// The same model, filtered with a defensive proposal for the actions (see
+    /// [`DefensiveProposal`]) or, with `None`, with the transition: the filter's
+    /// estimates are for the same model either way. Fails on a bad proposal.
+    pub fn with_proposal(self, proposal: Option<DefensiveProposal>) -> Result<Self, String> {
+        if let Some(p) = &proposal {
+            p.validate()?;
+        }
+        Ok(ExtendedSsm { defensive: proposal, ..self })
     }
 
     /// The extension, if any.
@@ -519,7 +568,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         self.base.policy().gaussians(&[state.v], &[state.kappa], &mut g);
         let (mut accel, mut pinch) = ([0.0], [0.0]);
         let out = ActionsMut { accel: &mut accel, pinch: &mut pinch };
-        g.sample_with(rng, out, |rng| self.accel_innovation(rng));
+        g.sample_with(rng, out, |rng| [self.accel_innovation(rng), rng.sample(StandardNormal)]);
         Action { accel: accel[0], pinch: pinch[0] }
     }
 
@@ -529,6 +578,21 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         let mut g = ActionGaussians::<f64>::default();
         self.base.policy().gaussians(&[state.v], &[state.kappa], &mut g);
         (action.accel - g.mean_accel[0]) / g.l11[0]
+    }
+
+    /// `ln` of the density of a standardised acceleration innovation `z`: normal,
+    /// or the heavy-tailed mixture of unit variance (what [`Self::accel_innovation`]
+    /// draws).
+    fn accel_innovation_log_density(&self, z: f64) -> f64 {
+        let normal = |z: f64, sd: f64| -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI;
+        match self.active {
+            Active::HeavyTailedAccel { fraction, ratio } => {
+                let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
+                let f = fraction.clamp(FRACTION_GUARD, 1.0 - FRACTION_GUARD);
+                log_add_exp_f64((1.0 - f).ln() + normal(z, core), f.ln() + normal(z, ratio * core))
+            }
+            _ => normal(z, 1.0),
+        }
     }
 
     /// A standardised acceleration innovation: normal, or the heavy-tailed mixture
@@ -594,6 +658,15 @@ fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
     a + (b - a).softplus()
 }
 
+/// `ln(e^a + e^b)`, stable (`-inf` if both are).
+fn log_add_exp_f64(a: f64, b: f64) -> f64 {
+    let m = a.max(b);
+    if m == f64::NEG_INFINITY {
+        return m;
+    }
+    m + ((a - m).exp() + (b - m).exp()).ln()
+}
+
 /// `ln((1 - p) e^a + p e^b)` per element with `p = sigmoid(logit)` (plain).
 #[inline]
 fn mix_plain(a: f32, b: f32, ln_keep: f32, ln_p: f32) -> f32 {
@@ -613,6 +686,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             yaw: Vec::new(),
             other: Vec::new(),
             reversed: Vec::new(),
+            innovations: Vec::new(),
         }
     }
 
@@ -651,7 +725,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         rng: &mut SmallRng,
         scratch: &mut Self::Scratch,
     ) {
-        if !matches!(self.active, Active::HeavyTailedAccel { .. }) {
+        if !matches!(self.active, Active::HeavyTailedAccel { .. }) && self.defensive.is_none() {
             return self.base.propagate(object, t, n, prev, next, actions, rng, &mut scratch.base);
         }
         let from = states_ref(prev, n);
@@ -659,9 +733,35 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         g.resize(n);
         self.base.policy().gaussians(from.v, from.kappa, g);
         let (accel, pinch) = actions.split_at_mut(n);
-        g.sample_with(rng, ActionsMut { accel, pinch: &mut pinch[..n] }, |rng| self.accel_innovation(rng));
+        let innovations = &mut scratch.innovations;
+        innovations.clear();
+        let wide = self.defensive.map_or((0.0, 1.0), |d| (d.fraction, d.widening));
+        g.sample_with(rng, ActionsMut { accel, pinch: &mut pinch[..n] }, |rng| {
+            let z = if wide.0 > 0.0 && rng.random::<f64>() < wide.0 {
+                let mut normal = || wide.1 * rng.sample::<f64, _>(StandardNormal);
+                [normal(), normal()]
+            } else {
+                [self.accel_innovation(rng), rng.sample(StandardNormal)]
+            };
+            innovations.push(z);
+            z
+        });
         let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
         self.base.motion().propagate(from, acts, states_mut(next, n));
+    }
+
+    fn proposal_log_weights(&self, n: usize, out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
+        let Some(DefensiveProposal { fraction, widening }) = self.defensive else {
+            return false;
+        };
+        // ln f - ln q with q = (1 - e) f + e N(0, w^2 I): -ln((1 - e) + e N(z; 0, w^2 I) / f(z)).
+        let normal = |z: f64, sd: f64| -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI;
+        for (o, &[z1, z2]) in out[..n].iter_mut().zip(&scratch.innovations) {
+            let wide = normal(z1, widening) + normal(z2, widening);
+            let log_ratio = wide - self.accel_innovation_log_density(z1) - normal(z2, 1.0);
+            *o = -log_add_exp_f64((1.0 - fraction).ln(), fraction.ln() + log_ratio) as f32;
+        }
+        true
     }
 
     fn observation_loglik(

@@ -228,8 +228,8 @@ impl HiddenEffect {
 
 /// A standard normal scale mixture: `z ~ (1 - fraction) N(0, 1) + fraction N(0, ratio^2)`
 /// (unit sd with probability `1 - fraction`, sd `ratio` otherwise). Its excess
-/// kurtosis is `3 ((1 - f) + f r^4) / ((1 - f) + f r^2)^2 - 3` (16.3 at the default
-/// `f = 0.1`, `r = 6`). Each draw takes a uniform (the component) then a standard
+/// kurtosis is `3 ((1 - f) + f r^4) / ((1 - f) + f r^2)^2 - 3` (22.3 at the default
+/// `f = 0.1`, `r = 10`). Each draw takes a uniform (the component) then a standard
 /// normal.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ScaleMixture {

@@ -282,6 +282,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
 
     for t in 0..steps {
         let slot = ring.slot(t);
+        let mut proposed = false;
         let clock = Instant::now();
         if t == 0 {
             model.sample_prior(object, n, &mut rng, &mut ring.states[slot]);
@@ -323,6 +324,14 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             times.resample += mid - clock;
             let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
             model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
+            if model.proposal_log_weights(n, &mut loglik, scratch) {
+                // Drawn from a proposal: weight by transition over proposal. The
+                // weights' sum then estimates 1 and enters the likelihood below.
+                for (lw, &c) in log_w.iter_mut().zip(&loglik) {
+                    *lw += if c.is_nan() { f64::NEG_INFINITY } else { c as f64 };
+                }
+                proposed = true;
+            }
             times.propagate += mid.elapsed();
         }
 
@@ -350,6 +359,16 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 summary.log_likelihood += lse;
                 summary.observed_units += model.observation_count(object, t);
                 log_w.iter_mut().for_each(|lw| *lw -= lse);
+            }
+        }
+        if proposed && !observed {
+            let lse = log_sum_exp(&log_w);
+            if lse.is_finite() {
+                summary.log_likelihood += lse;
+                log_w.iter_mut().for_each(|lw| *lw -= lse);
+            } else {
+                summary.collapsed_steps += 1;
+                log_w.fill(uniform);
             }
         }
         for (w, &lw) in weights.iter_mut().zip(&log_w) {

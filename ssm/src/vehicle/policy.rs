@@ -99,24 +99,24 @@ impl<F: Float> ActionGaussians<F> {
     /// object, from `rng`).
     #[track_caller]
     pub fn sample<R: Rng + ?Sized>(&self, rng: &mut R, out: ActionsMut<'_, F>) {
-        self.sample_with(rng, out, |rng| rng.sample::<f64, _>(StandardNormal));
+        self.sample_with(rng, out, |rng| [rng.sample::<f64, _>(StandardNormal), rng.sample::<f64, _>(StandardNormal)]);
     }
 
     /// Draws one action per distribution as [`ActionGaussians::sample`] does, with
-    /// the acceleration's standardised innovation drawn by `accel_noise` instead of
-    /// a standard normal (a heavier-tailed law, say); the pinch's stays normal.
+    /// the standardised innovations `[accel, pinch]` drawn by `noise` instead of
+    /// two standard normals (a heavier-tailed law for the acceleration, say, or a
+    /// filter's proposal).
     #[track_caller]
     pub fn sample_with<R: Rng + ?Sized>(
         &self,
         rng: &mut R,
         out: ActionsMut<'_, F>,
-        mut accel_noise: impl FnMut(&mut R) -> f64,
+        mut noise: impl FnMut(&mut R) -> [f64; 2],
     ) {
         let n = self.len();
         assert_eq!(out.len(), n, "ActionGaussians::sample: {n} distributions, room for {}", out.len());
         for i in 0..n {
-            let e1 = F::from_f64(accel_noise(rng));
-            let e2 = F::from_f64(rng.sample::<f64, _>(StandardNormal));
+            let [e1, e2] = noise(rng).map(F::from_f64);
             out.accel[i] = self.mean_accel[i] + self.l11[i] * e1;
             out.pinch[i] = self.mean_pinch[i] + self.l21[i] * e1 + self.l22[i] * e2;
         }
