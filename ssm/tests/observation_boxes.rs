@@ -6,9 +6,12 @@
 
 use std::f64::consts::{PI, TAU};
 
+mod common;
+
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::ParamStore;
 use autodiff::{Tape, Tensor};
+use common::{assert_tape_rows_match_plain, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};
@@ -143,22 +146,9 @@ fn whole_turns_do_not_change_the_density() {
     }
 }
 
-struct Rows {
-    poses: Vec<Pose>,
-    ctxs: Vec<ObsContext>,
-    av: Vec<Pose>,
-    dets: Vec<Vec<BoxDetection>>,
-}
-
-impl Rows {
-    fn items(&self) -> Vec<&[BoxDetection]> {
-        self.dets.iter().map(|d| d.as_slice()).collect()
-    }
-}
-
 /// Rows with detections clear of the density's kinks by `margin` (for finite
 /// differences): the Laplace modes and a zero wrapped yaw residual.
-fn rows(model: &BoxObservationModel, store: &ParamStore<f64>, r: usize, seed: u64, margin: f64) -> Rows {
+fn rows(model: &BoxObservationModel, store: &ParamStore<f64>, r: usize, seed: u64, margin: f64) -> Rows<BoxDetection> {
     let mut rng = StdRng::seed_from_u64(seed);
     let ps = poses(r, &mut rng);
     let ctxs: Vec<ObsContext> = (0..r)
@@ -187,42 +177,18 @@ fn rows(model: &BoxObservationModel, store: &ParamStore<f64>, r: usize, seed: u6
         })
         .collect();
     let av = ctxs.iter().map(|c| c.av).collect();
-    Rows { poses: ps, ctxs, av, dets }
+    Rows { poses: ps, ctxs, av, items: dets }
 }
 
 #[test]
 fn tape_rows_match_plain_path() {
     let (model, store) = model(4);
     let mut b = rows(&model, &store, 5, 5, 0.0);
-    b.dets[1].clear(); // a step without a detection contributes 0
-    let extra = b.dets[3][0];
-    b.dets[3].push(BoxDetection { x: extra.x + 0.2, ..extra }); // two items add
-    let items = b.items();
-    let tape = Tape::<f64>::new();
-    let params = store.bind(&tape);
-    let rv = RowVars::from_poses(&tape, &b.poses, &b.ctxs);
-    let out = model.log_likelihood_rows(&params, &rv, &b.av, &items).to_tensor();
-    let s32 = store.cast::<f32>();
-    let tape32 = Tape::<f32>::new();
-    let p32 = s32.bind(&tape32);
-    let rv32 = RowVars::from_poses(&tape32, &b.poses, &b.ctxs);
-    let out32 = model.log_likelihood_rows(&p32, &rv32, &b.av, &items).to_tensor();
-    for (r, row_items) in items.iter().enumerate() {
-        let mut plain = [0.0];
-        let (x, y, yaw) = ([b.poses[r].x], [b.poses[r].y], [b.poses[r].yaw]);
-        model.log_likelihood(
-            &store,
-            &b.ctxs[r],
-            PosesRef::new(&x, &y, &yaw),
-            row_items,
-            &mut Scratch::new(),
-            &mut plain,
-        );
-        let v = out.data()[r];
-        assert!((v - plain[0]).abs() < 1e-10 * v.abs().max(1.0), "row {r}: tape {v} vs plain {}", plain[0]);
-        assert!((out32.data()[r] as f64 - v).abs() <= 2e-4 * row_items.len() as f64 + 1e-6 * v.abs());
-    }
-    assert_eq!(out.data()[1], 0.0);
+    b.items[1].clear(); // a step without a detection contributes 0
+    let extra = b.items[3][0];
+    b.items[3].push(BoxDetection { x: extra.x + 0.2, ..extra }); // two items add
+    let out = assert_tape_rows_match_plain(&model, &store, &b, 2e-4);
+    assert_eq!(out[1], 0.0);
     // No detection at all: zeros, and a zero gradient.
     let tape = Tape::<f64>::new();
     let params = store.bind(&tape);
@@ -236,7 +202,7 @@ fn tape_rows_match_plain_path() {
 fn tape_gradients_match_finite_differences() {
     let (model, store) = model(6);
     let b = rows(&model, &store, 4, 7, 0.02);
-    let items = b.items();
+    let items = b.item_slices();
     let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3, 0.8]);
     let report = GradCheck::default()
         .check_params(&store, |tape, params| {

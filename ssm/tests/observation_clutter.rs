@@ -5,28 +5,20 @@
 //! `eps -> 0` and far-away points, finiteness at extreme `eps`, and the sampler
 //! against the density.
 
+mod common;
+
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
+use common::{clear_of_kinks, ctx, model, poses, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::edges::{edge_coords, edge_lengths, to_box_frame};
 use ssm::observation::points::Clutter;
 use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
 
 /// `ln(2 pi)`.
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
-
-fn model(seed: u64) -> (PointObservationModel, ParamStore<f64>) {
-    let mut store = ParamStore::new();
-    let m = PointObservationModel::init_params(&mut store, "obs", &mut StdRng::seed_from_u64(seed));
-    (m, store)
-}
-
-fn ctx() -> ObsContext {
-    ObsContext::new(Pose { x: -15.0, y: 8.0, yaw: 0.3 }, 4.4, 1.9)
-}
 
 fn softplus(x: f64) -> f64 {
     if x > 0.0 {
@@ -62,100 +54,42 @@ fn reference(
         .sum()
 }
 
-/// Poses scattered around `(0.3, -0.2, 0.4)`.
-fn poses(n: usize, rng: &mut StdRng) -> Vec<Pose> {
-    (0..n)
-        .map(|_| Pose {
-            x: 0.3 + rng.random_range(-0.5..0.5),
-            y: -0.2 + rng.random_range(-0.5..0.5),
-            yaw: 0.4 + rng.random_range(-0.3..0.3),
-        })
-        .collect()
-}
-
-fn soa(poses: &[Pose]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-    (poses.iter().map(|p| p.x).collect(), poses.iter().map(|p| p.y).collect(), poses.iter().map(|p| p.yaw).collect())
-}
-
-fn to32(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
-}
-
-/// Whether `p` is at least `margin` from every kink of the box density at `pose`
-/// (edge ends and Laplace modes); the clutter term is smooth.
-fn clear_of_kinks(
+/// One batch of rows (contexts of varying extents) with point sets drawn with
+/// clutter, so both mixture components carry weight.
+fn clutter_rows(
     model: &PointObservationModel,
     store: &ParamStore<f64>,
-    ctx: &ObsContext,
-    pose: Pose,
-    p: [f64; 2],
-    margin: f64,
-) -> bool {
-    let m = model.edge_mixture(store, ctx, pose);
-    let (u, v) = to_box_frame(pose, p);
-    let coords = edge_coords(u, v, 0.5 * ctx.length, 0.5 * ctx.width);
-    let lens = edge_lengths(ctx.length, ctx.width);
-    (0..4).all(|e| {
-        let (a, b) = coords[e];
-        a.abs() > margin && (a - lens[e]).abs() > margin && (b - m.mu[e]).abs() > margin
-    })
-}
-
-/// One batch of rows: poses, contexts (varying extents), AV poses and point sets
-/// drawn with clutter, so both mixture components carry weight.
-struct Rows {
-    poses: Vec<Pose>,
-    ctxs: Vec<ObsContext>,
-    av: Vec<Pose>,
-    points: Vec<Vec<[f64; 2]>>,
-}
-
-impl Rows {
-    fn new(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_row: usize, seed: u64) -> Self {
-        let mut rng = StdRng::seed_from_u64(seed);
-        let ps = poses(r, &mut rng);
-        let ctxs: Vec<ObsContext> = (0..r)
-            .map(|i| {
-                ObsContext::new(
-                    Pose { x: -15.0 + i as f64, y: 8.0, yaw: 0.3 },
-                    rng.random_range(3.5..5.0),
-                    rng.random_range(1.6..2.1),
-                )
-            })
-            .collect();
-        let clutter = Clutter { fraction: 0.3, scale: 2.0 };
-        let points = (0..r)
-            .map(|i| {
-                let mut pts = Vec::new();
-                while pts.len() < per_row {
-                    let mut cand = Vec::new();
-                    model.sample_with_clutter(store, &ctxs[i], ps[i], 1, clutter, &mut rng, &mut cand);
-                    if clear_of_kinks(model, store, &ctxs[i], ps[i], cand[0], 0.03) {
-                        pts.push(cand[0]);
-                    }
+    r: usize,
+    per_row: usize,
+    seed: u64,
+) -> Rows<[f64; 2]> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let ps = poses(r, &mut rng);
+    let ctxs: Vec<ObsContext> = (0..r)
+        .map(|i| {
+            ObsContext::new(
+                Pose { x: -15.0 + i as f64, y: 8.0, yaw: 0.3 },
+                rng.random_range(3.5..5.0),
+                rng.random_range(1.6..2.1),
+            )
+        })
+        .collect();
+    let clutter = Clutter { fraction: 0.3, scale: 2.0 };
+    let points = (0..r)
+        .map(|i| {
+            let mut pts = Vec::new();
+            while pts.len() < per_row {
+                let mut cand = Vec::new();
+                model.sample_with_clutter(store, &ctxs[i], ps[i], 1, clutter, &mut rng, &mut cand);
+                if clear_of_kinks(model, store, &ctxs[i], ps[i], cand[0], 0.03) {
+                    pts.push(cand[0]);
                 }
-                pts
-            })
-            .collect();
-        let av = ctxs.iter().map(|c| c.av).collect();
-        Rows { poses: ps, ctxs, av, points }
-    }
-
-    fn items(&self) -> Vec<&[[f64; 2]]> {
-        self.points.iter().map(|p| p.as_slice()).collect()
-    }
-
-    /// `x, y, yaw, length, width` as tensors of shape `[R]`.
-    fn inputs(&self) -> Vec<Tensor<f64>> {
-        let c = |f: &dyn Fn(usize) -> f64| Tensor::from_vec((0..self.poses.len()).map(f).collect());
-        vec![
-            c(&|i| self.poses[i].x),
-            c(&|i| self.poses[i].y),
-            c(&|i| self.poses[i].yaw),
-            c(&|i| self.ctxs[i].length),
-            c(&|i| self.ctxs[i].width),
-        ]
-    }
+            }
+            pts
+        })
+        .collect();
+    let av = ctxs.iter().map(|c| c.av).collect();
+    Rows { poses: ps, ctxs, av, items: points }
 }
 
 /// `log_likelihood_rows_with_clutter` on an f64 tape with constant rows and clutter.
@@ -268,8 +202,8 @@ fn weighted<'t>(tape: &'t Tape<f64>, weights: &Tensor<f64>, out: Var<'t, f64>) -
 #[test]
 fn tape_gradients_match_finite_differences() {
     let (model, store) = model(7);
-    let b = Rows::new(&model, &store, 3, 7, 8);
-    let items = b.items();
+    let b = clutter_rows(&model, &store, 3, 7, 8);
+    let items = b.item_slices();
     let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3]);
     // A clutter broad enough that both components share most points.
     let (lambda, sigma) = (-0.8, 2f64.ln());

@@ -4,9 +4,12 @@
 //! engine ops, gradients against finite differences (parameters, states, extents),
 //! finiteness at extreme inputs, normalisation, and the sampler against the density.
 
+mod common;
+
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
+use common::{assert_tape_rows_match_plain, clear_of_kinks, ctx, model, poses, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
@@ -18,16 +21,6 @@ use ssm::observation::{
 };
 
 const SOFT: f64 = 0.05;
-
-fn model(seed: u64) -> (PointObservationModel, ParamStore<f64>) {
-    let mut store = ParamStore::new();
-    let m = PointObservationModel::init_params(&mut store, "obs", &mut StdRng::seed_from_u64(seed));
-    (m, store)
-}
-
-fn ctx() -> ObsContext {
-    ObsContext::new(Pose { x: -15.0, y: 8.0, yaw: 0.3 }, 4.4, 1.9)
-}
 
 fn lse(v: &[f64]) -> f64 {
     let m = v.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
@@ -51,17 +44,6 @@ fn reference(model: &PointObservationModel, store: &ParamStore<f64>, ctx: &ObsCo
     lse(&terms)
 }
 
-/// Poses scattered around `(0.3, -0.2, 0.4)`.
-fn poses(n: usize, rng: &mut StdRng) -> Vec<Pose> {
-    (0..n)
-        .map(|_| Pose {
-            x: 0.3 + rng.random_range(-0.5..0.5),
-            y: -0.2 + rng.random_range(-0.5..0.5),
-            yaw: 0.4 + rng.random_range(-0.3..0.3),
-        })
-        .collect()
-}
-
 /// Points from the model at `pose` plus a few anywhere within 3 m.
 fn points(
     model: &PointObservationModel,
@@ -76,14 +58,6 @@ fn points(
         pts.push([pose.x + rng.random_range(-3.0..3.0), pose.y + rng.random_range(-3.0..3.0)]);
     }
     pts
-}
-
-fn soa(poses: &[Pose]) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
-    (poses.iter().map(|p| p.x).collect(), poses.iter().map(|p| p.y).collect(), poses.iter().map(|p| p.yaw).collect())
-}
-
-fn to32(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
 }
 
 #[test]
@@ -177,51 +151,7 @@ fn plain_kernel_matches_reference_in_f64_and_f32() {
     assert_eq!(&again[..], &out[..5]);
 }
 
-/// One batch of rows: poses, contexts (varying extents), AV poses and point sets.
-struct Rows {
-    poses: Vec<Pose>,
-    ctxs: Vec<ObsContext>,
-    av: Vec<Pose>,
-    points: Vec<Vec<[f64; 2]>>,
-}
-
-impl Rows {
-    fn items(&self) -> Vec<&[[f64; 2]]> {
-        self.points.iter().map(|p| p.as_slice()).collect()
-    }
-    fn inputs(&self) -> Vec<Tensor<f64>> {
-        let c = |f: &dyn Fn(usize) -> f64| Tensor::from_vec((0..self.poses.len()).map(f).collect());
-        vec![
-            c(&|i| self.poses[i].x),
-            c(&|i| self.poses[i].y),
-            c(&|i| self.poses[i].yaw),
-            c(&|i| self.ctxs[i].length),
-            c(&|i| self.ctxs[i].width),
-        ]
-    }
-}
-
-/// Whether `p` is at least `margin` from every kink of the density at `pose`: the
-/// ends of the edges (where the soft uniform changes formula) and the Laplace modes.
-fn clear_of_kinks(
-    model: &PointObservationModel,
-    store: &ParamStore<f64>,
-    ctx: &ObsContext,
-    pose: Pose,
-    p: [f64; 2],
-    margin: f64,
-) -> bool {
-    let m = model.edge_mixture(store, ctx, pose);
-    let (u, v) = to_box_frame(pose, p);
-    let coords = edge_coords(u, v, 0.5 * ctx.length, 0.5 * ctx.width);
-    let lens = edge_lengths(ctx.length, ctx.width);
-    (0..4).all(|e| {
-        let (a, b) = coords[e];
-        a.abs() > margin && (a - lens[e]).abs() > margin && (b - m.mu[e]).abs() > margin
-    })
-}
-
-fn rows(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_row: usize, seed: u64) -> Rows {
+fn rows(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_row: usize, seed: u64) -> Rows<[f64; 2]> {
     let mut rng = StdRng::seed_from_u64(seed);
     let ps = poses(r, &mut rng);
     let ctxs: Vec<ObsContext> = (0..r)
@@ -250,47 +180,17 @@ fn rows(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_ro
         })
         .collect();
     let av = ctxs.iter().map(|c| c.av).collect();
-    Rows { poses: ps, ctxs, av, points }
+    Rows { poses: ps, ctxs, av, items: points }
 }
 
 #[test]
 fn tape_rows_match_plain_path() {
     let (model, store) = model(3);
-    let b = rows(&model, &store, 6, 9, 4);
-    let mut b = b;
-    b.points[2].clear(); // a row without observation contributes 0
-    let items = b.items();
-    let tape = Tape::<f64>::new();
-    let params = store.bind(&tape);
-    let rv = RowVars::from_poses(&tape, &b.poses, &b.ctxs);
-    let out = model.log_likelihood_rows(&params, &rv, &b.av, &items).to_tensor();
-    assert_eq!(out.shape(), &[6]);
-    let store32 = store.cast::<f32>();
-    let tape32 = Tape::<f32>::new();
-    let params32 = store32.bind(&tape32);
-    let rv32 = RowVars::from_poses(&tape32, &b.poses, &b.ctxs);
-    let out32 = model.log_likelihood_rows(&params32, &rv32, &b.av, &items).to_tensor();
-    for (r, row_items) in items.iter().enumerate() {
-        let mut plain = [0.0];
-        let (x, y, yaw) = ([b.poses[r].x], [b.poses[r].y], [b.poses[r].yaw]);
-        model.log_likelihood(
-            &store,
-            &b.ctxs[r],
-            PosesRef::new(&x, &y, &yaw),
-            row_items,
-            &mut Scratch::new(),
-            &mut plain,
-        );
-        let v = out.data()[r];
-        assert!((v - plain[0]).abs() < 1e-10 * plain[0].abs().max(1.0), "row {r}: tape {v} vs plain {}", plain[0]);
-        // f32 tape: same error budget as the plain f32 path.
-        assert!(
-            (out32.data()[r] as f64 - v).abs() <= 3e-4 * row_items.len() as f64 + 1e-6 * v.abs(),
-            "row {r}: f32 {} vs {v}",
-            out32.data()[r]
-        );
-    }
-    assert_eq!(out.data()[2], 0.0);
+    let mut b = rows(&model, &store, 6, 9, 4);
+    b.items[2].clear(); // a row without observation contributes 0
+                        // f32 tape: the same error budget as the plain f32 path.
+    let out = assert_tape_rows_match_plain(&model, &store, &b, 3e-4);
+    assert_eq!(out[2], 0.0);
 }
 
 /// The same density composed from engine ops (soft uniform by `select` over its
@@ -355,7 +255,7 @@ fn composed_rows<'t>(
 fn fused_tape_matches_composed_tape() {
     let (model, store) = model(5);
     let b = rows(&model, &store, 4, 7, 6);
-    let items = b.items();
+    let items = b.item_slices();
     let inputs = b.inputs();
     let weights = Tensor::from_vec(vec![0.7, -1.3, 0.4, 2.0]);
     let eval = |composed: bool| {
@@ -390,7 +290,7 @@ fn fused_tape_matches_composed_tape() {
 fn tape_gradients_match_finite_differences() {
     let (model, store) = model(7);
     let b = rows(&model, &store, 3, 6, 8);
-    let items = b.items();
+    let items = b.item_slices();
     let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3]);
     // With respect to every network parameter (rows constant).
     let report = GradCheck::default()
