@@ -11,7 +11,7 @@ mod common;
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::ParamStore;
 use autodiff::{Tape, Tensor};
-use common::{assert_tape_rows_match_plain, Rows};
+use common::{assert_tape_rows_match_plain, poses, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};
@@ -72,16 +72,6 @@ fn reference(
     let (a, x, y) = offsets(c, pose, d);
     let wrapped: f64 = (-100..=100).map(|k| laplace(y + TAU * k as f64, p.mu_yaw, p.b_yaw).exp()).sum();
     laplace(a, p.mu_along, p.b_along) + laplace(x, p.mu_across, p.b_across) + wrapped.ln()
-}
-
-fn poses(n: usize, rng: &mut StdRng) -> Vec<Pose> {
-    (0..n)
-        .map(|_| Pose {
-            x: 0.3 + rng.random_range(-0.5..0.5),
-            y: -0.2 + rng.random_range(-0.5..0.5),
-            yaw: 0.4 + rng.random_range(-0.3..0.3),
-        })
-        .collect()
 }
 
 fn to32(v: &[f64]) -> Vec<f32> {

@@ -10,7 +10,7 @@ mod common;
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{clear_of_kinks, ctx, model, poses, soa, to32, Rows};
+use common::{clear_of_kinks, ctx, model, poses, row_contexts, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
@@ -65,15 +65,7 @@ fn clutter_rows(
 ) -> Rows<[f64; 2]> {
     let mut rng = StdRng::seed_from_u64(seed);
     let ps = poses(r, &mut rng);
-    let ctxs: Vec<ObsContext> = (0..r)
-        .map(|i| {
-            ObsContext::new(
-                Pose { x: -15.0 + i as f64, y: 8.0, yaw: 0.3 },
-                rng.random_range(3.5..5.0),
-                rng.random_range(1.6..2.1),
-            )
-        })
-        .collect();
+    let ctxs = row_contexts(r, &mut rng);
     let clutter = Clutter { fraction: 0.3, scale: 2.0 };
     let points = (0..r)
         .map(|i| {

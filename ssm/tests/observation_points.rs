@@ -9,7 +9,7 @@ mod common;
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{assert_tape_rows_match_plain, clear_of_kinks, ctx, model, poses, soa, to32, Rows};
+use common::{assert_tape_rows_match_plain, clear_of_kinks, ctx, model, poses, row_contexts, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
@@ -154,15 +154,7 @@ fn plain_kernel_matches_reference_in_f64_and_f32() {
 fn rows(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_row: usize, seed: u64) -> Rows<[f64; 2]> {
     let mut rng = StdRng::seed_from_u64(seed);
     let ps = poses(r, &mut rng);
-    let ctxs: Vec<ObsContext> = (0..r)
-        .map(|i| {
-            ObsContext::new(
-                Pose { x: -15.0 + i as f64, y: 8.0, yaw: 0.3 },
-                rng.random_range(3.5..5.0),
-                rng.random_range(1.6..2.1),
-            )
-        })
-        .collect();
+    let ctxs = row_contexts(r, &mut rng);
     let points = (0..r)
         .map(|i| {
             let mut pts = Vec::new();

@@ -129,3 +129,16 @@ pub fn clear_of_kinks(
         a.abs() > margin && (a - lens[e]).abs() > margin && (b - m.mu[e]).abs() > margin
     })
 }
+
+/// Contexts for `r` rows: AVs along `y = 8` and car-sized extents drawn from `rng`.
+pub fn row_contexts(r: usize, rng: &mut StdRng) -> Vec<ObsContext> {
+    (0..r)
+        .map(|i| {
+            ObsContext::new(
+                Pose { x: -15.0 + i as f64, y: 8.0, yaw: 0.3 },
+                rng.random_range(3.5..5.0),
+                rng.random_range(1.6..2.1),
+            )
+        })
+        .collect()
+}
