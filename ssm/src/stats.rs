@@ -1,5 +1,32 @@
-//! Small statistical helpers shared by tests and diagnostics: the standard normal
-//! CDF and the Kolmogorov–Smirnov distance of a sample from N(0, 1).
+//! Small statistical helpers shared by the filter, tests and diagnostics: the
+//! sample mean and sd, a stable log-sum-exp, the standard normal CDF and the
+//! Kolmogorov–Smirnov distance of a sample from N(0, 1).
+
+/// Mean; NaN when empty.
+pub fn mean(xs: impl IntoIterator<Item = f64>) -> f64 {
+    let (n, sum) = xs.into_iter().fold((0usize, 0.0), |(n, s), x| (n + 1, s + x));
+    sum / n as f64
+}
+
+/// Sample standard deviation (denominator `n - 1`); NaN below 2 values.
+pub fn sd(xs: impl IntoIterator<Item = f64>) -> f64 {
+    let xs: Vec<f64> = xs.into_iter().collect();
+    if xs.len() < 2 {
+        return f64::NAN;
+    }
+    let m = mean(xs.iter().copied());
+    (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (xs.len() - 1) as f64).sqrt()
+}
+
+/// `ln sum_i exp(x_i)` in f64, stable (`-inf` for an empty or all `-inf` slice).
+#[inline]
+pub fn log_sum_exp(x: &[f64]) -> f64 {
+    let max = x.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if max == f64::NEG_INFINITY {
+        return max;
+    }
+    max + x.iter().map(|&v| (v - max).exp()).sum::<f64>().ln()
+}
 
 /// The standard normal CDF, via the Numerical Recipes `erfc` (relative error of
 /// `erfc` below 1.2e-7).

@@ -22,7 +22,7 @@ use super::{ObjectObservations, ObjectSample};
 use crate::data::{Dataset, ObservationKind, Pose};
 use crate::observation::boxes::wrap_angle;
 use crate::observation::edges::to_box_frame;
-use crate::stats::normal_cdf;
+use crate::stats::{mean, normal_cdf, sd};
 
 /// A point farther than this outside its box (m) counts as far (`far_point_fraction`).
 pub const FAR_POINT_DISTANCE: f64 = 2.5;
@@ -394,22 +394,6 @@ fn edge_distance(s: &Step, (u, v): (f64, f64)) -> f64 {
     } else {
         du.max(dv)
     }
-}
-
-/// Mean; NaN when empty.
-fn mean(xs: impl IntoIterator<Item = f64>) -> f64 {
-    let (n, sum) = xs.into_iter().fold((0usize, 0.0), |(n, s), x| (n + 1, s + x));
-    sum / n as f64
-}
-
-/// Sample standard deviation (denominator `n - 1`); NaN below 2 values.
-fn sd(xs: impl IntoIterator<Item = f64>) -> f64 {
-    let xs: Vec<f64> = xs.into_iter().collect();
-    if xs.len() < 2 {
-        return f64::NAN;
-    }
-    let m = mean(xs.iter().copied());
-    (xs.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (xs.len() - 1) as f64).sqrt()
 }
 
 /// Fraction of `true`; NaN when empty.

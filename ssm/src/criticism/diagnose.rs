@@ -21,11 +21,11 @@
 //!
 //!    Each object's likelihood is the mean of [`DiagnoseConfig::eval_runs`]
 //!    filter estimates; objects whose runs disagree get more particles
-//!    ([`refine_imprecise`]). Training and evaluation filter with a defensive
-//!    proposal for the actions ([`DiagnoseConfig::proposal`]), so that an
-//!    acceleration in a model's tail does not make its estimate collapse: the
-//!    comparison is between models, not between how well a bootstrap filter
-//!    follows them.
+//!    ([`refine_imprecise`]). The evaluation filters with a defensive proposal
+//!    for the actions ([`DiagnoseConfig::proposal`]; training too with
+//!    [`DiagnoseConfig::train_with_proposal`]), so that an acceleration in a
+//!    model's tail does not make its estimate collapse: the comparison is
+//!    between models, not between how well a bootstrap filter follows them.
 //! 6. **Re-check** the winner: the same checks on the extended model.
 //!
 //! Every training run writes its logs and checkpoints under the output
@@ -49,6 +49,7 @@ use crate::filter::{filter_object, run_filter, stream_seed, FilterConfig, Observ
 use crate::model::ParticleModel;
 use crate::objective::{ObjectiveConfig, SceneObjective};
 use crate::params::{AnyPolicy, ModelVisitor, Models};
+use crate::stats::{log_sum_exp, sd};
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
 use crate::vehicle::NeuralPolicy;
 use crate::vehicle_ssm::VehicleSsm;
@@ -470,11 +471,7 @@ pub fn diagnose_split(
 
 /// `ln((1/n) sum_i e^{x_i})`, stable.
 fn log_mean_exp(x: &[f64]) -> f64 {
-    let m = x.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if !m.is_finite() {
-        return m;
-    }
-    m + (x.iter().map(|v| (v - m).exp()).sum::<f64>() / x.len() as f64).ln()
+    log_sum_exp(x) - (x.len() as f64).ln()
 }
 
 /// How precise a model's held-out log-likelihoods are (see [`refine_imprecise`]).
@@ -490,13 +487,13 @@ pub struct EvalPrecision {
     pub max_run_sd: f64,
 }
 
-/// Sample sd of `x` (0 for fewer than two values).
-fn sample_sd(x: &[f64]) -> f64 {
+/// Sample sd of one object's runs (0 for a single run).
+fn run_sd(x: &[f64]) -> f64 {
     if x.len() < 2 {
-        return 0.0;
+        0.0
+    } else {
+        sd(x.iter().copied())
     }
-    let mean = x.iter().sum::<f64>() / x.len() as f64;
-    (x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (x.len() - 1) as f64).sqrt()
 }
 
 /// Redoes, with twice the particles each round up to `max_particles`, the runs of
@@ -521,7 +518,7 @@ fn refine_imprecise<M: ParticleModel>(
     let mut particles = filter.particles;
     let mut refined = vec![false; per_run.len()];
     loop {
-        let imprecise: Vec<usize> = (0..per_run.len()).filter(|&o| sample_sd(&per_run[o]) > tolerance).collect();
+        let imprecise: Vec<usize> = (0..per_run.len()).filter(|&o| run_sd(&per_run[o]) > tolerance).collect();
         if imprecise.is_empty() || particles.saturating_mul(2) > max_particles {
             precision.imprecise_objects = imprecise.len();
             break;
@@ -549,7 +546,7 @@ fn refine_imprecise<M: ParticleModel>(
         precision.max_particles = particles;
     }
     precision.refined_objects = refined.iter().filter(|&&r| r).count();
-    precision.max_run_sd = per_run.iter().map(|l| sample_sd(l)).fold(0.0, f64::max);
+    precision.max_run_sd = per_run.iter().map(|l| run_sd(l)).fold(0.0, f64::max);
     precision
 }
 
@@ -562,9 +559,7 @@ pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
     if d.len() < 2 {
         return (d.iter().sum::<f64>() / units, f64::INFINITY);
     }
-    let mean = d.iter().sum::<f64>() / n;
-    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean * n / units, (n * var).sqrt() / units)
+    (d.iter().sum::<f64>() / units, n.sqrt() * sd(d.iter().copied()) / units)
 }
 
 /// Training runs end at this fraction of the initial learning rate.

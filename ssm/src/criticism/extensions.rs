@@ -43,6 +43,7 @@ use crate::observation::points::Clutter;
 use crate::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
+use crate::stats::log_sum_exp;
 use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
 use crate::vehicle_ssm::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
@@ -587,14 +588,16 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// or the heavy-tailed mixture of unit variance (what [`Self::accel_innovation`]
     /// draws).
     fn accel_innovation_log_density(&self, z: f64) -> f64 {
-        let normal = |z: f64, sd: f64| -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI;
         match self.active {
             Active::HeavyTailedAccel { fraction, ratio } => {
                 let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
                 let f = fraction.clamp(FRACTION_GUARD, 1.0 - FRACTION_GUARD);
-                log_add_exp_f64((1.0 - f).ln() + normal(z, core), f.ln() + normal(z, ratio * core))
+                log_sum_exp(&[
+                    (1.0 - f).ln() + normal_log_density(z, core),
+                    f.ln() + normal_log_density(z, ratio * core),
+                ])
             }
-            _ => normal(z, 1.0),
+            _ => normal_log_density(z, 1.0),
         }
     }
 
@@ -661,13 +664,9 @@ fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
     a + (b - a).softplus()
 }
 
-/// `ln(e^a + e^b)`, stable (`-inf` if both are).
-fn log_add_exp_f64(a: f64, b: f64) -> f64 {
-    let m = a.max(b);
-    if m == f64::NEG_INFINITY {
-        return m;
-    }
-    m + ((a - m).exp() + (b - m).exp()).ln()
+/// `ln N(z; 0, sd^2)`.
+fn normal_log_density(z: f64, sd: f64) -> f64 {
+    -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI
 }
 
 /// `ln((1 - p) e^a + p e^b)` per element with `p = sigmoid(logit)` (plain).
@@ -746,7 +745,9 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             } else {
                 [self.accel_innovation(rng), rng.sample(StandardNormal)]
             };
-            innovations.push(z);
+            if wide.0 > 0.0 {
+                innovations.push(z); // for the proposal's weights
+            }
             z
         });
         let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
@@ -758,11 +759,10 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             return false;
         };
         // ln f - ln q with q = (1 - e) f + e N(0, w^2 I): -ln((1 - e) + e N(z; 0, w^2 I) / f(z)).
-        let normal = |z: f64, sd: f64| -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI;
         for (o, &[z1, z2]) in out[..n].iter_mut().zip(&scratch.innovations) {
-            let wide = normal(z1, widening) + normal(z2, widening);
-            let log_ratio = wide - self.accel_innovation_log_density(z1) - normal(z2, 1.0);
-            *o = -log_add_exp_f64((1.0 - fraction).ln(), fraction.ln() + log_ratio) as f32;
+            let wide = normal_log_density(z1, widening) + normal_log_density(z2, widening);
+            let log_ratio = wide - self.accel_innovation_log_density(z1) - normal_log_density(z2, 1.0);
+            *o = -log_sum_exp(&[(1.0 - fraction).ln(), fraction.ln() + log_ratio]) as f32;
         }
         true
     }

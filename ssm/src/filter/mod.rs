@@ -22,6 +22,7 @@
 mod moments;
 mod resample;
 
+use crate::stats::log_sum_exp;
 use std::time::{Duration, Instant};
 
 use rand::rngs::SmallRng;
@@ -406,15 +407,6 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     times.smoothing += clock.elapsed();
     summary.mean_ess = ess_sum / steps as f64;
     (summary, times)
-}
-
-/// `ln sum_i exp(x_i)` in f64 (`-inf` for an empty or all `-inf` slice).
-fn log_sum_exp(x: &[f64]) -> f64 {
-    let max = x.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if max == f64::NEG_INFINITY {
-        return max;
-    }
-    max + x.iter().map(|&v| (v - max).exp()).sum::<f64>().ln()
 }
 
 /// Pushes the weights of step `s` back along the ancestry to step `u` (scatter-adds
