@@ -844,3 +844,38 @@ impl Observer for PathRecorder {
         self.parents = Vec::new();
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lgssm::{Lgssm, LgssmTheta};
+    use crate::linear_gaussian::LgssmBatch;
+
+    /// An object whose runs disagree is re-run with more particles, until they
+    /// agree; the others keep their runs; without room to double, nothing changes.
+    #[test]
+    fn refine_imprecise_reruns_only_disagreeing_objects() {
+        let model = Lgssm::new(0.0, 1.0, LgssmTheta::new(0.9, 0.5, 0.7)).unwrap();
+        let ys: Vec<Vec<f64>> =
+            (0..3).map(|o| (0..20).map(|t| ((t * 7 + o * 3) % 11) as f64 * 0.2 - 1.0).collect()).collect();
+        let batch = LgssmBatch::new(model.clone(), ys.clone()).unwrap();
+        let filter = FilterConfig { particles: 256, lag: 0, seed: 9, ..FilterConfig::default() };
+        let fake = vec![vec![-100.0, -10.0, -50.0], vec![-5.0, -5.1, -5.05], vec![-7.0, -7.2, -7.1]];
+
+        let mut stuck = fake.clone();
+        let none = refine_imprecise(&batch, &filter, &mut stuck, 256, 2.0);
+        assert_eq!(stuck, fake, "no room to double: the runs stay");
+        assert_eq!((none.refined_objects, none.imprecise_objects, none.max_particles), (0, 1, 256));
+
+        let mut per_run = fake.clone();
+        let p = refine_imprecise(&batch, &filter, &mut per_run, 4096, 2.0);
+        assert_eq!(&per_run[1..], &fake[1..], "precise objects keep their runs");
+        assert_eq!((p.refined_objects, p.imprecise_objects), (1, 0));
+        assert!(p.max_particles >= 512 && p.max_particles <= 4096);
+        assert!(p.max_run_sd <= 2.0 && run_sd(&per_run[0]) <= 2.0);
+        let exact = model.log_likelihood(&ys[0]);
+        for ll in &per_run[0] {
+            assert!((ll - exact).abs() < 2.0, "re-run estimate {ll} vs Kalman {exact}");
+        }
+    }
+}
