@@ -207,14 +207,7 @@ fn run_once<M: ssm::estimators::DifferentiableModel>(model: &M, workload: Worklo
     let config = estimator_config(chunk);
     match workload.estimator() {
         None => {
-            let filter = FilterConfig {
-                particles: config.particles,
-                resampling: config.resampling,
-                ess_threshold: config.ess_threshold,
-                lag: LAG,
-                seed: FILTER_SEED,
-                soft_resampling: None,
-            };
+            let filter = config.filter(FILTER_SEED, LAG, None);
             let run = run_filter(model, &filter, |_| ());
             Outcome {
                 log_likelihood: run.log_likelihood(),

@@ -3,6 +3,7 @@
 //! `autodiff` and `ssm` libraries.
 
 mod birdseye;
+mod calibrate;
 mod demo;
 mod diagnose;
 mod evaluate;
@@ -79,6 +80,12 @@ enum Command {
     /// The paper's experiment C on KITTI: train every estimator on the train sequences, evaluate on val,
     /// compare with a supervised observation model.
     ExperimentC(experiment_c::ExperimentCArgs),
+    /// An estimator's mean score at given parameters over filter runs and objects, with its standard
+    /// error and z per parameter (zero within noise at the truth of generated data).
+    ScoreAt(calibrate::ScoreAtArgs),
+    /// The precision of the filter's likelihood estimate: each object's spread across runs, and the
+    /// effective sample size per step.
+    Precision(calibrate::PrecisionArgs),
     /// Model criticism: what the fitted simulation gets wrong, its cause among the catalogue's extensions,
     /// and the held-out gain of the extended model.
     Diagnose(diagnose::DiagnoseArgs),
@@ -99,6 +106,8 @@ fn main() -> ExitCode {
         Command::ScoreCheck(args) => score_check::run(&args),
         Command::ExperimentC(args) => experiment_c::run(&args),
         Command::Diagnose(args) => diagnose::run(&args),
+        Command::ScoreAt(args) => calibrate::run_score_at(&args),
+        Command::Precision(args) => calibrate::run_precision(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -356,6 +356,16 @@ impl Lgssm {
         }
     }
 
+    /// Particles of the prior from standard-normal noise: `x = m0 + sqrt(P0) z`.
+    #[track_caller]
+    pub fn prior_from_noise<F: Float>(&self, noise: &[F], out: &mut [F]) {
+        assert_eq!(noise.len(), out.len(), "Lgssm::prior_from_noise: lengths differ");
+        let sd = self.p0.sqrt();
+        for (x, &z) in out.iter_mut().zip(noise) {
+            *x = F::from_f64(self.m0 + sd * z.to_f64());
+        }
+    }
+
     /// `out[i] = log N(xs[i]; m0, P0)`.
     #[track_caller]
     pub fn prior_log_density<F: Float>(&self, xs: &[F], out: &mut [F]) {

@@ -7,6 +7,7 @@
 //! (surrogate on the tape) -> gradients -> optimiser -> parameters.
 #![deny(missing_docs)]
 
+pub mod calibration;
 pub mod criticism;
 pub mod data;
 pub mod estimators;

@@ -11,7 +11,7 @@ use rand_distr::StandardNormal;
 
 use crate::estimators::{Block, DifferentiableModel};
 use crate::lgssm::{Lgssm, ThetaVars};
-use crate::model::ParticleModel;
+use crate::model::{NoiseDims, ParticleModel};
 
 /// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
 pub const THETA_PARAM: &str = "theta";
@@ -87,6 +87,31 @@ impl ParticleModel for LgssmBatch {
         }
         next.copy_from_slice(prev);
         self.model.propagate_with_noise(actions, next);
+    }
+
+    /// `x_0 = m_0 + sqrt(P_0) z` and `x_t = phi x_{t-1} + s_v z`.
+    fn noise_dims(&self) -> Option<NoiseDims> {
+        Some(NoiseDims { prior: 1, transition: 1 })
+    }
+
+    fn prior_from_noise(&self, _object: usize, _n: usize, noise: &[f32], states: &mut [f32]) {
+        self.model.prior_from_noise(noise, states);
+    }
+
+    fn propagate_from_noise(
+        &self,
+        _object: usize,
+        _t: usize,
+        _n: usize,
+        prev: &[f32],
+        noise: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        _scratch: &mut (),
+    ) {
+        actions.copy_from_slice(noise);
+        next.copy_from_slice(prev);
+        self.model.propagate_with_noise(noise, next);
     }
 
     fn observation_loglik(

@@ -9,6 +9,16 @@
 
 use rand::rngs::SmallRng;
 
+/// Dimensions of the standard-normal noise that drives a model's draws (see
+/// [`ParticleModel::noise_dims`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NoiseDims {
+    /// Noise per particle of the initial state `x_0`.
+    pub prior: usize,
+    /// Noise per particle of one transition.
+    pub transition: usize,
+}
+
 /// A batch of objects whose states a particle filter can track.
 pub trait ParticleModel: Sync {
     /// Per-thread working memory (buffers, a non-recording tape), created once per
@@ -63,6 +73,44 @@ pub trait ParticleModel: Sync {
     fn proposal_log_weights(&self, n: usize, out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
         let _ = (n, out, scratch);
         false
+    }
+
+    /// The noise-driven form of the model, if it has one: `x_0 = m_0(z_0)` and
+    /// `x_t = m_t(x_{t-1}, z_t)` with `z` standard normal of these dimensions
+    /// ([`ParticleModel::prior_from_noise`], [`ParticleModel::propagate_from_noise`]).
+    /// A filter that moves particles by MCMC within a step (the tempered filter of
+    /// [`crate::filter`]) works in this noise, where the prior and the transition are
+    /// a standard normal whatever the model. `None` (the default): no such form.
+    fn noise_dims(&self) -> Option<NoiseDims> {
+        None
+    }
+
+    /// `x_0 = m_0(z)` for `n` particles from standard-normal `noise`
+    /// (`noise_dims().prior * n`, dimension-major) into `states`: the same law as
+    /// [`ParticleModel::sample_prior`].
+    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+        let _ = (object, n, noise, states);
+        unimplemented!("prior_from_noise: this model has no noise-driven form (noise_dims is None)")
+    }
+
+    /// `x_t = m_t(x_{t-1}, z)` for `n` particles from standard-normal `noise`
+    /// (`noise_dims().transition * n`, dimension-major): writes `next` and `actions`
+    /// as [`ParticleModel::propagate`] does, with the same law (the transition,
+    /// never a proposal).
+    #[allow(clippy::too_many_arguments)]
+    fn propagate_from_noise(
+        &self,
+        object: usize,
+        t: usize,
+        n: usize,
+        prev: &[f32],
+        noise: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) {
+        let _ = (object, t, n, prev, noise, next, actions, scratch);
+        unimplemented!("propagate_from_noise: this model has no noise-driven form (noise_dims is None)")
     }
 
     /// Writes `log g(y_t | x_t^i)` for `n` particles into `out` and returns `true`, or

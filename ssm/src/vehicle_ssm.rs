@@ -10,7 +10,7 @@ use rand_distr::StandardNormal;
 
 use crate::data::{Dataset, Pose};
 use crate::estimators::{block_rows, Block, DifferentiableModel};
-use crate::model::ParticleModel;
+use crate::model::{NoiseDims, ParticleModel};
 use crate::observation::{ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::vehicle::motion::MotionModel;
 use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
@@ -159,6 +159,32 @@ impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
     }
 }
 
+impl<P: GaussianPolicy, O: ObservationModel> VehicleSsm<'_, P, O> {
+    /// `x_t` from `x_{t-1}` (`prev`) by the actions `a = mu + L eps` of the policy
+    /// at `prev`, with given standardised innovations `eps` (the acceleration's may
+    /// come from a heavier-tailed law): writes `next` and `actions`.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn propagate_with_innovations(
+        &self,
+        n: usize,
+        prev: &[f32],
+        eps_accel: &[f32],
+        eps_pinch: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        scratch: &mut VehicleScratch,
+    ) {
+        let from = states_ref(prev, n);
+        let g = &mut scratch.gaussians;
+        g.resize(n);
+        self.policy.gaussians(from.v, from.kappa, g);
+        let (accel, pinch) = actions.split_at_mut(n);
+        g.actions_from_noise(eps_accel, eps_pinch, ActionsMut { accel, pinch: &mut pinch[..n] });
+        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
+        self.motion.propagate(from, acts, states_mut(next, n));
+    }
+}
+
 pub(crate) fn states_ref(s: &[f32], n: usize) -> StatesRef<'_, f32> {
     StatesRef { x: &s[..n], y: &s[n..2 * n], yaw: &s[2 * n..3 * n], v: &s[3 * n..4 * n], kappa: &s[4 * n..5 * n] }
 }
@@ -227,6 +253,36 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
         g.sample(rng, ActionsMut { accel, pinch: &mut pinch[..n] });
         let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
         self.motion.propagate(from, acts, states_mut(next, n));
+    }
+
+    /// `x_0 = mu_0 + sd_0 z` per component; the action `a = mu + L z` of the policy.
+    fn noise_dims(&self) -> Option<NoiseDims> {
+        Some(NoiseDims { prior: STATE_DIM, transition: ACTION_DIM })
+    }
+
+    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+        let prior = self.data.objects()[object].prior;
+        let (mean, sd) = (prior.mean.to_array(), prior.sd.to_array());
+        for k in 0..STATE_DIM {
+            let z = &noise[k * n..(k + 1) * n];
+            for (x, &z) in states[k * n..(k + 1) * n].iter_mut().zip(z) {
+                *x = (mean[k] + sd[k] * z as f64) as f32;
+            }
+        }
+    }
+
+    fn propagate_from_noise(
+        &self,
+        _object: usize,
+        _t: usize,
+        n: usize,
+        prev: &[f32],
+        noise: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        scratch: &mut VehicleScratch,
+    ) {
+        self.propagate_with_innovations(n, prev, &noise[..n], &noise[n..2 * n], next, actions, scratch);
     }
 
     fn observation_loglik(

@@ -40,16 +40,9 @@ fn config(n: usize, precision: Precision) -> EstimatorConfig {
     EstimatorConfig { particles: n, precision, chunk_objects: 2, ..EstimatorConfig::default() }
 }
 
-/// The filter settings an estimator uses (`EstimatorConfig::filter` is crate-private).
+/// The filter settings an estimator uses.
 fn filter_config(cfg: &EstimatorConfig, seed: u64, lag: usize, soft: Option<f64>) -> FilterConfig {
-    FilterConfig {
-        particles: cfg.particles,
-        resampling: cfg.resampling,
-        ess_threshold: cfg.ess_threshold,
-        lag,
-        seed,
-        soft_resampling: soft,
-    }
+    cfg.filter(seed, lag, soft)
 }
 
 /// Every step of one object's filter, as the filter handed it over.

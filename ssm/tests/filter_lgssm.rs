@@ -24,7 +24,7 @@ fn replicated(ys: &[f64], objects: usize) -> LgssmBatch {
 }
 
 fn config(n: usize, lag: usize, resampling: Resampling, ess: Option<f64>) -> FilterConfig {
-    FilterConfig { particles: n, resampling, ess_threshold: ess, lag, seed: 17, soft_resampling: None }
+    FilterConfig { particles: n, resampling, ess_threshold: ess, lag, seed: 17, soft_resampling: None, tempering: None }
 }
 
 /// mean of exp(l_hat - l) over runs and its standard error.

@@ -37,13 +37,13 @@ use serde::{Deserialize, Serialize};
 use super::{lagged_pose, ObjectObservations};
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
 use crate::estimators::{Block, DifferentiableModel};
-use crate::model::ParticleModel;
+use crate::model::{NoiseDims, ParticleModel};
 use crate::observation::boxes::wrap_angle;
 use crate::observation::points::Clutter;
 use crate::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
-use crate::stats::log_sum_exp;
+use crate::stats::{log_sum_exp, normal_cdf};
 use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
 use crate::vehicle_ssm::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
@@ -475,6 +475,8 @@ pub struct ExtendedScratch<I> {
     reversed: Vec<I>,
     /// Standardised acceleration innovations of the last `propagate`.
     innovations: Vec<[f64; 2]>,
+    /// Standardised acceleration innovations built from noise (heavy tails).
+    accel_eps: Vec<f32>,
 }
 
 impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P, O> {
@@ -689,6 +691,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             other: Vec::new(),
             reversed: Vec::new(),
             innovations: Vec::new(),
+            accel_eps: Vec::new(),
         }
     }
 
@@ -714,6 +717,46 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
 
     fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
         self.base.sample_prior(object, n, rng, states)
+    }
+
+    /// The base model's noise; heavy-tailed accelerations add a third transition
+    /// component whose normal CDF picks the mixture's wide component. The noise
+    /// form draws from the transition: a defensive proposal does not apply to it.
+    fn noise_dims(&self) -> Option<NoiseDims> {
+        let base = self.base.noise_dims()?;
+        let extra = usize::from(matches!(self.active, Active::HeavyTailedAccel { .. }));
+        Some(NoiseDims { prior: base.prior, transition: base.transition + extra })
+    }
+
+    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+        self.base.prior_from_noise(object, n, noise, states)
+    }
+
+    fn propagate_from_noise(
+        &self,
+        object: usize,
+        t: usize,
+        n: usize,
+        prev: &[f32],
+        noise: &[f32],
+        next: &mut [f32],
+        actions: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) {
+        let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
+            return self.base.propagate_from_noise(object, t, n, prev, noise, next, actions, &mut scratch.base);
+        };
+        let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
+        let (narrow, wide) = (core as f32, (ratio * core) as f32);
+        let (z_accel, rest) = noise.split_at(n);
+        let (z_pinch, z_pick) = rest.split_at(n);
+        let eps = &mut scratch.accel_eps;
+        eps.clear();
+        eps.extend(z_accel.iter().zip(&z_pick[..n]).map(|(&z, &pick)| {
+            let scale = if normal_cdf(pick as f64) < fraction { wide } else { narrow };
+            scale * z
+        }));
+        self.base.propagate_with_innovations(n, prev, eps, &z_pinch[..n], next, actions, &mut scratch.base);
     }
 
     fn propagate(

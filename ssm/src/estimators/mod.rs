@@ -29,7 +29,7 @@ pub mod study;
 use autodiff::{Float, Tape, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
-use crate::filter::{FilterConfig, Resampling};
+use crate::filter::{FilterConfig, Resampling, Tempering};
 use crate::model::ParticleModel;
 
 pub use replay::{ThroughFilter, ThroughFilterKind};
@@ -129,6 +129,11 @@ pub struct EstimatorConfig {
     pub chunk_objects: usize,
     /// Tape precision.
     pub precision: Precision,
+    /// The tempered filter's settings for PF-SEFI ([`crate::filter::Tempering`]);
+    /// `None` is the bootstrap filter, which the through-filter baselines need
+    /// (they replay it on a tape).
+    #[serde(default)]
+    pub tempering: Option<Tempering>,
 }
 
 impl Default for EstimatorConfig {
@@ -139,13 +144,14 @@ impl Default for EstimatorConfig {
             ess_threshold: None,
             chunk_objects: 4,
             precision: Precision::F32,
+            tempering: None,
         }
     }
 }
 
 impl EstimatorConfig {
     /// The filter settings for `seed`, lag `lag` and optional soft resampling.
-    pub(crate) fn filter(&self, seed: u64, lag: usize, soft_resampling: Option<f64>) -> FilterConfig {
+    pub fn filter(&self, seed: u64, lag: usize, soft_resampling: Option<f64>) -> FilterConfig {
         FilterConfig {
             particles: self.particles,
             resampling: self.resampling,
@@ -153,6 +159,7 @@ impl EstimatorConfig {
             lag,
             seed,
             soft_resampling,
+            tempering: self.tempering,
         }
     }
 }

@@ -106,6 +106,11 @@ impl ThroughFilter {
         };
         // The replay needs every step: the lag only sizes the filter's ring.
         let filter = config.filter(seed, 0, soft);
+        assert!(
+            filter.tempering.is_none(),
+            "{}: the through-filter baselines replay the bootstrap filter; tempering is for PF-SEFI",
+            self.name()
+        );
         let objects: Vec<usize> = (0..model.num_objects()).collect();
         let chunks: Vec<&[usize]> = objects.chunks(config.chunk_objects.max(1)).collect();
         let per_chunk: Vec<(Vec<ObjectSummary>, Vec<Tensor<F>>)> = chunks

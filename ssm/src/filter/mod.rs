@@ -21,6 +21,7 @@
 
 mod moments;
 mod resample;
+mod tempering;
 
 use crate::stats::log_sum_exp;
 use std::time::{Duration, Instant};
@@ -32,6 +33,8 @@ use serde::{Deserialize, Serialize};
 
 pub use moments::Moments;
 pub use resample::{effective_sample_size, Resampling};
+pub use tempering::Tempering;
+use tempering::{reweight, StepParticles, Temperer};
 
 use crate::model::ParticleModel;
 
@@ -54,6 +57,11 @@ pub struct FilterConfig {
     /// `W^a / q^a`, normalised. `None` is ordinary resampling.
     #[serde(default)]
     pub soft_resampling: Option<f64>,
+    /// Tempering within a step with MCMC moves ([`Tempering`]) for sharp
+    /// observations; `None` is the bootstrap filter. Needs a model with a
+    /// noise-driven form; not with soft resampling.
+    #[serde(default)]
+    pub tempering: Option<Tempering>,
 }
 
 impl Default for FilterConfig {
@@ -65,6 +73,7 @@ impl Default for FilterConfig {
             lag: 8,
             seed: 0,
             soft_resampling: None,
+            tempering: None,
         }
     }
 }
@@ -137,6 +146,21 @@ pub struct ObjectSummary {
     pub min_ess: f64,
     /// Mean effective sample size after weighting.
     pub mean_ess: f64,
+    /// Intermediate stages of the tempered filter (0 for the bootstrap filter, and
+    /// for steps it took in one go).
+    #[serde(default)]
+    pub tempering_stages: usize,
+    /// Metropolis moves proposed by the tempered filter.
+    #[serde(default)]
+    pub moves_proposed: usize,
+    /// Metropolis moves accepted.
+    #[serde(default)]
+    pub moves_accepted: usize,
+    /// Evaluations of the observation log-likelihood of all `N` particles: one per
+    /// observed step for the bootstrap filter; the tempered filter's cost beyond
+    /// that is in its extra evaluations.
+    #[serde(default)]
+    pub likelihood_evaluations: usize,
 }
 
 /// Time spent in each phase, summed over objects (and so over threads).
@@ -270,9 +294,10 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
 
     let uniform = -(n as f64).ln();
     let mut log_w = vec![uniform; n]; // normalised log-weights
-    let mut log_w_before = vec![uniform; n];
+    let mut soft_log_w = vec![uniform; n];
     let mut weights = vec![1.0 / n as f64; n];
     let mut loglik = vec![0.0f32; n];
+    let mut log_lik64 = Vec::with_capacity(n);
     let mut gathered = vec![0.0f32; d * n];
     let mut ancestors: Vec<usize> = (0..n).collect();
     let mut resample_scratch = Vec::with_capacity(n);
@@ -280,13 +305,21 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let mut ess_sum = 0.0;
     let mut soft_q = Vec::with_capacity(if config.soft_resampling.is_some() { n } else { 0 });
     let mut resampled = false;
+    assert!(
+        config.tempering.is_none() || config.soft_resampling.is_none(),
+        "filter: tempering and soft resampling do not combine (soft resampling is PFNET's, a through-filter baseline)"
+    );
+    let mut temperer = config.tempering.map(|c| Temperer::new(model, c));
 
     for t in 0..steps {
         let slot = ring.slot(t);
         let mut proposed = false;
         let clock = Instant::now();
         if t == 0 {
-            model.sample_prior(object, n, &mut rng, &mut ring.states[slot]);
+            match &mut temperer {
+                Some(tm) => tm.draw(model, object, 0, n, &[], &mut ring.states[slot], &mut [], &mut rng, scratch),
+                None => model.sample_prior(object, n, &mut rng, &mut ring.states[slot]),
+            }
             times.propagate += clock.elapsed();
         } else {
             let prev = ring.slot(t - 1);
@@ -300,11 +333,11 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 soft_q.clear();
                 soft_q.extend(weights.iter().map(|&w| alpha * w + floor));
                 config.resampling.draw(&soft_q, &mut rng, &mut ancestors, &mut resample_scratch);
-                for (lw, &p) in log_w_before.iter_mut().zip(&ancestors) {
+                for (lw, &p) in soft_log_w.iter_mut().zip(&ancestors) {
                     *lw = log_w[p] - soft_q[p].ln();
                 }
-                let lse = log_sum_exp(&log_w_before);
-                log_w.iter_mut().zip(&log_w_before).for_each(|(lw, &b)| *lw = b - lse);
+                let lse = log_sum_exp(&soft_log_w);
+                log_w.iter_mut().zip(&soft_log_w).for_each(|(lw, &b)| *lw = b - lse);
                 summary.resampled_steps += 1;
             } else if resample_now {
                 config.resampling.draw(&weights, &mut rng, &mut ancestors, &mut resample_scratch);
@@ -324,8 +357,12 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             let mid = Instant::now();
             times.resample += mid - clock;
             let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
-            model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
-            if model.proposal_log_weights(n, &mut loglik, scratch) {
+            if let Some(tm) = &mut temperer {
+                tm.draw(model, object, t, n, &gathered, states, actions, &mut rng, scratch);
+            } else {
+                model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
+            }
+            if temperer.is_none() && model.proposal_log_weights(n, &mut loglik, scratch) {
                 // Drawn from a proposal: weight by transition over proposal. The
                 // weights' sum then estimates 1 and enters the likelihood below.
                 for (lw, &c) in log_w.iter_mut().zip(&loglik) {
@@ -336,30 +373,49 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             times.propagate += mid.elapsed();
         }
 
-        // Weight by the observation (if any).
+        // Weight by the observation (if any): in one go, or through tempered stages.
         let clock = Instant::now();
-        let mut observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
+        let (mut observed, increment) = match &mut temperer {
+            Some(tm) => {
+                let particles = StepParticles {
+                    states: &mut ring.states[slot],
+                    actions: &mut ring.actions[slot],
+                    parents: &mut ring.parents[slot],
+                    parent_states: &mut gathered,
+                };
+                let w = tm.weigh(model, object, t, n, particles, &mut log_w, config.resampling, &mut rng, scratch);
+                summary.tempering_stages += w.stages;
+                summary.moves_proposed += w.proposed;
+                summary.moves_accepted += w.accepted;
+                summary.likelihood_evaluations += if w.observed { w.evaluations } else { 0 };
+                (w.observed, w.increment)
+            }
+            None => {
+                let observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
+                let mut increment = None;
+                if observed {
+                    summary.likelihood_evaluations += 1;
+                    log_lik64.clear();
+                    log_lik64.extend(loglik.iter().map(|&l| if l.is_nan() { f64::NEG_INFINITY } else { l as f64 }));
+                    increment = reweight(&mut log_w, &log_lik64, 1.0);
+                }
+                (observed, increment)
+            }
+        };
         let mid = Instant::now();
         times.likelihood += mid - clock;
         if observed {
-            log_w_before.copy_from_slice(&log_w);
-            let mut max = f64::NEG_INFINITY;
-            for (lw, &l) in log_w.iter_mut().zip(&loglik) {
-                let l = l as f64;
-                *lw += if l.is_nan() { f64::NEG_INFINITY } else { l };
-                max = max.max(*lw);
-            }
-            if max == f64::NEG_INFINITY || max.is_nan() {
-                // Every particle impossible: keep the previous weights, skip this observation.
-                summary.collapsed_steps += 1;
-                log_w.copy_from_slice(&log_w_before);
-                observed = false;
-            } else {
-                let total: f64 = log_w.iter().map(|&lw| (lw - max).exp()).sum();
-                let lse = max + total.ln();
-                summary.log_likelihood += lse;
-                summary.observed_units += model.observation_count(object, t);
-                log_w.iter_mut().for_each(|lw| *lw -= lse);
+            match increment {
+                Some(lse) => {
+                    summary.log_likelihood += lse;
+                    summary.observed_units += model.observation_count(object, t);
+                }
+                None => {
+                    // Every particle impossible: the previous weights are kept and
+                    // this observation is skipped.
+                    summary.collapsed_steps += 1;
+                    observed = false;
+                }
             }
         }
         if proposed && !observed {

@@ -1,0 +1,293 @@
+//! Calibration at given parameters: is an estimator's score centred where it
+//! must be, and how precise is the filter's likelihood estimate?
+//!
+//! * [`score_at`]: at the true parameters of data generated from the model the
+//!   expected score is zero (for every object, whatever its observations), so
+//!   the mean of an estimator's score over filter runs and objects, with its
+//!   standard error, measures the estimator's bias there. Each object's score is
+//!   averaged over the runs first and the spread is taken over objects, which are
+//!   independent, so the standard error counts the data's variability as well as
+//!   the filter's.
+//! * [`likelihood_precision`]: the spread of one object's log-likelihood estimate
+//!   across filter runs and the effective sample size per step.
+//!
+//! Both read the models from a parameter store the way training does
+//! ([`crate::params::Models`]).
+
+use std::time::Instant;
+
+use autodiff::nn::ParamStore;
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::criticism::extensions::ExtensibleObservation;
+use crate::data::Dataset;
+use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimator};
+use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
+use crate::model::ParticleModel;
+use crate::objective::gradient_in_store_order;
+use crate::params::{AnyPolicy, ModelVisitor, Models};
+use crate::stats::normal_cdf;
+use crate::vehicle_ssm::VehicleSsm;
+
+/// One entry of a parameter tensor's mean score.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EntryScore {
+    /// Mean over objects of the per-object score (each averaged over runs).
+    pub mean: f64,
+    /// Its standard error (sd over objects / sqrt(objects)).
+    pub se: f64,
+    /// `mean / se`.
+    pub z: f64,
+    /// The sd over objects of the per-object score: what one object's estimate spreads by.
+    pub sd: f64,
+}
+
+/// A parameter tensor's mean score.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct TensorScore {
+    /// The tensor's name in the store.
+    pub name: String,
+    /// One per entry.
+    pub entries: Vec<EntryScore>,
+    /// The largest `|z|` over the entries.
+    pub max_abs_z: f64,
+    /// Two-sided p-value of `max_abs_z`, Bonferroni-corrected over the entries.
+    pub p: f64,
+}
+
+/// The mean score at given parameters.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ScoreAt {
+    /// The estimator's name.
+    pub estimator: String,
+    /// Objects (the units of the standard error).
+    pub objects: usize,
+    /// Filter runs per object.
+    pub runs: usize,
+    /// Per tensor, in store order.
+    pub tensors: Vec<TensorScore>,
+    /// Steps at which every particle of an object was impossible, summed.
+    pub collapsed_steps: usize,
+    /// Wall-clock seconds.
+    pub seconds: f64,
+}
+
+struct ObjectScore<'a> {
+    estimator: &'a Estimator,
+    config: &'a EstimatorConfig,
+    runs: usize,
+    seed: u64,
+}
+
+impl ModelVisitor for ObjectScore<'_> {
+    type Output = (Vec<autodiff::Tensor<f64>>, Vec<String>, usize);
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let mut sum: Option<Vec<autodiff::Tensor<f64>>> = None;
+        let mut collapsed = 0;
+        for r in 0..self.runs {
+            let e = self.estimator.estimate(model, self.config, self.seed.wrapping_add(r as u64));
+            collapsed += e.collapsed_steps;
+            match &mut sum {
+                None => sum = Some(e.gradient),
+                Some(s) => {
+                    for (a, g) in s.iter_mut().zip(&e.gradient) {
+                        a.data_mut().iter_mut().zip(g.data()).for_each(|(x, y)| *x += y);
+                    }
+                }
+            }
+        }
+        let mut mean = sum.expect("at least one run");
+        for t in &mut mean {
+            t.data_mut().iter_mut().for_each(|x| *x /= self.runs as f64);
+        }
+        (mean, model.parameter_names(), collapsed)
+    }
+}
+
+/// The mean of `estimator`'s score over `runs` filter runs (seeds `seed..`) of
+/// every object of `data` under the models of `params`, per parameter tensor.
+/// `progress` is called once per object done.
+pub fn score_at(
+    data: &Dataset,
+    params: &ParamStore<f64>,
+    estimator: &Estimator,
+    config: &EstimatorConfig,
+    runs: usize,
+    seed: u64,
+    progress: &(dyn Fn() + Sync),
+) -> Result<ScoreAt, String> {
+    if runs == 0 {
+        return Err("score_at: need at least one run".into());
+    }
+    let objects = data.objects().len();
+    if objects < 2 {
+        return Err("score_at: need at least two objects for a standard error".into());
+    }
+    let models = Models::from_store(params, data.kind()).map_err(|e| e.to_string())?;
+    let clock = Instant::now();
+    let per_object: Vec<Result<(Vec<autodiff::Tensor<f64>>, usize), String>> = (0..objects)
+        .into_par_iter()
+        .map(|o| {
+            let one = data.select_objects(&[o]);
+            let visit = ObjectScore { estimator, config, runs, seed };
+            let (gradient, names, collapsed) = models.visit(&one, visit)?;
+            progress();
+            Ok((gradient_in_store_order(params, &names, gradient)?, collapsed))
+        })
+        .collect();
+    let per_object: Vec<(Vec<autodiff::Tensor<f64>>, usize)> = per_object.into_iter().collect::<Result<_, _>>()?;
+    let collapsed_steps = per_object.iter().map(|p| p.1).sum();
+    let tensors = params
+        .iter()
+        .enumerate()
+        .map(|(i, (name, value))| {
+            let entries: Vec<EntryScore> = (0..value.data().len())
+                .map(|j| {
+                    let xs: Vec<f64> = per_object.iter().map(|p| p.0[i].data()[j]).collect();
+                    let (mean, sd) = (crate::stats::mean(xs.iter().copied()), crate::stats::sd(xs.iter().copied()));
+                    let se = sd / (objects as f64).sqrt();
+                    EntryScore { mean, se, z: if se > 0.0 { mean / se } else { 0.0 }, sd }
+                })
+                .collect();
+            let max_abs_z = entries.iter().map(|e| e.z.abs()).fold(0.0, f64::max);
+            let p = (2.0 * (1.0 - normal_cdf(max_abs_z)) * entries.len() as f64).min(1.0);
+            TensorScore { name: name.to_string(), entries, max_abs_z, p }
+        })
+        .collect();
+    Ok(ScoreAt {
+        estimator: crate::estimators::study::label(estimator),
+        objects,
+        runs,
+        tensors,
+        collapsed_steps,
+        seconds: clock.elapsed().as_secs_f64(),
+    })
+}
+
+/// How precise a filter's likelihood estimate is on a dataset.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct LikelihoodPrecision {
+    /// Particles per object.
+    pub particles: usize,
+    /// Runs per object.
+    pub runs: usize,
+    /// Per object, the sd of `l_hat` over the runs (nats).
+    pub object_sd: Vec<f64>,
+    /// Median of `object_sd`.
+    pub median_sd: f64,
+    /// 95th percentile of `object_sd`.
+    pub p95_sd: f64,
+    /// Per step, the ESS after weighting averaged over objects and runs, as a
+    /// fraction of `N`.
+    pub ess_per_step: Vec<f64>,
+    /// Per step, the smallest ESS fraction over objects and runs.
+    pub min_ess_per_step: Vec<f64>,
+    /// Observation likelihood evaluations of all `N` particles per observed
+    /// object-step (1 for the bootstrap filter): the relative cost.
+    pub evaluations_per_step: f64,
+    /// Mean `l_hat` per observed unit over objects and runs.
+    pub mll: f64,
+    /// Collapsed steps, summed over runs.
+    pub collapsed_steps: usize,
+    /// Wall-clock seconds per run.
+    pub seconds_per_run: f64,
+}
+
+/// Records the ESS fraction of every step.
+#[derive(Default)]
+struct EssRecorder(Vec<f64>);
+
+impl Observer for EssRecorder {
+    fn step(&mut self, view: &StepView<'_>) {
+        let w: Vec<f64> = view.log_weights.iter().map(|l| l.exp()).collect();
+        self.0.push(effective_sample_size(&w) / view.n as f64);
+    }
+}
+
+struct Precision<'a> {
+    config: &'a FilterConfig,
+    runs: usize,
+}
+
+/// What one filter run of every object measured.
+struct RunRecord {
+    log_likelihood: Vec<f64>,
+    ess: Vec<Vec<f64>>,
+    collapsed: usize,
+    evaluations: usize,
+    observed_steps: usize,
+    observed_units: usize,
+    seconds: f64,
+}
+
+impl ModelVisitor for Precision<'_> {
+    type Output = Vec<RunRecord>;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        (0..self.runs)
+            .map(|r| {
+                let config = FilterConfig { seed: self.config.seed.wrapping_add(r as u64), ..self.config.clone() };
+                let clock = Instant::now();
+                let run = run_filter(model, &config, |_| EssRecorder::default());
+                let seconds = clock.elapsed().as_secs_f64();
+                let observed_steps = (0..model.num_objects())
+                    .map(|o| (0..model.num_steps()).filter(|&t| model.observation_count(o, t) > 0).count())
+                    .sum();
+                RunRecord {
+                    log_likelihood: run.objects.iter().map(|o| o.log_likelihood).collect(),
+                    evaluations: run.objects.iter().map(|o| o.likelihood_evaluations).sum(),
+                    collapsed: run.collapsed_steps(),
+                    observed_units: run.observed_units(),
+                    ess: run.observers.into_iter().map(|e| e.0).collect(),
+                    observed_steps,
+                    seconds,
+                }
+            })
+            .collect()
+    }
+}
+
+/// Filters every object of `data` `runs` times (seeds `config.seed..`) under the
+/// models of `params` and measures the spread of each object's log-likelihood
+/// estimate and the ESS per step.
+pub fn likelihood_precision(
+    data: &Dataset,
+    params: &ParamStore<f64>,
+    config: &FilterConfig,
+    runs: usize,
+) -> Result<LikelihoodPrecision, String> {
+    if runs < 2 {
+        return Err("likelihood_precision: need at least two runs for a spread".into());
+    }
+    let models = Models::from_store(params, data.kind()).map_err(|e| e.to_string())?;
+    let records = models.visit(data, Precision { config, runs })?;
+    let objects = data.objects().len();
+    let object_sd: Vec<f64> =
+        (0..objects).map(|o| crate::stats::sd(records.iter().map(|r| r.log_likelihood[o]))).collect();
+    let units: usize = records.iter().map(|r| r.observed_units).sum();
+    let mll = records.iter().map(|r| r.log_likelihood.iter().sum::<f64>()).sum::<f64>() / units.max(1) as f64;
+    let steps = data.steps();
+    let at_step = |t: usize| records.iter().flat_map(move |r| r.ess.iter().map(move |e| e[t]));
+    let ess_per_step = (0..steps).map(|t| crate::stats::mean(at_step(t))).collect();
+    let min_ess_per_step = (0..steps).map(|t| at_step(t).fold(f64::INFINITY, f64::min)).collect();
+    let evaluations: usize = records.iter().map(|r| r.evaluations).sum();
+    let observed: usize = records.iter().map(|r| r.observed_steps).sum();
+    let seconds_per_run = records.iter().map(|r| r.seconds).sum::<f64>() / runs as f64;
+    let mut sorted = object_sd.clone();
+    sorted.sort_by(f64::total_cmp);
+    let quantile = |q: f64| sorted[(q * (sorted.len() - 1) as f64).round() as usize];
+    let (median_sd, p95_sd) = (quantile(0.5), quantile(0.95));
+    Ok(LikelihoodPrecision {
+        particles: config.particles,
+        runs,
+        object_sd,
+        median_sd,
+        p95_sd,
+        ess_per_step,
+        min_ess_per_step,
+        evaluations_per_step: evaluations as f64 / observed.max(1) as f64,
+        mll,
+        collapsed_steps: records.iter().map(|r| r.collapsed).sum(),
+        seconds_per_run,
+    })
+}

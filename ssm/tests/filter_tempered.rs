@@ -1,0 +1,168 @@
+//! The tempered filter against the Kalman filter on linear-Gaussian models whose
+//! observations are much sharper than the prior and the transition (the regime
+//! where a bootstrap filter degenerates): its likelihood estimate is unbiased in
+//! the exp domain and far more precise than the bootstrap filter's at the same
+//! number of likelihood evaluations, PF-SEFI on it recovers the exact score, it
+//! takes a step in one go when the observation is not sharp, and its results do
+//! not depend on the thread count.
+
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use ssm::estimators::study::score_study;
+use ssm::estimators::{Estimator, EstimatorConfig, Precision};
+use ssm::filter::{run_filter, FilterConfig, FilterRun, Tempering};
+use ssm::lgssm::{Lgssm, LgssmTheta};
+use ssm::linear_gaussian::LgssmBatch;
+
+/// A broad prior (sd 5), a transition of sd `sv` and observations of sd `sw`.
+fn sharp_model(sv: f64, sw: f64) -> Lgssm {
+    Lgssm::new(0.0, 25.0, LgssmTheta::new(0.9, sv, sw)).unwrap()
+}
+
+fn replicated(model: &Lgssm, ys: &[f64], objects: usize) -> LgssmBatch {
+    LgssmBatch::new(model.clone(), vec![ys.to_vec(); objects]).unwrap()
+}
+
+fn config(n: usize, tempering: Option<Tempering>) -> FilterConfig {
+    FilterConfig { particles: n, lag: 0, seed: 11, tempering, ..FilterConfig::default() }
+}
+
+/// `(mean, se)` of `exp(l_hat - exact)` and the sd of `l_hat` over the objects.
+fn spread<O>(run: &FilterRun<O>, exact: f64) -> (f64, f64, f64) {
+    let l: Vec<f64> = run.objects.iter().map(|o| o.log_likelihood - exact).collect();
+    let r: Vec<f64> = l.iter().map(|x| x.exp()).collect();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let sd = |v: &[f64]| {
+        let m = mean(v);
+        (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+    };
+    (mean(&r), sd(&r) / (r.len() as f64).sqrt(), sd(&l))
+}
+
+#[test]
+fn likelihood_is_unbiased_and_precise_where_the_bootstrap_filter_degenerates() {
+    // Two magnitudes of sharpness, two sequences each.
+    for (sv, sw, seed) in [(0.5, 0.02, 1), (0.3, 0.005, 2)] {
+        let model = sharp_model(sv, sw);
+        let ys = model.simulate(16, &mut StdRng::seed_from_u64(seed)).ys;
+        let exact = model.log_likelihood(&ys);
+        let data = replicated(&model, &ys, 200);
+        let tempered = run_filter(&data, &config(128, Some(Tempering::default())), |_| ());
+        let (m, se, sd) = spread(&tempered, exact);
+        // exp(l_hat) is unbiased: within 4 standard errors (plus 2% for the ratio's
+        // right tail at 200 runs).
+        assert!((m - 1.0).abs() < 4.0 * se + 0.02, "sv {sv} sw {sw}: mean ratio {m} +- {se}");
+        assert!(tempered.collapsed_steps() == 0);
+        // The bootstrap filter with as many likelihood evaluations as the tempered
+        // filter used (more particles instead of stages and moves).
+        let evals: usize = tempered.objects.iter().map(|o| o.likelihood_evaluations).sum();
+        let ratio = evals as f64 / (tempered.objects.len() * ys.len()) as f64;
+        assert!(ratio > 1.5, "the sharp prior must need stages: {ratio} evaluations per step");
+        let boot_n = (128.0 * ratio).round() as usize;
+        let boot = run_filter(&data, &config(boot_n, None), |_| ());
+        let (_, _, boot_sd) = spread(&boot, exact);
+        assert!(
+            sd < 0.5 * boot_sd,
+            "sv {sv} sw {sw}: sd of l_hat tempered (N 128) {sd} vs bootstrap (N {boot_n}) {boot_sd}"
+        );
+        let min_ess = tempered.objects.iter().map(|o| o.min_ess).fold(f64::INFINITY, f64::min);
+        assert!(min_ess > 0.25 * 128.0, "sv {sv} sw {sw}: the tempered filter's ESS fell to {min_ess}");
+    }
+}
+
+#[test]
+fn steps_the_bootstrap_filter_handles_are_taken_in_one_go() {
+    // Observations broader than the prediction: no stage is needed, and the
+    // tempered filter's estimate is the bootstrap filter's in distribution.
+    let model = Lgssm::stationary(LgssmTheta::new(0.9, 0.5, 5.0)).unwrap();
+    let ys = model.simulate(20, &mut StdRng::seed_from_u64(3)).ys;
+    let data = replicated(&model, &ys, 50);
+    let run = run_filter(&data, &config(256, Some(Tempering::default())), |_| ());
+    assert!(run.objects.iter().all(|o| o.tempering_stages == 0 && o.moves_proposed == 0));
+    assert!(run.objects.iter().all(|o| o.likelihood_evaluations == ys.len()));
+    let (m, se, _) = spread(&run, model.log_likelihood(&ys));
+    assert!((m - 1.0).abs() < 4.0 * se + 0.02, "mean ratio {m} +- {se}");
+}
+
+/// Root-mean-square errors of the filtering and fixed-lag smoothed means, in units
+/// of the exact posterior sds, and the likelihood evaluations per step.
+fn mean_errors(model: &Lgssm, ys: &[f64], cfg: &FilterConfig) -> (f64, f64, f64) {
+    use ssm::filter::Moments;
+    let (smoother, filtered) = (model.smooth(ys), model.filter(ys));
+    let run = run_filter(&replicated(model, ys, 8), cfg, |_| Moments::new(1, &[]));
+    let (mut ef, mut es, mut k) = (0.0, 0.0, 0.0);
+    for m in &run.observers {
+        for t in 0..ys.len() {
+            ef += ((m.filtered[t][0] - filtered.mean[t]) / filtered.var[t].sqrt()).powi(2);
+            es += ((m.smoothed[t][0] - smoother.mean[t]) / smoother.var[t].sqrt()).powi(2);
+            k += 1.0;
+        }
+    }
+    let evals: usize = run.objects.iter().map(|o| o.likelihood_evaluations).sum();
+    ((ef / k).sqrt(), (es / k).sqrt(), evals as f64 / k)
+}
+
+#[test]
+fn filtering_and_smoothing_means_match_kalman_and_filtering_beats_the_bootstrap_filter_at_equal_cost() {
+    let model = sharp_model(0.5, 0.02);
+    let ys = model.simulate(12, &mut StdRng::seed_from_u64(4)).ys;
+    // Lag 3 of a model this sharp is the full smoother to well within the errors.
+    let tempered = FilterConfig { lag: 3, ..config(512, Some(Tempering::default())) };
+    let (f, s, evals) = mean_errors(&model, &ys, &tempered);
+    let boot = FilterConfig { lag: 3, ..config((512.0 * evals).round() as usize, None) };
+    let (bf, bs, _) = mean_errors(&model, &ys, &boot);
+    // Measured: filtered 0.057 against 0.076 posterior sds, smoothed 0.19 against
+    // 0.17. In one dimension the bootstrap filter with eight times the particles
+    // keeps an ESS in the hundreds; the within-step resampling costs the tempered
+    // filter some path diversity at lag 3. Where the tempered filter wins is in
+    // the likelihood and in more dimensions (the vehicle model at t = 0).
+    assert!(f < 0.1 && f < bf, "filtered: tempered {f} sd, bootstrap {bf} sd");
+    assert!(s < 0.3, "smoothed: tempered {s} sd (bootstrap {bs} sd)");
+}
+
+#[test]
+fn results_do_not_depend_on_the_thread_count() {
+    let model = sharp_model(0.5, 0.02);
+    let ys = model.simulate(10, &mut StdRng::seed_from_u64(5)).ys;
+    let data = replicated(&model, &ys, 6);
+    let cfg = config(64, Some(Tempering::default()));
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| run_filter(&data, &cfg, |_| ()).objects)
+    };
+    assert_eq!(run(1), run(2));
+}
+
+#[test]
+fn pf_sefi_on_the_tempered_filter_recovers_the_exact_score_on_a_sharp_model() {
+    // Where the bootstrap filter's PF-SEFI is biased by degeneracy, the tempered
+    // filter's is within noise of the Kalman score.
+    let model = sharp_model(0.5, 0.05);
+    let ys = model.simulate(21, &mut StdRng::seed_from_u64(6)).ys;
+    let base = EstimatorConfig { particles: 256, precision: Precision::F64, ..EstimatorConfig::default() };
+    let tempered = EstimatorConfig { tempering: Some(Tempering::default()), ..base.clone() };
+    let rows = score_study(&model, &ys, &[Estimator::pf_sefi(8)], &tempered, 200, 0);
+    for r in &rows {
+        assert!(
+            r.bias.abs() <= 3.5 * r.se + 0.05 * r.sd,
+            "tempered {}: bias {} se {} sd {} (exact {})",
+            r.component,
+            r.bias,
+            r.se,
+            r.sd,
+            r.exact
+        );
+    }
+    let boot = score_study(&model, &ys, &[Estimator::pf_sefi(8)], &base, 200, 0);
+    let worst = |rows: &[ssm::estimators::study::ScoreStudyRow]| rows.iter().map(|r| r.rmse).sum::<f64>();
+    assert!(worst(&rows) < worst(&boot), "tempered RMSE {} vs bootstrap {}", worst(&rows), worst(&boot));
+}
+
+#[test]
+#[should_panic(expected = "tempering and soft resampling")]
+fn tempering_refuses_soft_resampling() {
+    let model = sharp_model(0.5, 0.02);
+    let data = replicated(&model, &[0.0, 0.1], 1);
+    let cfg = FilterConfig { soft_resampling: Some(0.8), ..config(8, Some(Tempering::default())) };
+    run_filter(&data, &cfg, |_| ());
+}
