@@ -16,7 +16,8 @@ use ssm::filter::{FilterConfig, Tempering};
 use crate::output::{ensure_dir, write_json};
 
 /// Which particle filter to run.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum FilterKind {
     /// Tempering within a step with Metropolis moves: precise when sharp
     /// observations meet a broad prediction (the default).
@@ -26,7 +27,7 @@ pub enum FilterKind {
 }
 
 /// The particle filter's settings on the command line.
-#[derive(clap::Args, Clone, Debug)]
+#[derive(clap::Args, Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FilterArgs {
     /// Particle filter: `tempered` (tempering within a step, Metropolis moves) or
     /// `bootstrap` (the paper's; the through-filter baselines always use it).
@@ -41,6 +42,11 @@ pub struct FilterArgs {
 }
 
 impl FilterArgs {
+    /// The tempering settings of `kind` with these parameters, validated.
+    pub fn tempering_of(&self, kind: FilterKind) -> Result<Option<Tempering>, String> {
+        FilterArgs { filter: kind, ..self.clone() }.tempering()
+    }
+
     /// The tempering settings (`None` for the bootstrap filter), validated.
     pub fn tempering(&self) -> Result<Option<Tempering>, String> {
         match self.filter {
@@ -69,6 +75,28 @@ impl FilterArgs {
             FilterKind::Bootstrap => "bootstrap",
         }
     }
+}
+
+/// The suffix of a table's method that trains PF-SEFI on the tempered filter.
+pub const TEMPERED_SUFFIX: &str = "-tempered";
+
+/// A table method's estimator name and training filter: `<estimator>` on the
+/// bootstrap filter (the paper's setting), `pf-sefi-tempered` on the tempered one.
+pub fn method_settings(method: &str) -> (&str, FilterKind) {
+    match method.strip_suffix(TEMPERED_SUFFIX) {
+        Some(estimator) => (estimator, FilterKind::Tempered),
+        None => (method, FilterKind::Bootstrap),
+    }
+}
+
+/// Checks a table's method name (see [`method_settings`]).
+pub fn check_method(method: &str, lag: usize, alpha: f64) -> Result<(), String> {
+    let (estimator, filter) = method_settings(method);
+    let parsed = Estimator::parse(estimator, lag, alpha)?;
+    if filter == FilterKind::Tempered && !matches!(parsed, Estimator::PfSefi(_)) {
+        return Err(format!("method `{method}`: only PF-SEFI runs on the tempered filter"));
+    }
+    Ok(())
 }
 
 /// Arguments of `sefi score-at`.

@@ -19,6 +19,7 @@ use ssm::observation::ObservationModel;
 use ssm::params::{AnyObservation, AnyPolicy, Models};
 
 use crate::birdseye;
+use crate::calibrate::FilterArgs;
 use crate::output::{ensure_dir, write_atomic, write_json};
 
 /// Arguments of `sefi eval`.
@@ -45,6 +46,8 @@ pub struct EvalArgs {
     /// Output directory (metrics.json, metrics.csv).
     #[arg(long, default_value = "out/eval")]
     pub out: PathBuf,
+    #[command(flatten)]
+    pub filter: FilterArgs,
 }
 
 /// Arguments of `sefi track`.
@@ -71,6 +74,8 @@ pub struct TrackArgs {
     /// Scene (id as in the files) drawn in the bird's-eye plot; default: the first.
     #[arg(long)]
     pub plot_scene: Option<i64>,
+    #[command(flatten)]
+    pub filter: FilterArgs,
 }
 
 /// Reads the dataset and the models of the parameter file.
@@ -139,19 +144,17 @@ fn csv_num(v: Option<f64>) -> String {
     v.map_or_else(String::new, |v| v.to_string())
 }
 
-/// The metrics of `runs` filter runs of `models` on `data` (run `r` with seed
-/// `seed + r`).
+/// The metrics of `runs` filter runs of `models` on `data` with the filter
+/// `filter` (run `r` with seed `filter.seed + r`).
 pub fn metric_runs(
     data: &Dataset,
     models: &Models,
-    particles: usize,
-    lag: usize,
-    seed: u64,
+    filter: &FilterConfig,
     runs: usize,
 ) -> Result<Vec<Metrics>, String> {
     let mut out = Vec::with_capacity(runs);
     for r in 0..runs {
-        let config = FilterConfig { particles, lag, seed: seed.wrapping_add(r as u64), ..FilterConfig::default() };
+        let config = FilterConfig { seed: filter.seed.wrapping_add(r as u64), ..filter.clone() };
         let tracks = run_track(data, models, &config)?;
         out.push(metrics_of(data, models, &tracks, &config));
     }
@@ -176,7 +179,14 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         args.lag,
         args.runs
     );
-    let runs = metric_runs(&data, &models, args.particles, args.lag, args.seed, args.runs)?;
+    let filter = FilterConfig {
+        particles: args.particles,
+        lag: args.lag,
+        seed: args.seed,
+        tempering: args.filter.tempering()?,
+        ..FilterConfig::default()
+    };
+    let runs = metric_runs(&data, &models, &filter, args.runs)?;
     let summary = metrics::summarise_runs(&runs);
 
     // Print: a value per metric, or median [q1, q3] over runs.
@@ -249,7 +259,13 @@ pub fn track(args: &TrackArgs) -> Result<(), String> {
         None => 0,
     };
     ensure_dir(&args.out)?;
-    let config = FilterConfig { particles: args.particles, lag: args.lag, seed: args.seed, ..FilterConfig::default() };
+    let config = FilterConfig {
+        particles: args.particles,
+        lag: args.lag,
+        seed: args.seed,
+        tempering: args.filter.tempering()?,
+        ..FilterConfig::default()
+    };
     eprintln!(
         "track: {} objects x {} steps ({}), {} policy, {} particles, lag {}",
         data.objects().len(),

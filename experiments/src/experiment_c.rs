@@ -57,6 +57,7 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::{Dataset, ObservationKind};
+use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
 use ssm::observation::boxes::{BOX_MIN_SCALE, BOX_MIN_YAW_SCALE};
 use ssm::observation::FitConfig;
@@ -64,6 +65,7 @@ use ssm::params::{AnyObservation, Models};
 use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
 
+use crate::calibrate::{check_method, method_settings, FilterArgs};
 use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
@@ -86,9 +88,13 @@ pub struct ExperimentCArgs {
     /// The paper's settings (4096 particles, L = 15, 100 epochs).
     #[arg(long)]
     pub paper: bool,
-    /// Methods to train (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf")]
+    /// Methods to train (comma-separated): the estimators on the bootstrap filter
+    /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
+    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
     pub methods: Vec<String>,
+    /// The evaluation's filter (the same for every method) and the tempered filter's settings.
+    #[command(flatten)]
+    pub filter: FilterArgs,
     /// Override the scale's training particles per object.
     #[arg(long)]
     pub particles: Option<usize>,
@@ -314,7 +320,7 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
     let scale = Scale::of(args);
     scale.check()?;
     for m in &args.methods {
-        ssm::estimators::Estimator::parse(m, scale.lag, scale.alpha)?;
+        check_method(m, scale.lag, scale.alpha)?;
     }
     ensure_dir(&args.out)?;
     let (train_dir, val_dir) = prepare_data(args, &scale)?;
@@ -340,8 +346,14 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
         scale.scenes_per_step,
     );
     let eval_seed = 1000 + args.seed;
-    let evaluate =
-        |models: &Models| metric_runs(&val, models, scale.eval_particles, scale.lag, eval_seed, scale.eval_runs);
+    let eval_filter = FilterConfig {
+        particles: scale.eval_particles,
+        lag: scale.lag,
+        seed: eval_seed,
+        tempering: args.filter.tempering()?,
+        ..FilterConfig::default()
+    };
+    let evaluate = |models: &Models| metric_runs(&val, models, &eval_filter, scale.eval_runs);
 
     // INIT: where every run starts.
     let clock = Instant::now();
@@ -362,14 +374,17 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
     let mut learned: Vec<(String, Models)> = Vec::new();
     for method in &args.methods {
         let dir = args.out.join("runs").join(method);
+        let (estimator, filter) = method_settings(method);
         let train_args = TrainArgs {
             data: train_dir.clone(),
             test: val_dir.clone(),
             init: None,
             policy: "neural".into(),
             init_sd: "1.0,0.1".into(),
-            estimator: method.clone(),
+            estimator: estimator.to_string(),
             lag: scale.lag,
+            filter: FilterArgs { filter, ..args.filter.clone() },
+            eval_filter: args.filter.filter,
             alpha: scale.alpha,
             particles: scale.particles,
             eval_particles: scale.eval_particles,

@@ -23,11 +23,13 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::Dataset;
+use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
 use ssm::params::{AnyPolicy, Models};
 use ssm::training::PARAMS_FILE;
 use ssm::vehicle::{GaussianPolicy, HandCraftedPolicy};
 
+use crate::calibrate::{check_method, method_settings, FilterArgs};
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
@@ -59,9 +61,14 @@ pub struct ReproduceArgs {
     /// Override the scale's training particles.
     #[arg(long)]
     pub particles: Option<usize>,
-    /// Methods to train (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf")]
+    /// Methods to train (comma-separated): the estimators on the bootstrap filter
+    /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
+    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
     pub methods: Vec<String>,
+    /// The evaluation's filter (the same for every method and TRUE) and the
+    /// tempered filter's settings.
+    #[command(flatten)]
+    pub filter: FilterArgs,
 }
 
 /// The sizes of a reproduction.
@@ -165,8 +172,17 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     for m in &args.methods {
-        ssm::estimators::Estimator::parse(m, scale.lag, scale.alpha)?;
+        check_method(m, scale.lag, scale.alpha)?;
     }
+    let eval_filter = |seed: u64| -> Result<FilterConfig, String> {
+        Ok(FilterConfig {
+            particles: scale.eval_particles,
+            lag: scale.lag,
+            seed,
+            tempering: args.filter.tempering()?,
+            ..FilterConfig::default()
+        })
+    };
     ensure_dir(&args.out)?;
     let data_dir = args.out.join("data");
     if !data_dir.join("generate.json").is_file() {
@@ -193,7 +209,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let true_models = Models::from_store(&true_store, test.kind()).map_err(|e| e.to_string())?;
     eprintln!("evaluating TRUE ({} runs, {} particles)", scale.seeds, scale.eval_particles);
     let clock = Instant::now();
-    let true_runs = metric_runs(&test, &true_models, scale.eval_particles, scale.lag, 1000, scale.seeds)?;
+    let true_runs = metric_runs(&test, &true_models, &eval_filter(1000)?, scale.seeds)?;
     let mut results = vec![MethodResult {
         method: "TRUE".into(),
         runs: true_runs,
@@ -214,14 +230,17 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
         };
         for seed in 0..scale.seeds as u64 {
             let dir = args.out.join("runs").join(format!("{method}-seed{seed}"));
+            let (estimator, filter) = method_settings(method);
             let train_args = TrainArgs {
                 data: data_dir.join("train"),
                 test: data_dir.join("test"),
                 init: None,
                 policy: "hand-crafted".into(),
                 init_sd: "1.0,0.1".into(),
-                estimator: method.clone(),
+                estimator: estimator.to_string(),
                 lag: scale.lag,
+                filter: FilterArgs { filter, ..args.filter.clone() },
+                eval_filter: args.filter.filter,
                 alpha: scale.alpha,
                 particles: scale.particles,
                 eval_particles: scale.eval_particles,
@@ -241,7 +260,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             bar.finish_and_clear();
             let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
             let models = Models::from_store(&store, test.kind()).map_err(|e| e.to_string())?;
-            let mut m = metric_runs(&test, &models, scale.eval_particles, scale.lag, 2000 + seed, 1)?;
+            let mut m = metric_runs(&test, &models, &eval_filter(2000 + seed)?, 1)?;
             result.runs.append(&mut m);
             result.sds.extend(learned_sds(&store, &test));
             result.curves.push(read_eval_curve(&dir, "test_mll")?);

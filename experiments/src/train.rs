@@ -19,6 +19,7 @@ use ssm::params::{AnyPolicy, Models};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 use ssm::vehicle::{HandCraftedPolicy, NeuralPolicy};
 
+use crate::calibrate::{FilterArgs, FilterKind};
 use crate::output::{ensure_dir, write_json};
 use crate::plot::{line_chart, Series};
 
@@ -46,6 +47,13 @@ pub struct TrainArgs {
     /// PF-SEFI's fixed lag L.
     #[arg(long, default_value_t = 8)]
     pub lag: usize,
+    /// PF-SEFI's filter (the through-filter baselines always use the bootstrap filter).
+    #[command(flatten)]
+    #[serde(flatten)]
+    pub filter: FilterArgs,
+    /// The filter of the test evaluation (the same for every estimator).
+    #[arg(long, value_enum, default_value_t = FilterKind::Tempered)]
+    pub eval_filter: FilterKind,
     /// PFNET's soft-resampling alpha.
     #[arg(long, default_value_t = 0.8)]
     pub alpha: f64,
@@ -168,6 +176,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         estimator_config: EstimatorConfig {
             particles: args.particles,
             chunk_objects: args.chunk_objects.max(1),
+            tempering: args.filter.tempering_for(&estimator)?,
             ..EstimatorConfig::default()
         },
         scenes_per_step: args.scenes_per_step,
@@ -175,6 +184,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         extension: None,
         extension_only: false,
         proposal: None,
+        eval_tempering: args.filter.tempering_of(args.eval_filter)?,
     };
     let mut objective = SceneObjective::new(&data, test, config)?;
     let train_config = TrainConfig {

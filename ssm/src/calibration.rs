@@ -291,3 +291,90 @@ pub fn likelihood_precision(
         seconds_per_run,
     })
 }
+
+struct SampleFromModel<'a> {
+    seed: u64,
+    builder: &'a mut crate::data::DatasetBuilder,
+}
+
+impl ModelVisitor for SampleFromModel<'_> {
+    type Output = Result<(), String>;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        use crate::criticism::extensions::ExtendedSsm;
+        use crate::criticism::ObjectObservations;
+        use crate::vehicle::state::{Action as VAction, VehicleState};
+        use rand::SeedableRng;
+
+        let data = model.data();
+        let sampler = ExtendedSsm::new(model, None, &[])?;
+        let b = self.builder;
+        b.with_states().with_actions();
+        for scene in data.scenes() {
+            b.scene(scene.id, &scene.av);
+        }
+        for (o, object) in data.objects().iter().enumerate() {
+            let mut rng = rand::rngs::SmallRng::seed_from_u64(crate::filter::stream_seed(self.seed, o));
+            let mut states = vec![sampler.sample_initial_state(o, &mut rng)];
+            let mut actions = Vec::with_capacity(data.steps());
+            for _ in 1..data.steps() {
+                let s = *states.last().expect("x_0 is there");
+                let a = sampler.sample_action(&s, &mut rng);
+                let next = model
+                    .motion()
+                    .step(&VehicleState::new(s.x, s.y, s.yaw, s.v, s.kappa), &VAction::new(a.accel, a.pinch));
+                actions.push(a);
+                states.push(crate::data::State { x: next.x, y: next.y, yaw: next.yaw, v: next.v, kappa: next.kappa });
+            }
+            b.object(*object);
+            let (scene, id) = (object.scene, object.id);
+            let per_step: Vec<Vec<O::Item>> = states
+                .iter()
+                .enumerate()
+                .map(|(t, s)| {
+                    let mut items = Vec::new();
+                    sampler.sample_observation(o, t, s, &mut rng, &mut items);
+                    items
+                })
+                .collect();
+            match O::to_observations(per_step) {
+                ObjectObservations::Points(steps) => {
+                    for (t, pts) in steps.into_iter().enumerate() {
+                        pts.into_iter().for_each(|p| {
+                            b.point(scene, id, t, p);
+                        });
+                    }
+                }
+                ObjectObservations::Boxes(steps) => {
+                    for (t, det) in steps.into_iter().enumerate() {
+                        if let Some(d) = det {
+                            b.detection(scene, id, t, d);
+                        }
+                    }
+                }
+            }
+            for (t, s) in states.into_iter().enumerate() {
+                b.state(scene, id, t, s);
+            }
+            for (t, a) in actions.into_iter().enumerate() {
+                b.action(scene, id, t + 1, a);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Data drawn from the models of `params` themselves on the scenes of
+/// `skeleton` (its AV poses, objects with their sizes and priors, and how many
+/// points or detections each object has at each step): per object, `x_0` from
+/// its prior, actions from the policy, states by the motion model, observations
+/// from the observation model, with ground-truth states and actions. At
+/// `params` the expected score of these data is exactly zero, which makes them
+/// the test bed of [`score_at`] for any model family (a neural policy and box
+/// detections as in experiment C, say). Object `o` draws from the stream
+/// `stream_seed(seed, o)`.
+pub fn sample_dataset(skeleton: &Dataset, params: &ParamStore<f64>, seed: u64) -> Result<Dataset, String> {
+    let models = Models::from_store(params, skeleton.kind()).map_err(|e| e.to_string())?;
+    let mut builder = Dataset::builder(skeleton.meta(), skeleton.kind());
+    models.visit(skeleton, SampleFromModel { seed, builder: &mut builder })??;
+    builder.build().map_err(|e| e.to_string())
+}

@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use crate::criticism::extensions::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::data::Dataset;
 use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
-use crate::filter::{run_filter, FilterConfig};
+use crate::filter::{run_filter, FilterConfig, Tempering};
 use crate::params::{AnyPolicy, ModelVisitor, Models};
 use crate::training::{non_finite, BatchEstimate, Objective};
 use crate::vehicle::GaussianPolicy;
@@ -46,6 +46,11 @@ pub struct ObjectiveConfig {
     /// the evaluation only: the through-filter baselines replay the transition).
     #[serde(default)]
     pub proposal: Option<DefensiveProposal>,
+    /// The test evaluation's filter: tempered ([`crate::filter::Tempering`]) or,
+    /// with `None`, the bootstrap filter. Every estimator's learned model is
+    /// evaluated alike, whatever filter it was trained with.
+    #[serde(default)]
+    pub eval_tempering: Option<Tempering>,
 }
 
 /// Training scenes in batches, test data, and an estimator.
@@ -172,7 +177,13 @@ impl Objective for SceneObjective {
     /// test's collapsed steps and, for the hand-crafted policy, its sds.
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
-        let config = FilterConfig { particles: self.config.eval_particles, lag: 0, seed, ..FilterConfig::default() };
+        let config = FilterConfig {
+            particles: self.config.eval_particles,
+            lag: 0,
+            seed,
+            tempering: self.config.eval_tempering,
+            ..FilterConfig::default()
+        };
         let visit =
             LogLikelihood { config: &config, extension: self.config.extension, params, proposal: self.config.proposal };
         let (ll, units, collapsed) = models.visit(&self.test, visit)??;

@@ -103,7 +103,7 @@ fn mean_errors(model: &Lgssm, ys: &[f64], cfg: &FilterConfig) -> (f64, f64, f64)
 }
 
 #[test]
-fn filtering_and_smoothing_means_match_kalman_and_filtering_beats_the_bootstrap_filter_at_equal_cost() {
+fn filtering_and_smoothing_means_match_kalman() {
     let model = sharp_model(0.5, 0.02);
     let ys = model.simulate(12, &mut StdRng::seed_from_u64(4)).ys;
     // Lag 3 of a model this sharp is the full smoother to well within the errors.
@@ -111,13 +111,11 @@ fn filtering_and_smoothing_means_match_kalman_and_filtering_beats_the_bootstrap_
     let (f, s, evals) = mean_errors(&model, &ys, &tempered);
     let boot = FilterConfig { lag: 3, ..config((512.0 * evals).round() as usize, None) };
     let (bf, bs, _) = mean_errors(&model, &ys, &boot);
-    // Measured: filtered 0.057 against 0.076 posterior sds, smoothed 0.19 against
-    // 0.17. In one dimension the bootstrap filter with eight times the particles
-    // keeps an ESS in the hundreds; the within-step resampling costs the tempered
-    // filter some path diversity at lag 3. Where the tempered filter wins is in
-    // the likelihood and in more dimensions (the vehicle model at t = 0).
-    assert!(f < 0.1 && f < bf, "filtered: tempered {f} sd, bootstrap {bf} sd");
-    assert!(s < 0.3, "smoothed: tempered {s} sd (bootstrap {bs} sd)");
+    // In one dimension the bootstrap filter with as many likelihood evaluations
+    // (about ten times the particles) keeps an ESS in the hundreds and its means
+    // are as good (measured: filtered 0.051 against 0.049 posterior sds); the
+    // tempered filter's gain is in its likelihood (above) and in more dimensions.
+    assert!(f < 0.1 && s < 0.3, "tempered: filtered {f} sd, smoothed {s} sd (bootstrap {bf}, {bs})");
 }
 
 #[test]

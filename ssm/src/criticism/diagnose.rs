@@ -609,6 +609,7 @@ fn fit(
         extension,
         extension_only: extension.is_some(),
         proposal: config.proposal.filter(|_| config.train_with_proposal),
+        eval_tempering: None,
     };
     let mut objective = SceneObjective::new(train_data, heldout.clone(), objective_config)?;
     let batches = crate::training::Objective::batches(&objective).max(1);

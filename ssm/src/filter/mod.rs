@@ -34,7 +34,7 @@ use serde::{Deserialize, Serialize};
 pub use moments::Moments;
 pub use resample::{effective_sample_size, Resampling};
 pub use tempering::Tempering;
-use tempering::{reweight, StepParticles, Temperer};
+use tempering::{reweight, ParentStep, StepParticles, Temperer};
 
 use crate::model::ParticleModel;
 
@@ -273,6 +273,36 @@ impl Ring {
     fn slot(&self, t: usize) -> usize {
         t % self.slots
     }
+
+    /// Moves the states and actions of `slot` out (put them back with [`Ring::put`]).
+    fn take(&mut self, slot: usize) -> [Vec<f32>; 2] {
+        [std::mem::take(&mut self.states[slot]), std::mem::take(&mut self.actions[slot])]
+    }
+
+    /// Puts back what [`Ring::take`] moved out.
+    fn put(&mut self, slot: usize, [states, actions]: [Vec<f32>; 2]) {
+        self.states[slot] = states;
+        self.actions[slot] = actions;
+    }
+
+    /// Re-indexes step `t - 1` by the particles of `t` (particle `i` of `t - 1`
+    /// becomes the one `ancestors[i]` was): the states come from `gathered`,
+    /// which holds them already and receives the old ones; the parents of `t`
+    /// become the identity.
+    fn reindex_parent_step(&mut self, t: usize, ancestors: &[usize], gathered: &mut Vec<f32>) {
+        let (slot, prev) = (self.slot(t), self.slot(t - 1));
+        let n = ancestors.len();
+        std::mem::swap(&mut self.states[prev], gathered);
+        let actions = &mut self.actions[prev];
+        let mut buffer = Vec::with_capacity(actions.len());
+        for column in actions.chunks_exact(n) {
+            buffer.extend(ancestors.iter().map(|&i| column[i]));
+        }
+        *actions = buffer;
+        let reindexed: Vec<usize> = ancestors.iter().map(|&i| self.parents[prev][i]).collect();
+        self.parents[prev] = reindexed;
+        self.parents[slot].iter_mut().enumerate().for_each(|(i, p)| *p = i);
+    }
 }
 
 /// Filters one object; the core loop of [`run_filter`].
@@ -288,7 +318,9 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let steps = model.num_steps();
     let lag = config.lag;
     let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, object));
-    let mut ring = Ring::new(lag + 2, n, d, a);
+    // The tempered filter's lookback moves reach back to x_{t-2}.
+    let slots = if config.tempering.is_some() { (lag + 2).max(3) } else { lag + 2 };
+    let mut ring = Ring::new(slots, n, d, a);
     let mut times = PhaseTimes::default();
     let mut summary = ObjectSummary { min_ess: f64::INFINITY, ..Default::default() };
 
@@ -354,12 +386,21 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 }
             }
             ring.parents[slot].copy_from_slice(&ancestors);
+            if let Some(tm) = &mut temperer {
+                // One parent per particle: slot t - 1 re-indexed by the particles
+                // of t, so that a lookback move changes one particle's parent.
+                ring.reindex_parent_step(t, &ancestors, &mut gathered);
+                tm.carry(&ancestors);
+            }
             let mid = Instant::now();
             times.resample += mid - clock;
-            let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
             if let Some(tm) = &mut temperer {
-                tm.draw(model, object, t, n, &gathered, states, actions, &mut rng, scratch);
+                let [mut states, mut actions] = ring.take(slot);
+                let parent_states = &ring.states[prev];
+                tm.draw(model, object, t, n, parent_states, &mut states[..], &mut actions[..], &mut rng, scratch);
+                ring.put(slot, [states, actions]);
             } else {
+                let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
                 model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
             }
             if temperer.is_none() && model.proposal_log_weights(n, &mut loglik, scratch) {
@@ -377,13 +418,24 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
         let clock = Instant::now();
         let (mut observed, increment) = match &mut temperer {
             Some(tm) => {
-                let particles = StepParticles {
-                    states: &mut ring.states[slot],
-                    actions: &mut ring.actions[slot],
-                    parents: &mut ring.parents[slot],
-                    parent_states: &mut gathered,
-                };
+                let [mut states, mut actions] = ring.take(slot);
+                let parent_slot = ring.slot(t.wrapping_sub(1));
+                let [mut p_states, mut p_actions] = if t > 0 { ring.take(parent_slot) } else { Default::default() };
+                let mut p_parents = if t > 0 { std::mem::take(&mut ring.parents[parent_slot]) } else { Vec::new() };
+                let grandparents = (t >= 2).then(|| &ring.states[ring.slot(t - 2)][..]);
+                let parent = (t > 0).then(|| ParentStep {
+                    states: &mut p_states,
+                    actions: &mut p_actions,
+                    parents: &mut p_parents,
+                    grandparents,
+                });
+                let particles = StepParticles { states: &mut states, actions: &mut actions, parent };
                 let w = tm.weigh(model, object, t, n, particles, &mut log_w, config.resampling, &mut rng, scratch);
+                ring.put(slot, [states, actions]);
+                if t > 0 {
+                    ring.put(parent_slot, [p_states, p_actions]);
+                    ring.parents[parent_slot] = p_parents;
+                }
                 summary.tempering_stages += w.stages;
                 summary.moves_proposed += w.proposed;
                 summary.moves_accepted += w.accepted;

@@ -90,16 +90,29 @@ const STEP_ADAPT: f64 = 0.6;
 /// collapsed onto one value in a component still moves.
 const MIN_NOISE_SCALE: f64 = 1e-3;
 
-/// The particles of one step that a tempered weighting resamples and moves.
+/// The particles of one step that a tempered weighting resamples and moves,
+/// with (from `t = 1`) one parent per particle.
 pub(super) struct StepParticles<'a> {
     /// `x_t`, dimension-major.
     pub states: &'a mut Vec<f32>,
-    /// The actions that reached `x_t` (empty at `t = 0`).
+    /// The actions that reached `x_t` (unused at `t = 0`).
     pub actions: &'a mut Vec<f32>,
-    /// Each particle's parent at `t - 1` (empty at `t = 0`).
+    /// Each particle's own parent at `t - 1` (`None` at `t = 0`).
+    pub parent: Option<ParentStep<'a>>,
+}
+
+/// The parents at `t - 1`, one per particle of step `t` (the filter re-indexes its
+/// ring so that no two particles share one): a lookback move changes a particle's
+/// parent without touching its siblings.
+pub(super) struct ParentStep<'a> {
+    /// `x_{t-1}`, dimension-major.
+    pub states: &'a mut Vec<f32>,
+    /// The actions that reached `x_{t-1}` (unused when `t - 1 = 0`).
+    pub actions: &'a mut Vec<f32>,
+    /// Each parent's own parent in `grandparents` (unused when `t - 1 = 0`).
     pub parents: &'a mut Vec<usize>,
-    /// Each particle's parent state `x_{t-1}`, dimension-major (empty at `t = 0`).
-    pub parent_states: &'a mut Vec<f32>,
+    /// The particles of `t - 2` (`None` when `t - 1 = 0`).
+    pub grandparents: Option<&'a [f32]>,
 }
 
 /// What one tempered weighting did.
@@ -119,24 +132,53 @@ pub(super) struct Weighing {
     pub evaluations: usize,
 }
 
-/// Working memory of the tempered filter for one object at a time.
+/// Proposals of one Metropolis sweep: noise, the states and actions it maps to,
+/// and their observation log-likelihoods.
+#[derive(Default)]
+struct Proposal {
+    noise: Vec<f32>,
+    states: Vec<f32>,
+    actions: Vec<f32>,
+    loglik: Vec<f32>,
+}
+
+impl Proposal {
+    fn resize(&mut self, noise: usize, states: usize, actions: usize, n: usize) {
+        self.noise.resize(noise, 0.0);
+        self.states.resize(states, 0.0);
+        self.actions.resize(actions, 0.0);
+        self.loglik.resize(n, 0.0);
+    }
+}
+
+/// Working memory of the tempered filter for one object at a time; it carries the
+/// previous step's noise and observation log-likelihoods from one step to the next.
 pub(super) struct Temperer {
     config: Tempering,
     dims: NoiseDims,
     /// The noise of the current particles (dimension-major).
     noise: Vec<f32>,
-    proposal_noise: Vec<f32>,
-    proposal_states: Vec<f32>,
-    proposal_actions: Vec<f32>,
-    /// `ln g(y_t | x_t^i)` of the current particles (NaN read as `-inf`).
+    /// `ln g(y_t | x_t^i)` of the current particles (NaN read as `-inf`; 0 at a
+    /// step without an observation).
     loglik: Vec<f64>,
-    proposal_loglik: Vec<f32>,
+    /// The same for each particle's parent at `t - 1`.
+    prev_noise: Vec<f32>,
+    prev_loglik: Vec<f64>,
+    /// Whether `y_{t-1}` entered the weights (else it is not in the target).
+    prev_observed: bool,
+    /// Each particle's grandparent `x_{t-2}` (dimension-major; `t >= 2`).
+    grand: Vec<f32>,
+    current: Proposal,
+    previous: Proposal,
     weights: Vec<f64>,
     ancestors: Vec<usize>,
     resample_scratch: Vec<f64>,
     gather_f32: Vec<f32>,
     gather_f64: Vec<f64>,
     gather_usize: Vec<usize>,
+    /// The joint noise of a lookback move, particle-major, and its cloud's factor.
+    joint: Vec<f64>,
+    factor: Vec<f64>,
 }
 
 impl Temperer {
@@ -150,17 +192,21 @@ impl Temperer {
             config,
             dims,
             noise: Vec::new(),
-            proposal_noise: Vec::new(),
-            proposal_states: Vec::new(),
-            proposal_actions: Vec::new(),
             loglik: Vec::new(),
-            proposal_loglik: Vec::new(),
+            prev_noise: Vec::new(),
+            prev_loglik: Vec::new(),
+            prev_observed: false,
+            grand: Vec::new(),
+            current: Proposal::default(),
+            previous: Proposal::default(),
             weights: Vec::new(),
             ancestors: Vec::new(),
             resample_scratch: Vec::new(),
             gather_f32: Vec::new(),
             gather_f64: Vec::new(),
             gather_usize: Vec::new(),
+            joint: Vec::new(),
+            factor: Vec::new(),
         }
     }
 
@@ -170,6 +216,16 @@ impl Temperer {
         } else {
             self.dims.transition
         }
+    }
+
+    /// At the start of step `t >= 1`: the particles of `t - 1` that the new ones
+    /// descend from (`ancestors`) hand their noise and log-likelihoods on.
+    pub(super) fn carry(&mut self, ancestors: &[usize]) {
+        let n = ancestors.len();
+        std::mem::swap(&mut self.noise, &mut self.prev_noise);
+        std::mem::swap(&mut self.loglik, &mut self.prev_loglik);
+        gather(&mut self.prev_noise, &mut self.gather_f32, ancestors, n);
+        gather(&mut self.prev_loglik, &mut self.gather_f64, ancestors, n);
     }
 
     /// Draws `x_t` for `n` particles through the model's noise (the prior at
@@ -212,24 +268,36 @@ impl Temperer {
         scratch: &mut M::Scratch,
     ) -> Weighing {
         let mut out = Weighing { evaluations: 1, ..Weighing::default() };
-        self.proposal_loglik.resize(n, 0.0);
-        out.observed = model.observation_loglik(object, t, n, particles.states, &mut self.proposal_loglik, scratch);
+        let StepParticles { states, actions, mut parent } = particles;
+        self.current.loglik.resize(n, 0.0);
+        out.observed = model.observation_loglik(object, t, n, states, &mut self.current.loglik, scratch);
+        self.loglik.clear();
         if !out.observed {
+            self.loglik.resize(n, 0.0);
+            self.prev_observed = false;
             return out;
         }
-        self.loglik.clear();
-        self.loglik.extend(self.proposal_loglik.iter().map(|&l| if l.is_nan() { f64::NEG_INFINITY } else { l as f64 }));
-        let StepParticles { states, actions, parents, parent_states } = particles;
+        self.loglik.extend(self.current.loglik.iter().map(|&l| if l.is_nan() { f64::NEG_INFINITY } else { l as f64 }));
+        if let Some(ParentStep { parents, grandparents: Some(grand), .. }) = &parent {
+            let d = grand.len() / n;
+            self.grand.clear();
+            for k in 0..d {
+                self.grand.extend(parents.iter().map(|&p| grand[k * n + p]));
+            }
+        }
 
         let mut beta = 0.0;
         let mut total = 0.0;
-        let mut step = 2.38 / (self.noise_dim(t).max(1) as f64).sqrt();
+        let mut step_current = 2.38 / (self.noise_dim(t).max(1) as f64).sqrt();
+        let mut step_lookback = 2.38 / ((self.noise_dim(t) + self.noise_dim(t.saturating_sub(1))) as f64).sqrt();
         loop {
             let remaining = 1.0 - beta;
             let last = out.stages + 1 >= self.config.max_stages;
             let delta = if last { remaining } else { self.increment(log_w, remaining, n) };
             let Some(inc) = reweight(log_w, &self.loglik, delta) else {
                 debug_assert_eq!(out.stages, 0, "particles that survived a stage cannot all become impossible");
+                self.loglik.iter_mut().for_each(|l| *l = 0.0);
+                self.prev_observed = false;
                 return out;
             };
             total += inc;
@@ -239,7 +307,7 @@ impl Temperer {
             beta += delta;
             out.stages += 1;
 
-            // Resample within the step; the genealogy composes.
+            // Resample within the step, each particle with its own parent.
             self.weights.clear();
             self.weights.extend(log_w.iter().map(|&lw| lw.exp()));
             self.ancestors.resize(n, 0);
@@ -248,27 +316,38 @@ impl Temperer {
             gather(states, &mut self.gather_f32, idx, n);
             gather(&mut self.noise, &mut self.gather_f32, idx, n);
             gather(&mut self.loglik, &mut self.gather_f64, idx, n);
-            if t > 0 {
+            if let Some(p) = &mut parent {
                 gather(actions, &mut self.gather_f32, idx, n);
-                gather(parent_states, &mut self.gather_f32, idx, n);
-                gather(parents, &mut self.gather_usize, idx, n);
+                gather(p.states, &mut self.gather_f32, idx, n);
+                gather(p.actions, &mut self.gather_f32, idx, n);
+                gather(p.parents, &mut self.gather_usize, idx, n);
+                gather(&mut self.prev_noise, &mut self.gather_f32, idx, n);
+                gather(&mut self.prev_loglik, &mut self.gather_f64, idx, n);
+                if p.grandparents.is_some() {
+                    gather(&mut self.grand, &mut self.gather_f32, idx, n);
+                }
             }
             log_w.fill(-(n as f64).ln());
 
             for _ in 0..self.config.moves {
+                let parent_states = parent.as_ref().map_or(&[][..], |p| &p.states[..]);
                 let accepted =
-                    self.sweep(model, object, t, n, beta, step, states, actions, parent_states, rng, scratch);
+                    self.sweep(model, object, t, n, beta, step_current, states, actions, parent_states, rng, scratch);
                 out.evaluations += 1;
                 out.proposed += n;
                 out.accepted += accepted;
-                let rate = accepted as f64 / n as f64;
-                if rate < ACCEPT_LOW {
-                    step *= STEP_ADAPT;
-                } else if rate > ACCEPT_HIGH {
-                    step /= STEP_ADAPT;
+                step_current = adapt(step_current, accepted, n);
+                if let Some(p) = &mut parent {
+                    let (accepted, evaluations) =
+                        self.lookback(model, object, t, n, beta, step_lookback, states, actions, p, rng, scratch);
+                    out.evaluations += evaluations;
+                    out.proposed += n;
+                    out.accepted += accepted;
+                    step_lookback = adapt(step_lookback, accepted, n);
                 }
             }
         }
+        self.prev_observed = true;
         out.increment = Some(total);
         out
     }
@@ -299,8 +378,9 @@ impl Temperer {
         }
     }
 
-    /// One random-walk Metropolis sweep over every particle at exponent `beta`;
-    /// returns the number of accepted moves.
+    /// One random-walk Metropolis sweep over every particle's noise of step `t`
+    /// at exponent `beta` (each component's scale from the cloud); returns the
+    /// number of accepted moves.
     #[allow(clippy::too_many_arguments)]
     fn sweep<M: ParticleModel>(
         &mut self,
@@ -317,56 +397,183 @@ impl Temperer {
         scratch: &mut M::Scratch,
     ) -> usize {
         let dim = self.noise_dim(t);
-        self.proposal_noise.resize(dim * n, 0.0);
+        let prop = &mut self.current;
+        prop.resize(dim * n, states.len(), actions.len(), n);
         for k in 0..dim {
             let z = &self.noise[k * n..(k + 1) * n];
             let scale = (step * spread(z).max(MIN_NOISE_SCALE)) as f32;
-            for (p, &z) in self.proposal_noise[k * n..(k + 1) * n].iter_mut().zip(z) {
+            for (p, &z) in prop.noise[k * n..(k + 1) * n].iter_mut().zip(z) {
                 *p = z + scale * rng.sample::<f32, _>(StandardNormal);
             }
         }
-        self.proposal_states.resize(states.len(), 0.0);
-        self.proposal_actions.resize(actions.len(), 0.0);
-        map_noise(
-            model,
-            object,
-            t,
-            n,
-            parent_states,
-            &self.proposal_noise,
-            &mut self.proposal_states,
-            &mut self.proposal_actions,
-            scratch,
-        );
-        model.observation_loglik(object, t, n, &self.proposal_states, &mut self.proposal_loglik, scratch);
-        let (d, a) = (states.len() / n, actions.len() / n);
+        map_noise(model, object, t, n, parent_states, &prop.noise, &mut prop.states, &mut prop.actions, scratch);
+        model.observation_loglik(object, t, n, &prop.states, &mut prop.loglik, scratch);
         let mut accepted = 0;
         for i in 0..n {
-            let l_new = self.proposal_loglik[i];
-            if l_new.is_nan() || l_new == f32::NEG_INFINITY {
-                continue;
-            }
-            let l_new = l_new as f64;
-            let mut log_ratio = beta * (l_new - self.loglik[i]);
-            for k in 0..dim {
-                let (z, z_new) = (self.noise[k * n + i] as f64, self.proposal_noise[k * n + i] as f64);
-                log_ratio -= 0.5 * (z_new * z_new - z * z);
-            }
-            if log_ratio >= 0.0 || rng.random::<f64>().ln() < log_ratio {
+            let Some(l_new) = finite(prop.loglik[i]) else { continue };
+            let log_ratio = beta * (l_new - self.loglik[i]) - half_sq_change(&self.noise, &prop.noise, dim, n, i);
+            if accept(log_ratio, rng) {
                 accepted += 1;
                 self.loglik[i] = l_new;
-                for k in 0..dim {
-                    self.noise[k * n + i] = self.proposal_noise[k * n + i];
-                }
-                for k in 0..d {
-                    states[k * n + i] = self.proposal_states[k * n + i];
-                }
-                for k in 0..a {
-                    actions[k * n + i] = self.proposal_actions[k * n + i];
-                }
+                copy_particle(&prop.noise, &mut self.noise, n, i);
+                copy_particle(&prop.states, states, n, i);
+                copy_particle(&prop.actions, actions, n, i);
             }
         }
         accepted
+    }
+
+    /// One lookback sweep: every particle's noise of `t - 1` and of `t` moved
+    /// together by a random walk shaped by the cloud's covariance, the parent
+    /// `x_{t-1}` re-drawn from its own parent and `x_t` from the new parent, at
+    /// the target `f(x_{t-1} | x_{t-2}) g(y_{t-1} | x_{t-1}) f(x_t | x_{t-1})
+    /// g(y_t | x_t)^beta`. This is what rejuvenates a state component that `y_t`
+    /// pins but `y_{t-1}` did not (a speed at `t = 0`, seen only from `t = 1`).
+    /// Returns the accepted moves and the likelihood evaluations.
+    #[allow(clippy::too_many_arguments)]
+    fn lookback<M: ParticleModel>(
+        &mut self,
+        model: &M,
+        object: usize,
+        t: usize,
+        n: usize,
+        beta: f64,
+        step: f64,
+        states: &mut [f32],
+        actions: &mut [f32],
+        parent: &mut ParentStep<'_>,
+        rng: &mut SmallRng,
+        scratch: &mut M::Scratch,
+    ) -> (usize, usize) {
+        let (dp, dc) = (self.noise_dim(t - 1), self.noise_dim(t));
+        let dim = dp + dc;
+        // The joint noise, particle-major, and the Cholesky factor of its covariance.
+        self.joint.clear();
+        for i in 0..n {
+            self.joint.extend((0..dp).map(|k| self.prev_noise[k * n + i] as f64));
+            self.joint.extend((0..dc).map(|k| self.noise[k * n + i] as f64));
+        }
+        cloud_factor(&self.joint, dim, &mut self.factor);
+        let (prev, cur) = (&mut self.previous, &mut self.current);
+        prev.resize(dp * n, parent.states.len(), parent.actions.len(), n);
+        cur.resize(dc * n, states.len(), actions.len(), n);
+        let mut xi = vec![0.0f64; dim];
+        for i in 0..n {
+            xi.iter_mut().for_each(|x| *x = rng.sample::<f64, _>(StandardNormal));
+            for r in 0..dim {
+                let shift: f64 = (0..=r).map(|c| self.factor[r * dim + c] * xi[c]).sum();
+                let z = (self.joint[i * dim + r] + step * shift) as f32;
+                if r < dp {
+                    prev.noise[r * n + i] = z;
+                } else {
+                    cur.noise[(r - dp) * n + i] = z;
+                }
+            }
+        }
+        let grand = if t >= 2 { &self.grand[..] } else { &[][..] };
+        map_noise(model, object, t - 1, n, grand, &prev.noise, &mut prev.states, &mut prev.actions, scratch);
+        let mut evaluations = 1;
+        if self.prev_observed {
+            model.observation_loglik(object, t - 1, n, &prev.states, &mut prev.loglik, scratch);
+            evaluations += 1;
+        } else {
+            prev.loglik.iter_mut().for_each(|l| *l = 0.0);
+        }
+        map_noise(model, object, t, n, &prev.states, &cur.noise, &mut cur.states, &mut cur.actions, scratch);
+        model.observation_loglik(object, t, n, &cur.states, &mut cur.loglik, scratch);
+        let mut accepted = 0;
+        for i in 0..n {
+            let (Some(lp), Some(lc)) = (finite(prev.loglik[i]), finite(cur.loglik[i])) else { continue };
+            let log_ratio = (lp - self.prev_loglik[i]) + beta * (lc - self.loglik[i])
+                - half_sq_change(&self.prev_noise, &prev.noise, dp, n, i)
+                - half_sq_change(&self.noise, &cur.noise, dc, n, i);
+            if accept(log_ratio, rng) {
+                accepted += 1;
+                self.prev_loglik[i] = lp;
+                self.loglik[i] = lc;
+                copy_particle(&prev.noise, &mut self.prev_noise, n, i);
+                copy_particle(&cur.noise, &mut self.noise, n, i);
+                copy_particle(&prev.states, parent.states, n, i);
+                copy_particle(&prev.actions, parent.actions, n, i);
+                copy_particle(&cur.states, states, n, i);
+                copy_particle(&cur.actions, actions, n, i);
+            }
+        }
+        (accepted, evaluations)
+    }
+}
+
+/// A log-likelihood as f64, or `None` for an impossible one (`-inf` or NaN).
+fn finite(l: f32) -> Option<f64> {
+    (!l.is_nan() && l != f32::NEG_INFINITY).then_some(l as f64)
+}
+
+/// `(|z'|^2 - |z|^2) / 2` of particle `i`'s noise (dimension-major, `dim`
+/// components of `n` particles): the standard normal's log-density ratio.
+fn half_sq_change(z: &[f32], z_new: &[f32], dim: usize, n: usize, i: usize) -> f64 {
+    (0..dim)
+        .map(|k| {
+            let (a, b) = (z[k * n + i] as f64, z_new[k * n + i] as f64);
+            0.5 * (b * b - a * a)
+        })
+        .sum()
+}
+
+/// Metropolis's rule.
+fn accept(log_ratio: f64, rng: &mut SmallRng) -> bool {
+    log_ratio >= 0.0 || rng.random::<f64>().ln() < log_ratio
+}
+
+/// Copies particle `i` of dimension-major `from` into `to`.
+fn copy_particle<T: Copy>(from: &[T], to: &mut [T], n: usize, i: usize) {
+    for k in 0..to.len() / n.max(1) {
+        to[k * n + i] = from[k * n + i];
+    }
+}
+
+/// The random-walk factor tuned by the acceptance rate of `accepted` of `n`.
+fn adapt(step: f64, accepted: usize, n: usize) -> f64 {
+    let rate = accepted as f64 / n as f64;
+    if rate < ACCEPT_LOW {
+        step * STEP_ADAPT
+    } else if rate > ACCEPT_HIGH {
+        step / STEP_ADAPT
+    } else {
+        step
+    }
+}
+
+/// The lower Cholesky factor (row-major, `dim x dim`, into `factor`) of the
+/// covariance of the particle-major points `x`, with every variance floored at
+/// `MIN_NOISE_SCALE^2` so that a collapsed component still moves.
+fn cloud_factor(x: &[f64], dim: usize, factor: &mut Vec<f64>) {
+    let n = x.len() / dim;
+    let mut mean = vec![0.0; dim];
+    for p in x.chunks_exact(dim) {
+        mean.iter_mut().zip(p).for_each(|(m, v)| *m += v / n as f64);
+    }
+    factor.clear();
+    factor.resize(dim * dim, 0.0);
+    for p in x.chunks_exact(dim) {
+        for r in 0..dim {
+            for c in 0..=r {
+                factor[r * dim + c] += (p[r] - mean[r]) * (p[c] - mean[c]) / (n as f64 - 1.0).max(1.0);
+            }
+        }
+    }
+    let floor = MIN_NOISE_SCALE * MIN_NOISE_SCALE;
+    for r in 0..dim {
+        factor[r * dim + r] = factor[r * dim + r].max(floor);
+    }
+    // In-place Cholesky of the lower triangle; a pivot lost to rounding is
+    // replaced by the floor.
+    for c in 0..dim {
+        let d = (factor[c * dim + c] - (0..c).map(|k| factor[c * dim + k].powi(2)).sum::<f64>()).max(floor).sqrt();
+        factor[c * dim + c] = d;
+        for r in c + 1..dim {
+            let s: f64 = (0..c).map(|k| factor[r * dim + k] * factor[c * dim + k]).sum();
+            factor[r * dim + c] = (factor[r * dim + c] - s) / d;
+        }
     }
 }
 
@@ -478,6 +685,28 @@ mod tests {
         let ess = 1.0 / w.iter().map(|x| (x / s).powi(2)).sum::<f64>();
         assert!((conditional_ess(&log_w, &loglik, 0.7) - ess).abs() < 1e-12);
         assert!((conditional_ess(&log_w, &loglik, 0.0) - n as f64).abs() < 1e-12);
+    }
+
+    #[test]
+    fn cloud_factor_reproduces_the_covariance() {
+        // Points on a correlated 2-D cloud: L L^T equals their sample covariance.
+        let pts: Vec<f64> = (0..50)
+            .flat_map(|i| {
+                let u = (i as f64 * 0.37).sin();
+                let v = (i as f64 * 1.3).cos();
+                [u, 0.8 * u + 0.3 * v]
+            })
+            .collect();
+        let mut l = Vec::new();
+        cloud_factor(&pts, 2, &mut l);
+        let cov = |a: usize, b: usize| {
+            let m = |k: usize| pts.iter().skip(k).step_by(2).sum::<f64>() / 50.0;
+            pts.chunks(2).map(|p| (p[a] - m(a)) * (p[b] - m(b))).sum::<f64>() / 49.0
+        };
+        assert!((l[0] * l[0] - cov(0, 0)).abs() < 1e-12);
+        assert!((l[2] * l[0] - cov(1, 0)).abs() < 1e-12);
+        assert!((l[2] * l[2] + l[3] * l[3] - cov(1, 1)).abs() < 1e-12);
+        assert_eq!(l[1], 0.0);
     }
 
     #[test]
