@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
-use ssm::calibration::{likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
+use ssm::calibration::{complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::{FilterConfig, Tempering};
@@ -108,7 +108,8 @@ pub struct ScoreAtArgs {
     /// Parameter file (the truth of generated data: `true_params.bin`).
     #[arg(long)]
     pub params: PathBuf,
-    /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet.
+    /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet; or `complete-data`,
+    /// the score of the ground-truth states and actions (no filter): the reference.
     #[arg(long, default_value = "pf-sefi")]
     pub estimator: String,
     /// PF-SEFI's fixed lag.
@@ -220,6 +221,15 @@ fn print_score(s: &ScoreAt, filter: &str) {
 /// `sefi score-at`.
 pub fn run_score_at(args: &ScoreAtArgs) -> Result<(), String> {
     let (data, store) = load(&args.data, &args.params, args.scenes)?;
+    if args.estimator == "complete-data" {
+        let s = complete_data_score_at(&data, &store)?;
+        print_score(&s, "no");
+        if let Some(out) = &args.out {
+            ensure_dir(out)?;
+            write_json(&out.join("score_at.json"), &json!({ "filter": "none", "result": s }))?;
+        }
+        return Ok(());
+    }
     let estimator = Estimator::parse(&args.estimator, args.lag, args.alpha)?;
     if args.particles == 0 {
         return Err("--particles must be at least 1".into());

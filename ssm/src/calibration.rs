@@ -138,14 +138,29 @@ pub fn score_at(
         .collect();
     let per_object: Vec<(Vec<autodiff::Tensor<f64>>, usize)> = per_object.into_iter().collect::<Result<_, _>>()?;
     let collapsed_steps = per_object.iter().map(|p| p.1).sum();
-    let tensors = params
+    let gradients: Vec<Vec<autodiff::Tensor<f64>>> = per_object.into_iter().map(|p| p.0).collect();
+    Ok(ScoreAt {
+        estimator: crate::estimators::study::label(estimator),
+        objects,
+        runs,
+        tensors: summarise(params, &gradients),
+        collapsed_steps,
+        seconds: clock.elapsed().as_secs_f64(),
+    })
+}
+
+/// Mean, standard error and z per entry of every tensor of `params` from one
+/// gradient per object (in store order).
+fn summarise(params: &ParamStore<f64>, per_object: &[Vec<autodiff::Tensor<f64>>]) -> Vec<TensorScore> {
+    let objects = per_object.len();
+    params
         .iter()
         .enumerate()
         .map(|(i, (name, value))| {
             let entries: Vec<EntryScore> = (0..value.data().len())
                 .map(|j| {
-                    let xs: Vec<f64> = per_object.iter().map(|p| p.0[i].data()[j]).collect();
-                    let (mean, sd) = (crate::stats::mean(xs.iter().copied()), crate::stats::sd(xs.iter().copied()));
+                    let xs = || per_object.iter().map(|g| g[i].data()[j]);
+                    let (mean, sd) = (crate::stats::mean(xs()), crate::stats::sd(xs()));
                     let se = sd / (objects as f64).sqrt();
                     EntryScore { mean, se, z: if se > 0.0 { mean / se } else { 0.0 }, sd }
                 })
@@ -154,13 +169,83 @@ pub fn score_at(
             let p = (2.0 * (1.0 - normal_cdf(max_abs_z)) * entries.len() as f64).min(1.0);
             TensorScore { name: name.to_string(), entries, max_abs_z, p }
         })
-        .collect();
+        .collect()
+}
+
+/// One object's complete-data score at the store's parameters.
+struct CompleteData {
+    object: usize,
+}
+
+impl ModelVisitor for CompleteData {
+    type Output = Result<(Vec<autodiff::Tensor<f64>>, Vec<String>), String>;
+    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        use crate::estimators::Block;
+        use autodiff::{Tape, Tensor};
+        let data = model.data();
+        let (states, actions) = match (data.states(), data.actions()) {
+            (Some(s), Some(a)) => (s, a),
+            _ => return Err("the complete-data score needs the ground truth (states.csv and actions.csv)".into()),
+        };
+        let o = self.object;
+        let truth: Vec<crate::data::State> = (0..data.steps())
+            .map(|t| states.get(o, t).copied().ok_or_else(|| format!("object {o} has no true state at step {t}")))
+            .collect::<Result<_, _>>()?;
+        let acts: Vec<crate::data::Action> = (1..data.steps())
+            .map(|t| actions.get(o, t).copied().ok_or_else(|| format!("object {o} has no true action at step {t}")))
+            .collect::<Result<_, _>>()?;
+        let tape = Tape::<f64>::new();
+        let params = model.bind(&tape);
+        let column = |v: Vec<f64>| tape.constant(Tensor::from_vec(v));
+        let state_columns = |ts: &[usize]| -> Vec<autodiff::Var<'_, f64>> {
+            (0..5).map(|k| column(ts.iter().map(|&t| truth[t].to_array()[k]).collect())).collect()
+        };
+        let observed: Vec<usize> = (0..data.steps()).filter(|&t| model.observation_count(o, t) > 0).collect();
+        let mut total = tape.constant(Tensor::from_vec(vec![0.0]));
+        if !observed.is_empty() {
+            let blocks: Vec<Block> = observed.iter().map(|&t| Block { object: o, t, len: 1 }).collect();
+            total = total + model.observation_log_density(&params, &blocks, &state_columns(&observed)).sum();
+        }
+        if data.steps() > 1 {
+            let ts: Vec<usize> = (1..data.steps()).collect();
+            let prev: Vec<usize> = ts.iter().map(|t| t - 1).collect();
+            let blocks: Vec<Block> = ts.iter().map(|&t| Block { object: o, t, len: 1 }).collect();
+            let a =
+                vec![column(acts.iter().map(|a| a.accel).collect()), column(acts.iter().map(|a| a.pinch).collect())];
+            let density =
+                model.transition_log_density(&params, &blocks, &state_columns(&prev), &state_columns(&ts), &a);
+            total = total + density.sum();
+        }
+        let grads = tape.backward(total);
+        Ok((params.iter().map(|&p| grads.wrt(p)).collect(), model.parameter_names()))
+    }
+}
+
+/// The complete-data score `grad ln p(x_{0:T}, y_{0:T})` at the store's
+/// parameters, from the ground-truth states and actions of `data`, per parameter
+/// tensor (mean, standard error and z over objects). On data sampled from the
+/// model at those parameters its expectation is zero: a mean beyond noise means
+/// that a sampler and its log-density disagree, whatever the filter does.
+pub fn complete_data_score_at(data: &Dataset, params: &ParamStore<f64>) -> Result<ScoreAt, String> {
+    let objects = data.objects().len();
+    if objects < 2 {
+        return Err("complete_data_score_at: need at least two objects for a standard error".into());
+    }
+    let models = Models::from_store(params, data.kind()).map_err(|e| e.to_string())?;
+    let clock = Instant::now();
+    let per_object: Vec<Vec<autodiff::Tensor<f64>>> = (0..objects)
+        .into_par_iter()
+        .map(|o| {
+            let (gradient, names) = models.visit(data, CompleteData { object: o })??;
+            gradient_in_store_order(params, &names, gradient)
+        })
+        .collect::<Result<_, _>>()?;
     Ok(ScoreAt {
-        estimator: crate::estimators::study::label(estimator),
+        estimator: "complete data".into(),
         objects,
-        runs,
-        tensors,
-        collapsed_steps,
+        runs: 1,
+        tensors: summarise(params, &per_object),
+        collapsed_steps: 0,
         seconds: clock.elapsed().as_secs_f64(),
     })
 }
