@@ -173,6 +173,33 @@ pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], si
                 sink.add(x, kernels::sum_to_shape(par, g, out_shape, val(x).shape()));
             }
         }
+        Op::Precomputed(pairs) => {
+            for &(x, p) in pairs {
+                if !sink.wants(x) {
+                    continue;
+                }
+                let (xs, pv) = (val(x).shape(), val(p));
+                if pv.shape() == xs && xs.starts_with(out_shape) {
+                    // Row-wise: gx[i, k] = g[i] p[i, k].
+                    let mut g_shape = out_shape.to_vec();
+                    g_shape.resize(xs.len(), 1);
+                    let mut gx = sink.alloc(pv.numel());
+                    kernels::broadcast_zip(par, g, &g_shape, pv.data(), xs, xs, &mut gx, |g, p| g * p);
+                    sink.add(x, gx);
+                } else {
+                    // Element-wise: g p, summed over the axes `x` is broadcast along.
+                    let mut full = sink.alloc(g.len());
+                    kernels::zip(par, g, pv.data(), &mut full, |g, p| g * p);
+                    if xs == out_shape {
+                        sink.add(x, full);
+                    } else {
+                        let reduced = kernels::sum_to_shape(par, &full, out_shape, xs);
+                        sink.tape_recycle(full);
+                        sink.add(x, reduced);
+                    }
+                }
+            }
+        }
         Op::Where(mask, a, b) => {
             for (input, pick) in [(*a, true), (*b, false)] {
                 if sink.wants(input) {
