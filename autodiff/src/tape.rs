@@ -159,6 +159,14 @@ impl<F: Float> Tape<F> {
         buf
     }
 
+    /// A buffer of `len` elements recycled from earlier computations on this tape when
+    /// possible (see [`Tape::reset`]): its contents are unspecified (stale values),
+    /// so write every element. For code that builds a node's value or partials
+    /// outside the tape ([`Tape::precomputed`]) without fresh allocations.
+    pub fn buffer(&self, len: usize) -> Vec<F> {
+        self.alloc(len)
+    }
+
     /// A zero-filled buffer of `len` elements (for outputs that are accumulated into).
     pub(crate) fn alloc_zeroed(&self, len: usize) -> Vec<F> {
         let mut buf = self.alloc(len);

@@ -1,6 +1,6 @@
 //! The precomputed-gradients node (`Tape::precomputed`): fused functions built from
-//! a value and analytic partials, in both layouts (element-wise with broadcasting,
-//! and row-wise `[R] <- [R, K]`), checked against finite differences in f64 and
+//! a value and analytic partials, in both layouts (element-wise with broadcasting —
+//! a `[1]`, a column `[R, 1]` and a row `[K]` — and row-wise `[R] <- [R, K]`), checked against finite differences in f64 and
 //! against the same function composed from primitive ops; then its `-inf` guard,
 //! its behaviour with untracked inputs and its shape checks.
 
@@ -79,6 +79,42 @@ fn row_wise_layout_matches_finite_differences_and_logsumexp() {
     assert_close("value", fused.data(), composed.data(), 1e-14, 1.0);
     for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
         assert_close(&format!("gradient {i}"), f.data(), c.data(), 1e-13, 1e-300);
+    }
+}
+
+/// `y_ik = x_i a_ik + c_k` as one node: `x: [R, 1]` a column broadcast along each
+/// row (partials `a`), `a: [R, K]` element-wise (partials `x`), `c: [K]` a row
+/// broadcast down the columns (partials 1).
+fn fused_outer<'t>(tape: &'t Tape<f64>, x: Var<'t, f64>, a: Var<'t, f64>, c: Var<'t, f64>) -> Var<'t, f64> {
+    let (xv, av, cv) = (x.to_tensor(), a.to_tensor(), c.to_tensor());
+    let mut value = Vec::new();
+    let mut dx = Vec::new();
+    for (row, &xi) in av.data().chunks(K).zip(xv.data()) {
+        value.extend(row.iter().zip(cv.data()).map(|(&a, &c)| xi * a + c));
+        dx.extend(row.iter().copied());
+    }
+    let da: Vec<f64> = xv.data().iter().flat_map(|&xi| std::iter::repeat_n(xi, K)).collect();
+    tape.precomputed(
+        Tensor::new(&[ROWS, K], value),
+        vec![
+            (x, Tensor::new(&[ROWS, K], dx)),
+            (a, Tensor::new(&[ROWS, K], da)),
+            (c, Tensor::new(&[ROWS, K], vec![1.0; ROWS * K])),
+        ],
+    )
+}
+
+#[test]
+fn broadcast_columns_and_rows_sum_their_partials() {
+    let mut r = rng(14);
+    let inputs = [normal(&mut r, &[ROWS, 1]), normal(&mut r, &[ROWS, K]), normal(&mut r, &[K])];
+    check("fused outer product", |tape, v| fused_outer(tape, v[0], v[1], v[2]), &inputs);
+    let (fused, fused_grads) = grads(|tape, v| fused_outer(tape, v[0], v[1], v[2]), &inputs);
+    let (composed, composed_grads) = grads(|_, v| v[0] * v[1] + v[2], &inputs);
+    assert_close("value", fused.data(), composed.data(), 1e-15, 1.0);
+    for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
+        assert_eq!(f.shape(), c.shape(), "gradient {i}");
+        assert_close(&format!("gradient {i}"), f.data(), c.data(), 1e-14, 1.0);
     }
 }
 

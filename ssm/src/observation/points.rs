@@ -48,7 +48,7 @@
 //! clutter-free paths do none of this work.
 
 use autodiff::nn::{Activation, BoundParams, Mlp, ParamStore};
-use autodiff::{Float, Parallelism, Tensor, Var};
+use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
@@ -411,22 +411,17 @@ impl PointObservationModel {
         let cc = clutter.map(|[l, s]| ClutterConsts::from_logits(l.item().to_f64(), s.item().to_f64(), op));
         let feats = av_features_on_tape(rows, av);
         let o = self.mlp.forward(params, feats);
-        let logphi = o.slice(1, 0, NUM_EDGES).log_softmax(1);
-        let mu = o.slice(1, NUM_EDGES, NUM_EDGES).mul_scalar(POINT_OFFSET_SCALE);
-        let b =
-            o.slice(1, 2 * NUM_EDGES, NUM_EDGES).softplus().mul_scalar(POINT_SCALE_SCALE).add_scalar(POINT_MIN_SCALE);
-        let head = tape.concat(&[logphi, mu, b], 1);
+        let head = RowsHead::new(tape, &o.value().data(), r);
         let row_vars = [rows.x, rows.y, rows.yaw, rows.length, rows.width];
         let clutter_vars = clutter.as_ref().map_or(&[][..], |c| &c[..]);
         let grad =
-            tape.is_recording() && (head.is_tracked() || row_vars.iter().chain(clutter_vars).any(|v| v.is_tracked()));
+            tape.is_recording() && (o.is_tracked() || row_vars.iter().chain(clutter_vars).any(|v| v.is_tracked()));
         let stride = row_stride(cc.is_some());
         let mut k = vec![0.0f64; r * stride];
         {
-            let hv = head.value();
             let vals: Vec<_> = row_vars.iter().map(|v| v.value()).collect();
             let slices = RowSlices {
-                head: hv.data(),
+                head: &head.head,
                 x: vals[0].data(),
                 y: vals[1].data(),
                 yaw: vals[2].data(),
@@ -436,15 +431,20 @@ impl PointObservationModel {
             };
             rows_kernel(&slices, self.soft_scale, cc.as_ref(), grad, tape.parallelism(), &mut k);
         }
-        let column = |j: usize| Tensor::from_vec((0..r).map(|i| F::from_f64(k[i * stride + j])).collect());
+        let column = |j: usize| {
+            let mut c = tape.buffer(r);
+            for (c, k) in c.iter_mut().zip(k.chunks(stride)) {
+                *c = F::from_f64(k[j]);
+            }
+            Tensor::from_vec(c)
+        };
         if !grad {
             return tape.constant(column(0));
         }
         let mut partials = Vec::new();
-        if head.is_tracked() {
-            let g: Vec<F> =
-                k.chunks(stride).flat_map(|row| row[1..1 + 3 * NUM_EDGES].iter().map(|&v| F::from_f64(v))).collect();
-            partials.push((head, Tensor::new(&[r, 3 * NUM_EDGES], g)));
+        if o.is_tracked() {
+            let g = head.chain(tape, &k, stride);
+            partials.push((o, Tensor::new(&[r, 3 * NUM_EDGES], g)));
         }
         // Row variables have shape [R]; the clutter's shape [1] broadcasts over rows.
         let tracked = row_vars.iter().enumerate().map(|(j, v)| (1 + 3 * NUM_EDGES + j, v));
@@ -710,6 +710,84 @@ fn edge_partials<F: Float>(t: &EdgeTerm<F>, alpha: F, beta: F, mu: F, sc: &SoftC
     (da, dl, sgn, diff.abs())
 }
 
+/// The mixture quantities of tape rows computed from the network's outputs, with
+/// what the chain rule back to the outputs needs, all feature-major (`[k * R + r]`).
+struct RowsHead<F> {
+    /// `(ln phi, mu, b)`: `ln phi = log_softmax(o[0..4])`, `mu = POINT_OFFSET_SCALE
+    /// o[4..8]`, `b = POINT_SCALE_SCALE softplus(o[8..12]) + POINT_MIN_SCALE`.
+    head: Vec<F>,
+    /// `phi` (4 columns), then `d b / d o = POINT_SCALE_SCALE sigmoid(o[8..12])` (4).
+    slopes: Vec<F>,
+}
+
+impl<F: Float> RowsHead<F> {
+    /// From the outputs `o` (`[R, 12]`, row-major) of `r` rows, in buffers of `tape`.
+    #[allow(clippy::needless_range_loop)] // index loops over resliced columns vectorise
+    fn new(tape: &Tape<F>, o: &[F], r: usize) -> Self {
+        let f = F::from_f64;
+        let (mu_scale, b_scale, b_min) = (f(POINT_OFFSET_SCALE), f(POINT_SCALE_SCALE), f(POINT_MIN_SCALE));
+        // Every element of both is written below.
+        let mut head = tape.buffer(3 * NUM_EDGES * r);
+        for (i, row) in o.chunks(3 * NUM_EDGES).enumerate() {
+            for (j, &v) in row.iter().enumerate() {
+                head[j * r + i] = v;
+            }
+        }
+        let mut slopes = tape.buffer(2 * NUM_EDGES * r);
+        let (logits, rest) = head.split_at_mut(NUM_EDGES * r);
+        let (mu, b) = rest.split_at_mut(NUM_EDGES * r);
+        let (phi, db) = slopes.split_at_mut(NUM_EDGES * r);
+        {
+            let (l0, rest) = logits.split_at_mut(r);
+            let (l1, rest) = rest.split_at_mut(r);
+            let (l2, l3) = rest.split_at_mut(r);
+            let (p0, rest) = phi.split_at_mut(r);
+            let (p1, rest) = rest.split_at_mut(r);
+            let (p2, p3) = rest.split_at_mut(r);
+            let (l0, l1, l2, l3) = (&mut l0[..r], &mut l1[..r], &mut l2[..r], &mut l3[..r]);
+            let (p0, p1, p2, p3) = (&mut p0[..r], &mut p1[..r], &mut p2[..r], &mut p3[..r]);
+            for i in 0..r {
+                let m = l0[i].max(l1[i]).max(l2[i].max(l3[i]));
+                let (e0, e1, e2, e3) = ((l0[i] - m).exp(), (l1[i] - m).exp(), (l2[i] - m).exp(), (l3[i] - m).exp());
+                let total = e0 + e1 + e2 + e3;
+                let shift = m + total.ln();
+                let inv = F::ONE / total;
+                (l0[i], l1[i], l2[i], l3[i]) = (l0[i] - shift, l1[i] - shift, l2[i] - shift, l3[i] - shift);
+                (p0[i], p1[i], p2[i], p3[i]) = (e0 * inv, e1 * inv, e2 * inv, e3 * inv);
+            }
+        }
+        for v in mu.iter_mut() {
+            *v = *v * mu_scale;
+        }
+        for (v, d) in b.iter_mut().zip(db.iter_mut()) {
+            *d = b_scale * v.sigmoid();
+            *v = v.softplus() * b_scale + b_min;
+        }
+        RowsHead { head, slopes }
+    }
+
+    /// The partials of the rows with respect to the outputs `o` (`[R, 12]`,
+    /// row-major) from those with respect to `(ln phi, mu, b)` (`k[r * stride +
+    /// 1..13]`): `g_logit = g_lnphi - phi sum(g_lnphi)`, `g_o = POINT_OFFSET_SCALE
+    /// g_mu` and `(d b / d o) g_b`.
+    fn chain(&self, tape: &Tape<F>, k: &[f64], stride: usize) -> Vec<F> {
+        let r = k.len() / stride;
+        // Every element is written below.
+        let mut g = tape.buffer(3 * NUM_EDGES * r);
+        for (i, (g, k)) in g.chunks_mut(3 * NUM_EDGES).zip(k.chunks(stride)).enumerate() {
+            let gh = &k[1..1 + 3 * NUM_EDGES];
+            let total: f64 = gh[..NUM_EDGES].iter().sum();
+            for e in 0..NUM_EDGES {
+                let (phi, db) = (self.slopes[e * r + i].to_f64(), self.slopes[(NUM_EDGES + e) * r + i].to_f64());
+                g[e] = F::from_f64(gh[e] - phi * total);
+                g[NUM_EDGES + e] = F::from_f64(POINT_OFFSET_SCALE * gh[NUM_EDGES + e]);
+                g[2 * NUM_EDGES + e] = F::from_f64(db * gh[2 * NUM_EDGES + e]);
+            }
+        }
+        g
+    }
+}
+
 /// Per-row constants of a tile of rows that share their points and box, one array
 /// per quantity (structure of arrays: the passes below vectorise across rows), and
 /// the tile's work columns.
@@ -750,24 +828,28 @@ impl<F: Float> Tile<F> {
         })
     }
 
-    /// Loads the constants of rows `first..first + m` (`head` is `[R, 12]`,
-    /// row-major `(ln phi, mu, b)`) and clears the first `used` sums.
+    /// Loads the constants of rows `first..first + m` and clears the first `used`
+    /// sums.
     #[allow(clippy::too_many_arguments)]
     fn load(&mut self, bc: &BoxConsts<F>, rows: &RowSlices<'_, F>, first: usize, m: usize, used: usize) {
         let (one, two) = (F::ONE, F::from_f64(2.0));
         let lens = [&bc.sw, &bc.sl, &bc.sw, &bc.sl];
-        for i in 0..m {
-            let r = first + i;
-            let h = &rows.head[r * 3 * NUM_EDGES..(r + 1) * 3 * NUM_EDGES];
-            for e in 0..NUM_EDGES {
-                self.k[e][i] = h[e] - (two * h[8 + e]).ln() - lens[e].ln_len;
-                self.mu[e][i] = h[4 + e];
-                self.ib[e][i] = one / h[8 + e];
+        let (n, rows_m) = (rows.x.len(), first..first + m);
+        let h = |j: usize| &rows.head[j * n..(j + 1) * n][rows_m.clone()];
+        for e in 0..NUM_EDGES {
+            let (lnphi, mu, b) = (h(e), h(NUM_EDGES + e), h(2 * NUM_EDGES + e));
+            for i in 0..m {
+                self.k[e][i] = lnphi[i] - (two * b[i]).ln() - lens[e].ln_len;
+                self.mu[e][i] = mu[i];
+                self.ib[e][i] = one / b[i];
             }
-            self.c[i] = rows.yaw[r].cos();
-            self.s[i] = rows.yaw[r].sin();
-            self.x[i] = rows.x[r];
-            self.y[i] = rows.y[r];
+        }
+        let (yaw, x, y) = (&rows.yaw[rows_m.clone()], &rows.x[rows_m.clone()], &rows.y[rows_m]);
+        for i in 0..m {
+            self.c[i] = yaw[i].cos();
+            self.s[i] = yaw[i].sin();
+            self.x[i] = x[i];
+            self.y[i] = y[i];
         }
         for a in self.acc[..used].iter_mut() {
             a[..m].fill(0.0);
@@ -887,8 +969,9 @@ fn tile_point<F: Float, const GRAD: bool, const CLUTTER: bool>(
     }
 }
 
-/// The per-row inputs of the fused kernel, in its float type: `head` is `[R, 12]`
-/// (`ln phi, mu, b` per row), the rest `[R]`; `items[r]` are row `r`'s points.
+/// The per-row inputs of the fused kernel, in its float type: `head` is `(ln phi,
+/// mu, b)` feature-major (`[k * R + r]`, 12 columns), the rest `[R]`; `items[r]`
+/// are row `r`'s points.
 struct RowSlices<'a, F> {
     head: &'a [F],
     x: &'a [F],
