@@ -42,7 +42,8 @@
 //! Run: `cargo bench --bench estimators` (add `-- --quick` for one repetition of
 //! everything and no chunk sweep). A single child run, e.g. for `perf record`:
 //! `.../estimators --child pf-sefi A 4` (workloads: filter, pf-sefi, pf, dpf-sgr,
-//! pfnet; sizes A, B).
+//! pfnet; sizes A, B). The child's line also carries the estimate's CPU time (both
+//! threads, from `/proc/self/stat`), the figure to compare on a busy machine.
 
 use std::process::Command;
 use std::time::Instant;
@@ -386,12 +387,17 @@ fn child(args: &[String]) {
     let model = problem.model();
     let before = proc_status_bytes("VmRSS").expect("VmRSS");
     let reset = reset_peak_rss();
+    let cpu_before = cpu_ticks();
     let t = Instant::now();
     let outcome = run_once(&model, workload, chunk);
     let seconds = t.elapsed().as_secs_f64();
+    let cpu_seconds = match (cpu_before, cpu_ticks()) {
+        (Some(a), Some(b)) => (b.this_process - a.this_process) as f64 / ticks_per_second(),
+        _ => f64::NAN,
+    };
     let peak = proc_status_bytes("VmHWM").expect("VmHWM");
     println!(
-        "{CHILD_TAG} {before} {peak} {} {seconds} {} {} {}",
+        "{CHILD_TAG} {before} {peak} {} {seconds} {} {} {} {cpu_seconds}",
         reset as u8, outcome.rows_evaluated, outcome.particle_slots, outcome.log_likelihood
     );
 }
@@ -403,6 +409,8 @@ struct Memory {
     peak: f64,
     reset: bool,
     seconds: f64,
+    /// CPU time of the estimate in the child (both threads).
+    cpu_seconds: f64,
 }
 
 impl Memory {
@@ -432,6 +440,7 @@ fn measure_memory(workload: Workload, size: Size, chunk: usize) -> Option<Memory
         peak: f.get(2)?.parse().ok()?,
         reset: *f.get(3)? == "1",
         seconds: f.get(4)?.parse().ok()?,
+        cpu_seconds: f.get(8)?.parse().ok()?,
     })
 }
 
@@ -551,24 +560,25 @@ fn main() {
     println!("\n## Time per training step (one estimate on all 100 objects) and peak memory\n");
     println!(
         "| size | workload | chunk | median s | best s | reps | cpu s | others' load | time target | met | \
-         RSS before MiB | peak MiB | peak - before MiB | memory target | met | child run s |"
+         RSS before MiB | peak MiB | peak - before MiB | memory target | met | child run s | child cpu s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in &rows {
         let target = r.workload.time_target(r.size);
         let mem_target = r.workload.memory_target(r.size);
-        let (before, peak, added, mem_ok, child_s) = match r.memory {
+        let (before, peak, added, mem_ok, child_s, child_cpu) = match r.memory {
             Some(m) => (
                 mib(m.before),
                 format!("{}{}", mib(m.peak), if m.reset { "" } else { " (incl. setup)" }),
                 mib(m.added()),
                 verdict(m.peak, mem_target).to_string(),
                 format!("{:.2}", m.seconds),
+                format!("{:.2}", m.cpu_seconds),
             ),
-            None => ("?".into(), "?".into(), "?".into(), "?".into(), "?".into()),
+            None => ("?".into(), "?".into(), "?".into(), "?".into(), "?".into(), "?".into()),
         };
         println!(
-            "| {} | {} | {} | {:.3} | {:.3} | {} | {:.3} | {:.2} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {:.3} | {:.3} | {} | {:.3} | {:.2} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r.size.name(),
             r.workload.name(),
             r.chunk.map_or("-".into(), |c| c.to_string()),
@@ -584,7 +594,8 @@ fn main() {
             added,
             mem_target.map_or(String::new(), |t| format!("<= {} GiB", t / (1024.0 * MIB))),
             mem_ok,
-            child_s
+            child_s,
+            child_cpu
         );
     }
 

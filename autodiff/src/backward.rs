@@ -173,6 +173,41 @@ pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], si
                 sink.add(x, kernels::sum_to_shape(par, g, out_shape, val(x).shape()));
             }
         }
+        Op::Precomputed(pairs) => {
+            for &(x, p) in pairs {
+                if !sink.wants(x) {
+                    continue;
+                }
+                let (xs, pv) = (val(x).shape(), val(p));
+                if pv.shape() == xs && xs.starts_with(out_shape) {
+                    // Row-wise: gx[i, k] = g[i] p[i, k].
+                    let mut g_shape = out_shape.to_vec();
+                    g_shape.resize(xs.len(), 1);
+                    let mut gx = sink.alloc(pv.numel());
+                    kernels::broadcast_zip(par, g, &g_shape, pv.data(), xs, xs, &mut gx, |g, p| g * p);
+                    sink.add(x, gx);
+                } else if let Some(k) = trailing_column(xs, out_shape) {
+                    // Element-wise with `x` a column `[.., 1]` of `[.., k]`: a dot product
+                    // per row (accumulated in f64, as `sum_to_shape` would).
+                    let mut gx = sink.alloc(pv.numel() / k.max(1));
+                    for ((o, g), p) in gx.iter_mut().zip(g.chunks(k)).zip(pv.data().chunks(k)) {
+                        *o = F::from_f64(g.iter().zip(p).map(|(&g, &p)| (g * p).to_f64()).sum());
+                    }
+                    sink.add(x, gx);
+                } else {
+                    // Element-wise: g p, summed over the axes `x` is broadcast along.
+                    let mut full = sink.alloc(g.len());
+                    kernels::zip(par, g, pv.data(), &mut full, |g, p| g * p);
+                    if xs == out_shape {
+                        sink.add(x, full);
+                    } else {
+                        let reduced = kernels::sum_to_shape(par, &full, out_shape, xs);
+                        sink.tape_recycle(full);
+                        sink.add(x, reduced);
+                    }
+                }
+            }
+        }
         Op::Where(mask, a, b) => {
             for (input, pick) in [(*a, true), (*b, false)] {
                 if sink.wants(input) {
@@ -184,6 +219,14 @@ pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], si
                 }
             }
         }
+    }
+}
+
+/// `Some(k)` if `x` is `out` with its last axis (of length `k > 1`) reduced to 1.
+fn trailing_column(x: &[usize], out: &[usize]) -> Option<usize> {
+    match (x.split_last(), out.split_last()) {
+        (Some((1, xl)), Some((&k, ol))) if xl == ol && k > 1 => Some(k),
+        _ => None,
     }
 }
 

@@ -9,7 +9,8 @@
 //! the gradient on the closed interval `[lo, hi]`; `minimum`/`maximum` send the
 //! whole gradient to the first argument on ties. `logsumexp` of a lane that is all
 //! `-inf` is `-inf` with zero gradient; `softmax`/`log_softmax` of such a lane are
-//! `0`/`-inf` with zero gradient. `+inf` inputs to these are not supported.
+//! `0`/`-inf` with zero gradient. `+inf` inputs to these are not supported. An
+//! element of a [`Tape::precomputed`] node that is `-inf` passes no gradient.
 
 use std::ops::{Add, Div, Mul, Neg, Sub};
 use std::sync::Arc;
@@ -81,6 +82,9 @@ pub(crate) enum Op {
     BroadcastTo(NodeId),
     /// Pick from the first input where the mask is true, else the second.
     Where(Arc<[bool]>, NodeId, NodeId),
+    /// A value whose partials were computed with it ([`Tape::precomputed`]): per
+    /// input, the (constant) node holding `d out / d input`.
+    Precomputed(Vec<(NodeId, NodeId)>),
 }
 
 fn unary_forward<F: Float>(op: Unary, par: Parallelism, x: &[F], out: &mut [F]) {
@@ -613,6 +617,72 @@ impl<F: Float> Tape<F> {
                 }
             },
         )
+    }
+
+    /// A node whose value and partial derivatives were computed together outside the
+    /// tape, in one pass: Stan's precomputed-gradients node. Fused log-densities use
+    /// it: one node and one buffer of partials per input instead of a graph of
+    /// element-wise temporaries, and one place that guards `-inf`.
+    ///
+    /// Each `(input, partial)` pair gives `d value / d input` in one of two layouts:
+    ///
+    /// * **element-wise**: `input`'s shape broadcasts to `value`'s and `partial` has
+    ///   `value`'s shape: `d value_i / d input_b(i) = partial_i`, summed over the
+    ///   broadcast axes in the reverse pass (a `[1]` parameter shared by all rows);
+    /// * **row-wise**: `input`'s shape is `value`'s followed by trailing dimensions
+    ///   (`[R] <- [R, K]`) and `partial` has `input`'s shape:
+    ///   `d value_i / d input_{i, k} = partial_{i, k}`.
+    ///
+    /// The two agree when the shapes are equal. An element of `value` that is `-inf`
+    /// (an impossible row) passes no gradient, whatever its partials. Untracked
+    /// inputs are dropped; with none tracked, or on a non-recording tape, the result
+    /// is a constant.
+    ///
+    /// ```
+    /// use autodiff::{Tape, Tensor};
+    /// let tape = Tape::<f64>::new();
+    /// let x = tape.param(Tensor::from_vec(vec![1.0, -2.0]));
+    /// let xv = x.to_tensor();
+    /// // y = x^2 with dy/dx = 2x, as one node.
+    /// let y = tape.precomputed(xv.map(|v| v * v), vec![(x, xv.map(|v| 2.0 * v))]);
+    /// let g = tape.backward(y.sum());
+    /// assert_eq!(g.wrt(x).data(), &[2.0, -4.0]);
+    /// ```
+    ///
+    /// # Panics
+    /// If an input lives on another tape or a partial's shape fits neither layout.
+    #[track_caller]
+    pub fn precomputed<'t>(&'t self, value: Tensor<F>, partials: Vec<(Var<'t, F>, Tensor<F>)>) -> Var<'t, F> {
+        let out_shape = value.shape().to_vec();
+        let mut pairs = Vec::with_capacity(partials.len());
+        for (input, mut partial) in partials {
+            assert!(std::ptr::eq(input.tape, self), "precomputed: an input lives on another tape");
+            let xs = input.shape();
+            let ps = partial.shape();
+            let row_wise = ps == xs.as_slice() && xs.starts_with(&out_shape);
+            let element_wise =
+                ps == out_shape.as_slice() && broadcast_shapes(&xs, &out_shape).as_deref() == Some(&out_shape[..]);
+            assert!(
+                row_wise || element_wise,
+                "precomputed: partial of shape {ps:?} for an input of shape {xs:?} and a value of shape {out_shape:?} \
+                 (expected the value's shape, with an input that broadcasts to it, or the input's, with the value's \
+                 shape leading)"
+            );
+            if !(self.is_recording() && input.is_tracked()) {
+                continue;
+            }
+            // An impossible element has no slope.
+            let per = partial.numel() / value.numel().max(1);
+            for (i, &v) in value.data().iter().enumerate() {
+                if v == F::NEG_INFINITY {
+                    partial.data_mut()[i * per..(i + 1) * per].fill(F::ZERO);
+                }
+            }
+            let p = self.push_node(partial, Op::Leaf, false);
+            pairs.push((input.id, p.id));
+        }
+        let tracked = !pairs.is_empty();
+        self.push_node(value, Op::Precomputed(pairs), tracked)
     }
 
     /// Element-wise choice: `a` where `mask` is true, `b` elsewhere (same shapes).

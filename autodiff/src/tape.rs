@@ -9,6 +9,7 @@
 //! first one.
 
 use std::cell::{Cell, Ref, RefCell};
+use std::collections::BTreeMap;
 use std::fmt;
 
 use crate::backward;
@@ -30,6 +31,49 @@ pub(crate) struct Node<F: Float> {
     pub tracked: bool,
 }
 
+/// Recycled buffers keyed by their length. A request takes a buffer of exactly its
+/// length if there is one, else the shortest longer one (truncated), so reuse costs
+/// no fill; only when none is long enough does it extend a shorter one with room
+/// (zero-filling the gap). A computation rebuilt step after step asks for the same
+/// lengths again, so exact matches are the rule.
+struct Pool<F> {
+    by_len: BTreeMap<usize, Vec<Vec<F>>>,
+    count: usize,
+}
+
+impl<F> Default for Pool<F> {
+    fn default() -> Self {
+        Pool { by_len: BTreeMap::new(), count: 0 }
+    }
+}
+
+impl<F> Pool<F> {
+    /// Keeps `buf` (dropped if the pool holds [`MAX_POOLED_BUFFERS`] already).
+    fn put(&mut self, buf: Vec<F>) {
+        if self.count < MAX_POOLED_BUFFERS && buf.capacity() > 0 {
+            self.by_len.entry(buf.len()).or_default().push(buf);
+            self.count += 1;
+        }
+    }
+
+    /// A buffer for `len` elements: of length at least `len` (the shortest such),
+    /// else a shorter one with room for `len` (which the caller has to extend).
+    fn take(&mut self, len: usize) -> Option<Vec<F>> {
+        let key = match self.by_len.range(len..).next() {
+            Some((&key, _)) => key,
+            None => *self.by_len.iter().rev().find(|(_, bufs)| bufs.iter().any(|b| b.capacity() >= len))?.0,
+        };
+        let bufs = self.by_len.get_mut(&key).expect("a pooled length");
+        let at = bufs.iter().position(|b| b.capacity() >= len).expect("a buffer with room");
+        let buf = bufs.swap_remove(at);
+        if bufs.is_empty() {
+            self.by_len.remove(&key);
+        }
+        self.count -= 1;
+        Some(buf)
+    }
+}
+
 /// A recording of tensor operations, differentiable in reverse mode.
 ///
 /// ```
@@ -42,7 +86,7 @@ pub(crate) struct Node<F: Float> {
 /// ```
 pub struct Tape<F: Float = f64> {
     nodes: RefCell<Vec<Node<F>>>,
-    pool: RefCell<Vec<Vec<F>>>,
+    pool: RefCell<Pool<F>>,
     recording: Cell<bool>,
     par: Cell<Parallelism>,
 }
@@ -68,7 +112,7 @@ impl<F: Float> Tape<F> {
     pub fn new() -> Self {
         Tape {
             nodes: RefCell::new(Vec::new()),
-            pool: RefCell::new(Vec::new()),
+            pool: RefCell::new(Pool::default()),
             recording: Cell::new(true),
             par: Cell::new(Parallelism::Rayon),
         }
@@ -113,9 +157,7 @@ impl<F: Float> Tape<F> {
         let nodes = std::mem::take(self.nodes.get_mut());
         let pool = self.pool.get_mut();
         for node in nodes {
-            if pool.len() < MAX_POOLED_BUFFERS {
-                pool.push(node.value.into_parts().1);
-            }
+            pool.put(node.value.into_parts().1);
         }
     }
 
@@ -138,25 +180,23 @@ impl<F: Float> Tape<F> {
     /// A buffer of `len` elements with unspecified (but initialised) contents, recycled
     /// from earlier steps when possible. For outputs that are written in full.
     pub(crate) fn alloc(&self, len: usize) -> Vec<F> {
-        let mut pool = self.pool.borrow_mut();
-        // Best fit among recycled buffers: the smallest capacity that holds `len`.
-        let best = pool
-            .iter()
-            .enumerate()
-            .filter(|(_, b)| b.capacity() >= len)
-            .min_by_key(|(_, b)| b.capacity())
-            .map(|(i, _)| i);
-        let mut buf = match best {
-            Some(i) => pool.swap_remove(i),
-            None => Vec::with_capacity(len),
-        };
-        drop(pool);
-        if buf.len() >= len {
-            buf.truncate(len);
-        } else {
-            buf.resize(len, F::ZERO);
+        let buf = self.pool.borrow_mut().take(len);
+        match buf {
+            Some(mut buf) => {
+                // Within the buffer's length no fill is needed; beyond it, zeros.
+                buf.resize(len, F::ZERO);
+                buf
+            }
+            None => vec![F::ZERO; len],
         }
-        buf
+    }
+
+    /// A buffer of `len` elements recycled from earlier computations on this tape when
+    /// possible (see [`Tape::reset`]): its contents are unspecified (stale values),
+    /// so write every element. For code that builds a node's value or partials
+    /// outside the tape ([`Tape::precomputed`]) without fresh allocations.
+    pub fn buffer(&self, len: usize) -> Vec<F> {
+        self.alloc(len)
     }
 
     /// A zero-filled buffer of `len` elements (for outputs that are accumulated into).
@@ -168,10 +208,7 @@ impl<F: Float> Tape<F> {
 
     /// Returns a no-longer-needed buffer to the pool.
     pub(crate) fn recycle(&self, buf: Vec<F>) {
-        let mut pool = self.pool.borrow_mut();
-        if pool.len() < MAX_POOLED_BUFFERS {
-            pool.push(buf);
-        }
+        self.pool.borrow_mut().put(buf);
     }
 
     pub(crate) fn push_node(&self, value: Tensor<F>, op: Op, tracked: bool) -> Var<'_, F> {

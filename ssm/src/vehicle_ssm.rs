@@ -359,8 +359,7 @@ impl<P: GaussianPolicy, O: ObservationModel> DifferentiableModel for VehicleSsm<
         let np = self.policy.parameters().len();
         let g = self.policy.gaussians_on_tape(&params[..np], prev[3], prev[4]);
         // The recorded actions standardised at the current values, held constant.
-        let (z1, z2) = g.standardise(&ActionVars { accel: actions[0], pinch: actions[1] });
-        let a = g.actions_from_noise(z1.stop_gradient(), z2.stop_gradient());
+        let a = g.reparameterised(&ActionVars { accel: actions[0], pinch: actions[1] });
         let s = StateVars { x: prev[0], y: prev[1], yaw: prev[YAW], v: prev[3], kappa: prev[4] };
         let next = self.motion.propagate_on_tape(&s, &a);
         vec![next.x, next.y, next.yaw, next.v, next.kappa]

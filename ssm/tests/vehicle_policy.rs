@@ -315,6 +315,40 @@ fn check_tape<P: GaussianPolicy>(policy: &P, seed: u64, fd: &GradCheck) {
         &inputs,
     )
     .expect("reparameterised action gradient");
+    // The fused reparameterisation of recorded actions (the through-filter
+    // baselines' transition): the same values, and the gradient of
+    // `actions_from_noise` with the standardised noise held constant.
+    let u = Tensor::from_vec(noise[..n].to_vec());
+    let r = Tensor::from_vec(noise[n..].to_vec());
+    let grads_of = |fused: bool| {
+        let tape = Tape::<f64>::new();
+        let params = policy.bind_parameters(&tape);
+        let (vv, kv) = (tape.param(Tensor::from_vec(v.clone())), tape.param(Tensor::from_vec(k.clone())));
+        let g = policy.gaussians_on_tape(&params, vv, kv);
+        let c = |x: &[f64]| tape.constant(Tensor::from_vec(x.to_vec()));
+        let act = if fused {
+            g.reparameterised(&ActionVars { accel: c(&a.accel), pinch: c(&a.pinch) })
+        } else {
+            g.actions_from_noise(c(&e1), c(&e2))
+        };
+        let values = [act.accel.to_tensor(), act.pinch.to_tensor()];
+        let total = (act.accel * tape.constant(u.clone())).sum() + (act.pinch * tape.constant(r.clone())).sum();
+        let grads = tape.backward(total);
+        let mut out: Vec<Tensor<f64>> = params.iter().map(|&p| grads.wrt(p)).collect();
+        out.extend([grads.wrt(vv), grads.wrt(kv)]);
+        (values, out)
+    };
+    let ((fused_values, fused), (composed_values, composed)) = (grads_of(true), grads_of(false));
+    for (x, y) in fused_values.iter().zip(&composed_values) {
+        for (x, y) in x.data().iter().zip(y.data()) {
+            assert!((x - y).abs() < 1e-12, "reparameterised {x} vs actions_from_noise {y}");
+        }
+    }
+    for (x, y) in fused.iter().zip(&composed) {
+        for (x, y) in x.data().iter().zip(y.data()) {
+            assert!((x - y).abs() <= 1e-12 * y.abs().max(1.0), "reparameterised gradient {x} vs composed {y}");
+        }
+    }
 }
 
 #[test]

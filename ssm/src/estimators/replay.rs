@@ -19,9 +19,10 @@
 //! - **PFNET** (Karkus et al. 2018): ancestors drawn from
 //!   `q = alpha W + (1 - alpha)/N` carry `W^a / q^a`, normalised, differentiable.
 //!
-//! Objects are processed in chunks of [`EstimatorConfig::chunk_objects`]: one tape
-//! per chunk holds the whole filter of its objects (`O(C N T)` memory) and is freed
-//! before the next chunk; chunks run in parallel on the rayon pool.
+//! Objects are processed in chunks of [`EstimatorConfig::chunk_objects`]: a tape
+//! holds the whole filter of a chunk's objects (`O(C N T)` memory) and is reset
+//! before the next chunk (one tape per worker, so its buffers are recycled); chunks
+//! run in parallel on the rayon pool.
 
 use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
@@ -116,8 +117,8 @@ impl ThroughFilter {
         let per_chunk: Vec<(Vec<ObjectSummary>, Vec<Tensor<F>>)> = chunks
             .par_iter()
             .map_init(
-                || model.new_scratch(),
-                |scratch, chunk| {
+                || (model.new_scratch(), Tape::<F>::new().with_parallelism(Parallelism::Serial)),
+                |(scratch, tape), chunk| {
                     let mut summaries = Vec::with_capacity(chunk.len());
                     let mut records = Vec::with_capacity(chunk.len());
                     for &object in chunk.iter() {
@@ -126,8 +127,9 @@ impl ThroughFilter {
                         summaries.push(summary);
                         records.push(record);
                     }
-                    let tape = Tape::<F>::new().with_parallelism(Parallelism::Serial);
-                    let grads = replay_gradient(model, &tape, self.kind, config.particles, chunk, &records);
+                    // One tape per worker, reset per chunk: its buffers are recycled.
+                    tape.reset();
+                    let grads = replay_gradient(model, tape, self.kind, config.particles, chunk, &records);
                     (summaries, grads)
                 },
             )

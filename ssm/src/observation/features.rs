@@ -115,28 +115,83 @@ pub(crate) fn features_with_trig<F: Float>(
     }
 }
 
-/// The features of `R` rows on a tape, shape `[R, 7]`, differentiable in every
-/// tracked `Var` of `rows`; `av[r]` is row `r`'s AV pose.
+/// The features of tape rows (`[R, 7]`), differentiable in the rows' `x, y, yaw,
+/// length, width`, with the AV pose of each row in `av` (constants): one fused
+/// node ([`Tape::precomputed`]) whose values are those of the features composed
+/// from element-wise tape ops (`inv_r` as `q^-1/2`, `r` as `sqrt(q)`, `q = |d|^2 +
+/// RANGE_EPS^2`) and whose partials are computed with them.
 #[track_caller]
 pub fn av_features_on_tape<'t, F: Float>(rows: &RowVars<'t, F>, av: &[Pose]) -> Var<'t, F> {
     let r = rows.check(av.len(), av.len(), "av_features_on_tape");
     let tape: &'t Tape<F> = rows.x.tape();
-    let c = |g: &dyn Fn(&Pose) -> f64| tape.constant(Tensor::from_vec(av.iter().map(|p| F::from_f64(g(p))).collect()));
-    let dx = rows.x - c(&|p| p.x);
-    let dy = rows.y - c(&|p| p.y);
-    let (ca, sa) = (c(&|p| p.yaw.cos()), c(&|p| p.yaw.sin()));
-    let inv_r = (dx.square() + dy.square()).add_scalar(RANGE_EPS * RANGE_EPS).powf(-0.5);
-    let range = (dx.square() + dy.square()).add_scalar(RANGE_EPS * RANGE_EPS).sqrt();
-    let (cy, sy) = (rows.yaw.cos(), rows.yaw.sin());
-    let cols = [
-        range.mul_scalar(1.0 / RANGE_SCALE),
-        (dy * ca - dx * sa) * inv_r,
-        (dx * ca + dy * sa) * inv_r,
-        (dx * sy - dy * cy) * inv_r,
-        -((dx * cy + dy * sy) * inv_r),
-        rows.length.mul_scalar(1.0 / LENGTH_SCALE),
-        rows.width.mul_scalar(1.0 / WIDTH_SCALE),
+    let f = F::from_f64;
+    let (eps2, inv_range_scale, minus_half) = (f(RANGE_EPS * RANGE_EPS), f(1.0 / RANGE_SCALE), f(-0.5));
+    // Every element is written below.
+    let mut value = tape.buffer(r * NUM_FEATURES);
+    // d value / d (x, y, yaw), row-major like the value.
+    let mut partials: [Vec<F>; 3] = std::array::from_fn(|_| tape.buffer(r * NUM_FEATURES));
+    {
+        let (xs, ys, yaws) = (rows.x.value(), rows.y.value(), rows.yaw.value());
+        let (ls, ws) = (rows.length.value(), rows.width.value());
+        let [gx, gy, gyaw] = &mut partials;
+        for (i, p) in av.iter().enumerate() {
+            let (ca, sa) = (f(p.yaw.cos()), f(p.yaw.sin()));
+            let dx = xs.data()[i] - f(p.x);
+            let dy = ys.data()[i] - f(p.y);
+            let q = dx * dx + dy * dy + eps2;
+            let inv_r = q.powf(minus_half);
+            let (cy, sy) = (yaws.data()[i].cos(), yaws.data()[i].sin());
+            let u = [dy * ca - dx * sa, dx * ca + dy * sa, dx * sy - dy * cy, dx * cy + dy * sy];
+            let row = i * NUM_FEATURES..(i + 1) * NUM_FEATURES;
+            value[row.clone()].copy_from_slice(&[
+                q.sqrt() * inv_range_scale,
+                u[0] * inv_r,
+                u[1] * inv_r,
+                u[2] * inv_r,
+                -(u[3] * inv_r),
+                ls.data()[i] * f(1.0 / LENGTH_SCALE),
+                ws.data()[i] * f(1.0 / WIDTH_SCALE),
+            ]);
+            // d inv_r / d(dx, dy) = -(dx, dy) inv_r^3.
+            let ir3 = inv_r * inv_r * inv_r;
+            let (ex, ey) = (dx * ir3, dy * ir3);
+            gx[row.clone()].copy_from_slice(&[
+                dx * inv_r * inv_range_scale,
+                -sa * inv_r - u[0] * ex,
+                ca * inv_r - u[1] * ex,
+                sy * inv_r - u[2] * ex,
+                -(cy * inv_r - u[3] * ex),
+                F::ZERO,
+                F::ZERO,
+            ]);
+            gy[row.clone()].copy_from_slice(&[
+                dy * inv_r * inv_range_scale,
+                ca * inv_r - u[0] * ey,
+                sa * inv_r - u[1] * ey,
+                -cy * inv_r - u[2] * ey,
+                -(sy * inv_r - u[3] * ey),
+                F::ZERO,
+                F::ZERO,
+            ]);
+            gyaw[row].copy_from_slice(&[F::ZERO, F::ZERO, F::ZERO, u[3] * inv_r, u[2] * inv_r, F::ZERO, F::ZERO]);
+        }
+    }
+    // Each row's inputs as a column [R, 1]: it broadcasts along the row's features.
+    let column = |v: Var<'t, F>| v.reshape(&[r, 1]);
+    let shape = [r, NUM_FEATURES];
+    let [gx, gy, gyaw] = partials;
+    let mut inputs = vec![
+        (column(rows.x), Tensor::new(&shape, gx)),
+        (column(rows.y), Tensor::new(&shape, gy)),
+        (column(rows.yaw), Tensor::new(&shape, gyaw)),
     ];
-    let cols: Vec<Var<'t, F>> = cols.iter().map(|v| v.reshape(&[r, 1])).collect();
-    tape.concat(&cols, 1)
+    for (v, k, scale) in [(rows.length, 5, LENGTH_SCALE), (rows.width, 6, WIDTH_SCALE)] {
+        if v.is_tracked() {
+            let mut g = tape.buffer(r * NUM_FEATURES);
+            g.fill(F::ZERO);
+            g.iter_mut().skip(k).step_by(NUM_FEATURES).for_each(|g| *g = f(1.0 / scale));
+            inputs.push((column(v), Tensor::new(&shape, g)));
+        }
+    }
+    tape.precomputed(Tensor::new(&shape, value), inputs)
 }

@@ -21,7 +21,7 @@
 use std::f64::consts::PI;
 use std::fmt;
 
-use autodiff::{Float, Tensor, Var};
+use autodiff::{Float, Tensor};
 use serde::{Deserialize, Serialize};
 
 use super::state::{Action, ActionVars, ActionsRef, StateVars, StatesMut, StatesRef, VehicleState};
@@ -266,8 +266,10 @@ impl MotionModel {
 
     /// The same step on a tape, differentiable in every state and action component.
     ///
-    /// All inputs have shape `[n]`; so do the outputs. Computes the same numbers as
-    /// [`MotionModel::propagate`] up to the summation order of the quadrature.
+    /// All inputs have shape `[n]`; so do the outputs. Each output is one fused
+    /// node ([`autodiff::Tape::precomputed`]) whose values are those of
+    /// [`MotionModel::propagate`] (the same arithmetic) and whose partial derivatives
+    /// come out of the same passes over the quadrature nodes ([`step_tile`]).
     #[track_caller]
     pub fn propagate_on_tape<'t, F: Float>(&self, s: &StateVars<'t, F>, a: &ActionVars<'t, F>) -> StateVars<'t, F> {
         let n = s.x.numel();
@@ -287,28 +289,174 @@ impl MotionModel {
                 v.shape()
             );
         }
-        let tape = s.x.tape();
-        let q = self.quadrature.nodes();
-        let nodes = tape.constant(Tensor::from_f64s(&[1, q], &self.s[..q]));
-        let weights = tape.constant(Tensor::from_f64s(&[q, 1], &self.w[..q]));
-        // d(s) = ((c3 s + c2) s + c1) s, as in the plain kernel.
-        let c1 = s.v * s.kappa;
-        let c2 = (s.v * a.pinch + a.accel * s.kappa) * 0.5;
-        let c3 = (a.accel * a.pinch) * (1.0 / 3.0);
-        let col = |v: Var<'t, F>| v.reshape(&[n, 1]);
-        let d = ((col(c3) * nodes + col(c2)) * nodes + col(c1)) * nodes;
-        let speed = col(s.v) + col(a.accel) * nodes;
-        let lx = (speed * d.cos()).matmul(weights).reshape(&[n]);
-        let ly = (speed * d.sin()).matmul(weights).reshape(&[n]);
-        let (cy, sy) = (s.yaw.cos(), s.yaw.sin());
-        let t = self.dt;
-        StateVars {
-            x: s.x + (cy * lx - sy * ly),
-            y: s.y + (sy * lx + cy * ly),
-            yaw: s.yaw + ((c3 * t + c2) * t + c1) * t,
-            v: s.v + a.accel * t,
-            kappa: s.kappa + a.pinch * t,
+        match self.quadrature {
+            Quadrature::Gl4 => self.tape_step::<F, 4>(s, a),
+            Quadrature::Gl8 => self.tape_step::<F, 8>(s, a),
+            Quadrature::Gl16 => self.tape_step::<F, 16>(s, a),
         }
+    }
+
+    /// [`MotionModel::propagate_on_tape`] with an `N`-node rule.
+    fn tape_step<'t, F: Float, const N: usize>(&self, s: &StateVars<'t, F>, a: &ActionVars<'t, F>) -> StateVars<'t, F> {
+        let n = s.x.numel();
+        let rule = self.rule::<F, N>();
+        let tape = s.x.tape();
+        // Every element is written by `step_tile`.
+        let mut next: [Vec<F>; 5] = std::array::from_fn(|_| tape.buffer(n));
+        let mut partials: [Vec<F>; STEP_PARTIALS] = std::array::from_fn(|_| tape.buffer(n));
+        {
+            let inputs = [s.x, s.y, s.yaw, s.v, s.kappa, a.accel, a.pinch].map(|v| v.value());
+            let inputs = inputs.each_ref().map(|v| &v.data()[..n]);
+            let mut start = 0;
+            while start < n {
+                let rows = start..(start + TAPE_TILE).min(n);
+                step_tile(
+                    &rule,
+                    inputs.map(|v| &v[rows.clone()]),
+                    next.each_mut().map(|c| &mut c[rows.clone()]),
+                    partials.each_mut().map(|c| &mut c[rows.clone()]),
+                );
+                start = rows.end;
+            }
+        }
+        let full = |v: F| {
+            let mut b = tape.buffer(n);
+            b.fill(v);
+            Tensor::from_vec(b)
+        };
+        let ones = || full(F::ONE);
+        let dt = || full(F::from_f64(self.dt));
+        let [x1, y1, yaw1, v1, k1] = next.map(Tensor::from_vec);
+        let [dx_yaw, dx_v, dx_k, dx_a, dx_p, dy_yaw, dy_v, dy_k, dy_a, dy_p, dyaw_v, dyaw_k, dyaw_a, dyaw_p] =
+            partials.map(Tensor::from_vec);
+        StateVars {
+            x: tape.precomputed(
+                x1,
+                vec![(s.x, ones()), (s.yaw, dx_yaw), (s.v, dx_v), (s.kappa, dx_k), (a.accel, dx_a), (a.pinch, dx_p)],
+            ),
+            y: tape.precomputed(
+                y1,
+                vec![(s.y, ones()), (s.yaw, dy_yaw), (s.v, dy_v), (s.kappa, dy_k), (a.accel, dy_a), (a.pinch, dy_p)],
+            ),
+            yaw: tape.precomputed(
+                yaw1,
+                vec![(s.yaw, ones()), (s.v, dyaw_v), (s.kappa, dyaw_k), (a.accel, dyaw_a), (a.pinch, dyaw_p)],
+            ),
+            v: tape.precomputed(v1, vec![(s.v, ones()), (a.accel, dt())]),
+            kappa: tape.precomputed(k1, vec![(s.kappa, ones()), (a.pinch, dt())]),
+        }
+    }
+}
+
+/// Partial derivatives [`step_tile`] returns: of the next `x` and `y` with respect
+/// to `(yaw, v, kappa, accel, pinch)`, then of the next yaw with respect to `(v,
+/// kappa, accel, pinch)`. (The rest are 0, 1 or `dt`.)
+const STEP_PARTIALS: usize = 14;
+
+/// Objects per tile of [`step_tile`]: its per-object accumulators stay in L1.
+const TAPE_TILE: usize = 256;
+
+/// [`advance`] for a tile of at most [`TAPE_TILE`] objects (inputs `(x, y, yaw, v,
+/// kappa, accel, pinch)`), with the partial derivatives of the next state (the
+/// order of [`STEP_PARTIALS`]). The values are computed by the same expressions in
+/// the same order as [`advance`], so they are equal; the loops run over objects
+/// innermost (one pass per quadrature node), which lets them vectorise.
+///
+/// With `d(s) = c1 s + c2 s^2 + c3 s^3` and `L = sum_i w_i (v + accel s_i) (cos d_i,
+/// sin d_i)`, a parameter `p` of `(v, kappa, accel, pinch)` moves `L` by
+/// `sum_i w_i [d(v + accel s_i)/dp (cos, sin) + (v + accel s_i) dd_i/dp (-sin, cos)]`,
+/// and the next position is the start plus `L` rotated by the heading.
+#[allow(clippy::needless_range_loop)] // index loops over resliced arrays vectorise
+fn step_tile<F: Float, const N: usize>(
+    rule: &Rule<F, N>,
+    inputs: [&[F]; 7],
+    next: [&mut [F]; 5],
+    partials: [&mut [F]; STEP_PARTIALS],
+) {
+    let m = inputs[0].len();
+    assert!(m <= TAPE_TILE, "step_tile: {m} objects in a tile of {TAPE_TILE}");
+    let (half, third) = (F::from_f64(0.5), F::from_f64(1.0 / 3.0));
+    let [xs, ys, yaws, vs, ks, acc, pin] = inputs.map(|v| &v[..m]);
+    let (mut c1, mut c2, mut c3) = ([F::ZERO; TAPE_TILE], [F::ZERO; TAPE_TILE], [F::ZERO; TAPE_TILE]);
+    for i in 0..m {
+        c1[i] = vs[i] * ks[i];
+        c2[i] = (vs[i] * pin[i] + acc[i] * ks[i]) * half;
+        c3[i] = (acc[i] * pin[i]) * third;
+    }
+    let (c1, c2, c3) = (&c1[..m], &c2[..m], &c3[..m]);
+    // L and d L / d (v, kappa, accel, pinch).
+    let (mut lx, mut ly) = ([F::ZERO; TAPE_TILE], [F::ZERO; TAPE_TILE]);
+    let (mut gx, mut gy) = ([[F::ZERO; TAPE_TILE]; 4], [[F::ZERO; TAPE_TILE]; 4]);
+    for j in 0..N {
+        let (si, wi) = (rule.s[j], rule.w[j]);
+        let (s2, s3, wsi) = (si * si * half, si * si * si * third, wi * si);
+        let (lx, ly) = (&mut lx[..m], &mut ly[..m]);
+        let [gx0, gx1, gx2, gx3] = gx.each_mut().map(|g| &mut g[..m]);
+        let [gy0, gy1, gy2, gy3] = gy.each_mut().map(|g| &mut g[..m]);
+        for i in 0..m {
+            let d = ((c3[i] * si + c2[i]) * si + c1[i]) * si;
+            let wv = wi * (vs[i] + acc[i] * si);
+            let (cd, sd) = (d.cos(), d.sin());
+            lx[i] += wv * cd;
+            ly[i] += wv * sd;
+            let (ws, wc) = (wv * sd, wv * cd);
+            // d d_i / d (v, kappa, accel, pinch).
+            let dd = [
+                ks[i] * si + pin[i] * s2,
+                vs[i] * si + acc[i] * s2,
+                ks[i] * s2 + pin[i] * s3,
+                vs[i] * s2 + acc[i] * s3,
+            ];
+            gx0[i] += wi * cd - ws * dd[0];
+            gy0[i] += wi * sd + wc * dd[0];
+            gx1[i] += -ws * dd[1];
+            gy1[i] += wc * dd[1];
+            gx2[i] += wsi * cd - ws * dd[2];
+            gy2[i] += wsi * sd + wc * dd[2];
+            gx3[i] += -ws * dd[3];
+            gy3[i] += wc * dd[3];
+        }
+    }
+    let (mut cy, mut sy) = ([F::ZERO; TAPE_TILE], [F::ZERO; TAPE_TILE]);
+    for i in 0..m {
+        cy[i] = yaws[i].cos();
+        sy[i] = yaws[i].sin();
+    }
+    let (cy, sy, lx, ly) = (&cy[..m], &sy[..m], &lx[..m], &ly[..m]);
+    let t = rule.dt;
+    let (t2, t3) = (t * t * half, t * t * t * third);
+    let [nx, ny, nyaw, nv, nk] = next.map(|c| &mut c[..m]);
+    for i in 0..m {
+        nx[i] = xs[i] + (cy[i] * lx[i] - sy[i] * ly[i]);
+        ny[i] = ys[i] + (sy[i] * lx[i] + cy[i] * ly[i]);
+        nyaw[i] = yaws[i] + ((c3[i] * t + c2[i]) * t + c1[i]) * t;
+        nv[i] = vs[i] + acc[i] * t;
+        nk[i] = ks[i] + pin[i] * t;
+    }
+    let [px_yaw, px_v, px_k, px_a, px_p, py_yaw, py_v, py_k, py_a, py_p, pyaw_v, pyaw_k, pyaw_a, pyaw_p] =
+        partials.map(|c| &mut c[..m]);
+    let [gx0, gx1, gx2, gx3] = gx.each_ref().map(|g| &g[..m]);
+    let [gy0, gy1, gy2, gy3] = gy.each_ref().map(|g| &g[..m]);
+    // Separate passes: one loop with all 14 outputs does not vectorise.
+    for i in 0..m {
+        px_yaw[i] = -sy[i] * lx[i] - cy[i] * ly[i];
+        px_v[i] = cy[i] * gx0[i] - sy[i] * gy0[i];
+        px_k[i] = cy[i] * gx1[i] - sy[i] * gy1[i];
+        px_a[i] = cy[i] * gx2[i] - sy[i] * gy2[i];
+        px_p[i] = cy[i] * gx3[i] - sy[i] * gy3[i];
+    }
+    for i in 0..m {
+        py_yaw[i] = cy[i] * lx[i] - sy[i] * ly[i];
+        py_v[i] = sy[i] * gx0[i] + cy[i] * gy0[i];
+        py_k[i] = sy[i] * gx1[i] + cy[i] * gy1[i];
+        py_a[i] = sy[i] * gx2[i] + cy[i] * gy2[i];
+        py_p[i] = sy[i] * gx3[i] + cy[i] * gy3[i];
+    }
+    for i in 0..m {
+        pyaw_v[i] = ks[i] * t + pin[i] * t2;
+        pyaw_k[i] = vs[i] * t + acc[i] * t2;
+        pyaw_a[i] = ks[i] * t2 + pin[i] * t3;
+        pyaw_p[i] = vs[i] * t2 + acc[i] * t3;
     }
 }
 

@@ -165,10 +165,154 @@ pub struct ActionGaussianVars<'t, F: Float> {
 }
 
 impl<'t, F: Float> ActionGaussianVars<'t, F> {
-    /// Log-densities of `actions` (shape `[n]`), differentiable in everything.
+    /// Log-densities of `actions` (shape `[n]`), differentiable in everything: one
+    /// fused node ([`autodiff::Tape::precomputed`]) with the analytic partials,
+    ///
+    /// ```text
+    /// log pi = -(z1^2 + z2^2) / 2 - ln l11 - ln l22 - ln 2 pi,
+    /// z1 = (a1 - m1) / l11,  z2 = (a2 - m2 - l21 z1) / l22,
+    /// d/da1 = -z1 / l11 + z2 l21 / (l11 l22) = -d/dm1,  d/da2 = -z2 / l22 = -d/dm2,
+    /// d/dl11 = (z1^2 - 1) / l11 - z2 l21 z1 / (l11 l22),
+    /// d/dl21 = z1 z2 / l22,  d/dl22 = (z2^2 - 1) / l22.
+    /// ```
+    ///
+    /// # Panics
+    /// If the actions do not both have shape `[n]` or a distribution's entry has a
+    /// shape other than `[n]` or `[1]`.
+    #[track_caller]
     pub fn log_density(&self, actions: &ActionVars<'t, F>) -> Var<'t, F> {
-        let (z1, z2) = self.standardise(actions);
-        (z1.square() + z2.square()).mul_scalar(-0.5) - self.l11.ln() - self.l22.ln() - LN_2PI
+        let n = self.check(actions, "ActionGaussianVars::log_density");
+        let tape = actions.accel.tape();
+        let f = F::from_f64;
+        let (half, ln2pi) = (f(-0.5), f(LN_2PI));
+        // Every element of these is written below.
+        let mut value = tape.buffer(n);
+        let mut d: [Vec<F>; 5] = std::array::from_fn(|_| tape.buffer(n));
+        {
+            let vals =
+                [self.mean_accel, self.mean_pinch, self.l11, self.l22, actions.accel, actions.pinch].map(|v| v.value());
+            let l21 = self.l21.map(|v| v.value());
+            let [m1, m2, l11, l22, a1, a2] = vals.each_ref().map(|v| v.data());
+            let [da1, da2, dl11, dl21, dl22] = &mut d;
+            for i in 0..n {
+                let (l11, l22) = (at(l11, i), at(l22, i));
+                let z1 = (a1[i] - at(m1, i)) / l11;
+                let r2 = a2[i] - at(m2, i);
+                let (r2, l21) = match &l21 {
+                    Some(l) => {
+                        let l21 = at(l.data(), i);
+                        (r2 - l21 * z1, l21)
+                    }
+                    None => (r2, F::ZERO),
+                };
+                let z2 = r2 / l22;
+                value[i] = (z1 * z1 + z2 * z2) * half - l11.ln() - l22.ln() - ln2pi;
+                let q = z2 * l21 / (l11 * l22);
+                da1[i] = -z1 / l11 + q;
+                da2[i] = -z2 / l22;
+                dl11[i] = (z1 * z1 - F::ONE) / l11 - q * z1;
+                dl21[i] = z1 * z2 / l22;
+                dl22[i] = (z2 * z2 - F::ONE) / l22;
+            }
+        }
+        let [da1, da2, dl11, dl21, dl22] = d;
+        let neg = |g: &[F]| {
+            let mut b = tape.buffer(n);
+            for (b, &g) in b.iter_mut().zip(g) {
+                *b = -g;
+            }
+            Tensor::from_vec(b)
+        };
+        let mut inputs = vec![(self.mean_accel, neg(&da1)), (self.mean_pinch, neg(&da2))];
+        if let Some(l21) = self.l21 {
+            inputs.push((l21, Tensor::from_vec(dl21)));
+        }
+        inputs.extend([
+            (actions.accel, Tensor::from_vec(da1)),
+            (actions.pinch, Tensor::from_vec(da2)),
+            (self.l11, Tensor::from_vec(dl11)),
+            (self.l22, Tensor::from_vec(dl22)),
+        ]);
+        tape.precomputed(Tensor::from_vec(value), inputs)
+    }
+
+    /// The reparameterised transition's actions: `mu + L eps` with the noise `eps =
+    /// L^{-1} (a - mu)` of `actions` at the current values held constant, so the
+    /// values are those of [`ActionGaussianVars::actions_from_noise`] on the
+    /// standardised actions, and the gradient flows to the distribution only (`d
+    /// accel / d(mu1, l11) = (1, eps1)`, `d pinch / d(mu2, l21, l22) = (1, eps1,
+    /// eps2)`). One fused node per component ([`autodiff::Tape::precomputed`]).
+    ///
+    /// # Panics
+    /// If the actions do not both have shape `[n]` or a distribution's entry has a
+    /// shape other than `[n]` or `[1]`.
+    #[track_caller]
+    pub fn reparameterised(&self, actions: &ActionVars<'t, F>) -> ActionVars<'t, F> {
+        let n = self.check(actions, "ActionGaussianVars::reparameterised");
+        let tape = actions.accel.tape();
+        // Every element of these is written below.
+        let [mut accel, mut pinch, mut e1s, mut e2s] = std::array::from_fn(|_| tape.buffer(n));
+        {
+            let vals =
+                [self.mean_accel, self.mean_pinch, self.l11, self.l22, actions.accel, actions.pinch].map(|v| v.value());
+            let l21 = self.l21.map(|v| v.value());
+            let [m1, m2, l11, l22, a1, a2] = vals.each_ref().map(|v| v.data());
+            for i in 0..n {
+                let (m1, m2, l11, l22) = (at(m1, i), at(m2, i), at(l11, i), at(l22, i));
+                // As `standardise`, then `actions_from_noise`.
+                let z1 = (a1[i] - m1) / l11;
+                let r2 = a2[i] - m2;
+                let l21 = l21.as_ref().map(|l| at(l.data(), i));
+                let z2 = match l21 {
+                    Some(l21) => (r2 - l21 * z1) / l22,
+                    None => r2 / l22,
+                };
+                accel[i] = m1 + l11 * z1;
+                let p = m2 + l22 * z2;
+                pinch[i] = match l21 {
+                    Some(l21) => p + l21 * z1,
+                    None => p,
+                };
+                (e1s[i], e2s[i]) = (z1, z2);
+            }
+        }
+        let ones = || {
+            let mut b = tape.buffer(n);
+            b.fill(F::ONE);
+            Tensor::from_vec(b)
+        };
+        let e1 = Tensor::from_vec(e1s);
+        let mut pinch_inputs = vec![(self.mean_pinch, ones()), (self.l22, Tensor::from_vec(e2s))];
+        if let Some(l21) = self.l21 {
+            pinch_inputs.push((l21, e1.clone()));
+        }
+        ActionVars {
+            accel: tape.precomputed(Tensor::from_vec(accel), vec![(self.mean_accel, ones()), (self.l11, e1)]),
+            pinch: tape.precomputed(Tensor::from_vec(pinch), pinch_inputs),
+        }
+    }
+
+    /// The number of actions `n`, after checking the shapes of the distribution's
+    /// entries (`[n]` or `[1]`) and of the actions (`[n]`).
+    #[track_caller]
+    fn check(&self, actions: &ActionVars<'t, F>, op: &str) -> usize {
+        let n = actions.accel.numel();
+        let ps = actions.pinch.shape();
+        assert!(ps == [n], "{op}: {n} accelerations, pinches of shape {ps:?}");
+        let parts = [
+            ("mean_accel", Some(self.mean_accel)),
+            ("mean_pinch", Some(self.mean_pinch)),
+            ("l11", Some(self.l11)),
+            ("l21", self.l21),
+            ("l22", Some(self.l22)),
+        ];
+        for (name, v) in parts {
+            if let Some(v) = v {
+                let s = v.shape();
+                assert!(s == [n] || s == [1], "{op}: {name} has shape {s:?}, expected [{n}] or [1]");
+            }
+        }
+        n
     }
 
     /// The noise `eps = L^{-1} (a - mu)` that [`ActionGaussianVars::actions_from_noise`]
@@ -193,6 +337,16 @@ impl<'t, F: Float> ActionGaussianVars<'t, F> {
             None => pinch,
         };
         ActionVars { accel, pinch }
+    }
+}
+
+/// Element `i` of an `[n]` or `[1]` column (a `[1]` entry is shared by all rows).
+#[inline(always)]
+fn at<F: Copy>(c: &[F], i: usize) -> F {
+    if c.len() == 1 {
+        c[0]
+    } else {
+        c[i]
     }
 }
 
