@@ -57,6 +57,15 @@ pub struct GenerateArgs {
     /// With --hidden: steps per scene (T + 1).
     #[arg(long, default_value_t = 16)]
     pub steps: usize,
+    /// Instead of experiment A/B: data drawn from a model itself, on the scenes of
+    /// this dataset (its AV poses, objects, priors and observation counts), with
+    /// ground truth; the parameters are `--params`, or a fresh neural policy and
+    /// observation network from `--seed` (written to OUT/true_params.bin).
+    #[arg(long)]
+    pub like: Option<PathBuf>,
+    /// With --like: the parameter file to draw from.
+    #[arg(long, requires = "like")]
+    pub params: Option<PathBuf>,
 }
 
 /// Writes the hidden-effect dataset of `args` into `args.out`.
@@ -85,10 +94,42 @@ fn run_hidden(args: &GenerateArgs, effect: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Writes data drawn from a model on the scenes of `like` into `args.out`.
+fn run_sampled(args: &GenerateArgs, like: &std::path::Path) -> Result<(), String> {
+    use autodiff::nn::ParamStore;
+    use ssm::params::{AnyPolicy, Models};
+    use ssm::vehicle::NeuralPolicy;
+    let skeleton = ssm::data::Dataset::read(like).map_err(|e| format!("dataset {}: {e}", like.display()))?;
+    let store = match &args.params {
+        Some(p) => ParamStore::<f64>::load(p).map_err(|e| format!("parameter file {}: {e}", p.display()))?,
+        None => {
+            // The initial sds of a fresh neural policy are those `train` starts from.
+            let policy = NeuralPolicy::new(&mut StdRng::seed_from_u64(args.seed));
+            Models::initial(skeleton.kind(), AnyPolicy::Neural(policy), args.seed.wrapping_add(1)).to_store()
+        }
+    };
+    let data = ssm::calibration::sample_dataset(&skeleton, &store, args.seed)?;
+    data.write(&args.out).map_err(|e| e.to_string())?;
+    store.save(&args.out.join("true_params.bin")).map_err(|e| e.to_string())?;
+    println!(
+        "wrote {} ({:?}, {} scenes, {} objects, {} steps, drawn from {}) and its true_params.bin",
+        args.out.display(),
+        data.kind(),
+        data.scenes().len(),
+        data.objects().len(),
+        data.steps(),
+        args.params.as_ref().map_or("a fresh neural policy and observation network".into(), |p| p.display().to_string())
+    );
+    Ok(())
+}
+
 /// Runs `sefi generate`.
 pub fn run(args: &GenerateArgs) -> Result<(), String> {
     if let Some(effect) = &args.hidden {
         return run_hidden(args, effect);
+    }
+    if let Some(like) = &args.like {
+        return run_sampled(args, like);
     }
     let started = Instant::now();
     let experiment: Experiment = args.exp.parse().map_err(|e: ssm::synthetic::SyntheticError| e.to_string())?;

@@ -196,6 +196,8 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             scenes: 0,
             objects: 0,
             steps: 0,
+            like: None,
+            params: None,
         })?;
     } else {
         eprintln!("reusing the data in {}", data_dir.display());
