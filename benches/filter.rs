@@ -5,17 +5,23 @@
 //! smoothing, and the speed-up from the second core.
 //!
 //! Run: `cargo bench --bench filter` (add `-- --quick` for fewer repetitions).
+//!
+//! For profilers, `-- --once` runs the filter once at N = 1024 on one thread and
+//! prints nothing else (e.g. `valgrind --tool=callgrind --toggle-collect='*run_filter*'`
+//! on the bench binary counts the filter's instructions, repeatable on a busy machine).
 
 use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::filter::{run_filter, FilterConfig, PhaseTimes, Resampling};
+use ssm::filter::{run_filter, FilterConfig, PhaseTimes};
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
 use ssm::vehicle::policy::HandCraftedPolicy;
 use ssm::vehicle_ssm::VehicleSsm;
 
 const OBJECTS_STEPS: usize = 26; // T + 1 for 25 transitions
+/// Particles of the `--once` profiling run (experiment A's size).
+const PROFILE_PARTICLES: usize = 1024;
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
@@ -28,6 +34,13 @@ fn main() {
     let points: usize = data.points().map(|p| p.len()).unwrap_or(0);
     let objects = data.objects().len();
     let model = VehicleSsm::new(&data, &truth.policy, &truth.obs, &truth.params).expect("model");
+    if std::env::args().any(|a| a == "--once") {
+        let cfg = FilterConfig { particles: PROFILE_PARTICLES, lag: 8, seed: 1, ..FilterConfig::default() };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+        let run = pool.install(|| run_filter(&model, &cfg, |_| ()));
+        println!("log-likelihood {:.6}", run.log_likelihood());
+        return;
+    }
     println!(
         "particle filter benchmark: {objects} objects, {} steps, {:.1} points per object-step, lag 8, systematic",
         data.steps(),
