@@ -507,8 +507,11 @@ impl PointObservationModel {
         let lse = &mut tmp[..n];
         let (l0, l1, l2, l3) = (row(0), row(1), row(2), row(3));
         for i in 0..n {
-            let mx = l0[i].max(l1[i]).max(l2[i].max(l3[i]));
-            let sum = (l0[i] - mx).exp() + (l1[i] - mx).exp() + (l2[i] - mx).exp() + (l3[i] - mx).exp();
+            let mx = fmax(fmax(l0[i], l1[i]), fmax(l2[i], l3[i]));
+            let sum = (l0[i] - mx).exp_nonpos()
+                + (l1[i] - mx).exp_nonpos()
+                + (l2[i] - mx).exp_nonpos()
+                + (l3[i] - mx).exp_nonpos();
             lse[i] = mx + sum.ln();
         }
         let (ks, rest) = head.split_at_mut(NUM_EDGES * n);
@@ -733,33 +736,41 @@ impl<'a, F: Float> Block<'a, F> {
         self.x.len()
     }
 
-    /// `point_terms` of the point `(px, py)` for every particle of the block, handed
-    /// to `f(i, mx, sum)`. Inlined into a loop over the block that vectorises.
+    /// `point_terms` of the `P` points `pts` for every particle of the block, handed
+    /// to `f(i, [(mx, sum); P])`. Inlined into a loop over the block that vectorises.
+    /// With `P = 2` each iteration holds two independent dependency chains (the loop
+    /// body is long: one chain alone keeps the core waiting on its latencies) that
+    /// share the particle's loads.
     #[inline(always)]
-    fn for_each_terms<const FAR: bool>(&self, px: F, py: F, pc: &PointConsts<F>, mut f: impl FnMut(usize, F, F)) {
+    fn for_each_terms<const FAR: bool, const P: usize>(
+        &self,
+        pts: [[F; 2]; P],
+        pc: &PointConsts<F>,
+        mut f: impl FnMut(usize, [(F, F); P]),
+    ) {
         let b = self.len();
         let (x, y, c, s) = (&self.x[..b], &self.y[..b], &self.cos[..b], &self.sin[..b]);
         let (k, off, nib) = (self.k.map(|r| &r[..b]), self.off.map(|r| &r[..b]), self.nib.map(|r| &r[..b]));
         for i in 0..b {
-            let (dx, dy) = (px - x[i], py - y[i]);
-            let u = c[i].mul_add(dx, s[i] * dy);
-            let v = c[i].mul_add(dy, -(s[i] * dx));
-            let (mx, sum) = point_terms::<F, FAR>(
-                u,
-                v,
-                [k[0][i], k[1][i], k[2][i], k[3][i]],
-                [off[0][i], off[1][i], off[2][i], off[3][i]],
-                [nib[0][i], nib[1][i], nib[2][i], nib[3][i]],
-                pc,
-            );
-            f(i, mx, sum);
+            let ki = [k[0][i], k[1][i], k[2][i], k[3][i]];
+            let offi = [off[0][i], off[1][i], off[2][i], off[3][i]];
+            let nibi = [nib[0][i], nib[1][i], nib[2][i], nib[3][i]];
+            let mut terms = [(F::ZERO, F::ZERO); P];
+            for q in 0..P {
+                let (dx, dy) = (pts[q][0] - x[i], pts[q][1] - y[i]);
+                let u = c[i].mul_add(dx, s[i] * dy);
+                let v = c[i].mul_add(dy, -(s[i] * dx));
+                terms[q] = point_terms::<F, FAR>(u, v, ki, offi, nibi, pc);
+            }
+            f(i, terms);
         }
     }
 }
 
 /// The filter's kernel for one block: `out[i] = sum over points of log g(point |
 /// particle i)`. The points' sums are multiplied (their range bounds the product,
-/// see [`PointConsts`]) and one logarithm taken per `points_per_log` points.
+/// see [`PointConsts`]) and one logarithm taken per `points_per_log` points; the
+/// points go through the loop over the block two at a time.
 #[inline(never)]
 fn block_log_likelihood<F: Float, const FAR: bool>(
     blk: &Block<'_, F>,
@@ -770,9 +781,17 @@ fn block_log_likelihood<F: Float, const FAR: bool>(
     let b = blk.len();
     let (mut total, mut prod) = ([F::ZERO; BLOCK], [F::ONE; BLOCK]);
     let (total, prod) = (&mut total[..b], &mut prod[..b]);
+    let to_f = |p: &[f64; 2]| p.map(F::from_f64);
     for chunk in points.chunks(pc.points_per_log) {
-        for p in chunk {
-            blk.for_each_terms::<FAR>(F::from_f64(p[0]), F::from_f64(p[1]), pc, |i, mx, sum| {
+        let mut pairs = chunk.chunks_exact(2);
+        for pair in pairs.by_ref() {
+            blk.for_each_terms::<FAR, 2>([to_f(&pair[0]), to_f(&pair[1])], pc, |i, [(m0, s0), (m1, s1)]| {
+                total[i] = total[i] + m0 + m1;
+                prod[i] = prod[i] * s0 * s1;
+            });
+        }
+        if let [p] = pairs.remainder() {
+            blk.for_each_terms::<FAR, 1>([to_f(p)], pc, |i, [(mx, sum)]| {
                 total[i] += mx;
                 prod[i] *= sum;
             });
@@ -797,7 +816,7 @@ fn block_log_densities<F: Float, const FAR: bool>(
 ) {
     let lg = &mut lg[..blk.len()];
     for (j, p) in points.iter().enumerate() {
-        blk.for_each_terms::<FAR>(F::from_f64(p[0]), F::from_f64(p[1]), pc, |i, mx, sum| lg[i] = mx + sum.ln());
+        blk.for_each_terms::<FAR, 1>([p.map(F::from_f64)], pc, |i, [(mx, sum)]| lg[i] = mx + sum.ln());
         sink(j, lg);
     }
 }

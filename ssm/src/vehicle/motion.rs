@@ -226,11 +226,7 @@ impl MotionModel {
     /// allocation. Panics if the lengths differ.
     #[track_caller]
     pub fn propagate_in_place<F: Float>(&self, states: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
-        match self.quadrature {
-            Quadrature::Gl4 => self.run::<F, 4>(states, actions),
-            Quadrature::Gl8 => self.run::<F, 8>(states, actions),
-            Quadrature::Gl16 => self.run::<F, 16>(states, actions),
-        }
+        self.dispatch(None, states, actions);
     }
 
     /// Writes the next state of every `from[i]` under `actions[i]` into `to[i]`.
@@ -239,16 +235,27 @@ impl MotionModel {
     pub fn propagate<F: Float>(&self, from: StatesRef<'_, F>, actions: ActionsRef<'_, F>, to: StatesMut<'_, F>) {
         let n = from.len();
         assert_eq!(n, to.len(), "MotionModel::propagate: {n} states in, room for {} out", to.len());
-        to.x.copy_from_slice(from.x);
-        to.y.copy_from_slice(from.y);
-        to.yaw.copy_from_slice(from.yaw);
-        to.v.copy_from_slice(from.v);
-        to.kappa.copy_from_slice(from.kappa);
-        self.propagate_in_place(to, actions);
+        self.dispatch(Some(from), to, actions);
     }
 
+    /// [`Self::run`] for the model's rule.
     #[track_caller]
-    fn run<F: Float, const N: usize>(&self, st: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
+    fn dispatch<F: Float>(&self, from: Option<StatesRef<'_, F>>, to: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
+        match self.quadrature {
+            Quadrature::Gl4 => self.run::<F, 4>(from, to, actions),
+            Quadrature::Gl8 => self.run::<F, 8>(from, to, actions),
+            Quadrature::Gl16 => self.run::<F, 16>(from, to, actions),
+        }
+    }
+
+    /// Advances the states `from` (or `st` itself, in place) into `st`.
+    #[track_caller]
+    fn run<F: Float, const N: usize>(
+        &self,
+        from: Option<StatesRef<'_, F>>,
+        st: StatesMut<'_, F>,
+        actions: ActionsRef<'_, F>,
+    ) {
         let n = st.len();
         assert_eq!(n, actions.len(), "MotionModel::propagate: {n} states but {} actions", actions.len());
         let rule = self.rule::<F, N>();
@@ -261,7 +268,10 @@ impl MotionModel {
         while start < n {
             let m = LANES.min(n - start);
             let load = |c: &[F]| -> [F; LANES] { std::array::from_fn(|l| if l < m { c[start + l] } else { F::ZERO }) };
-            let state = [0, 1, 2, 3, 4].map(|j| load(&cols[j][..n]));
+            let state = match &from {
+                Some(f) => [f.x, f.y, f.yaw, f.v, f.kappa].map(|c| load(&c[..n])),
+                None => [0, 1, 2, 3, 4].map(|j| load(&cols[j][..n])),
+            };
             let next = advance(&rule, &state, &[load(acc), load(pin)]);
             for (col, new) in cols.iter_mut().zip(&next) {
                 col[start..start + m].copy_from_slice(&new[..m]);
