@@ -23,6 +23,21 @@ const OBJECTS_STEPS: usize = 26; // T + 1 for 25 transitions
 /// Particles of the `--once` profiling run (experiment A's size).
 const PROFILE_PARTICLES: usize = 1024;
 
+/// This process's user + system CPU time (s) from `/proc/self/stat` (Linux; clock
+/// ticks of 10 ms), if readable: a figure that a busy shared machine inflates less
+/// than wall time.
+fn process_cpu_seconds() -> Option<f64> {
+    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name `(...)`: state is field 3, utime 14, stime 15.
+    let rest: Vec<&str> = own[own.rfind(')')? + 1..].split_whitespace().collect();
+    let ticks: u64 = rest.get(11)?.parse::<u64>().ok()? + rest.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 / CLOCK_TICKS_PER_SECOND)
+}
+
+/// Linux's `USER_HZ` (the unit of `/proc/self/stat` times), 100 on every common
+/// configuration.
+const CLOCK_TICKS_PER_SECOND: f64 = 100.0;
+
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
     let reps = if quick { 2 } else { 5 };
@@ -37,8 +52,15 @@ fn main() {
     if std::env::args().any(|a| a == "--once") {
         let cfg = FilterConfig { particles: PROFILE_PARTICLES, lag: 8, seed: 1, ..FilterConfig::default() };
         let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+        let (t, cpu) = (Instant::now(), process_cpu_seconds());
         let run = pool.install(|| run_filter(&model, &cfg, |_| ()));
-        println!("log-likelihood {:.6}", run.log_likelihood());
+        let cpu = process_cpu_seconds().zip(cpu).map(|(b, a)| b - a);
+        println!(
+            "log-likelihood {:.6}; filter run {:.1} ms wall, {} ms CPU (one thread)",
+            run.log_likelihood(),
+            t.elapsed().as_secs_f64() * 1e3,
+            cpu.map_or("?".into(), |c| format!("{:.0}", c * 1e3))
+        );
         return;
     }
     println!(
