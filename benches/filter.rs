@@ -5,17 +5,38 @@
 //! smoothing, and the speed-up from the second core.
 //!
 //! Run: `cargo bench --bench filter` (add `-- --quick` for fewer repetitions).
+//!
+//! For profilers, `-- --once` runs the filter once at N = 1024 on one thread and
+//! prints nothing else (e.g. `valgrind --tool=callgrind --toggle-collect='*run_filter*'`
+//! on the bench binary counts the filter's instructions, repeatable on a busy machine).
 
 use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::filter::{run_filter, FilterConfig, PhaseTimes, Resampling};
+use ssm::filter::{run_filter, FilterConfig, PhaseTimes};
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
 use ssm::vehicle::policy::HandCraftedPolicy;
 use ssm::vehicle_ssm::VehicleSsm;
 
 const OBJECTS_STEPS: usize = 26; // T + 1 for 25 transitions
+/// Particles of the `--once` profiling run (experiment A's size).
+const PROFILE_PARTICLES: usize = 1024;
+
+/// This process's user + system CPU time (s) from `/proc/self/stat` (Linux; clock
+/// ticks of 10 ms), if readable: a figure that a busy shared machine inflates less
+/// than wall time.
+fn process_cpu_seconds() -> Option<f64> {
+    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name `(...)`: state is field 3, utime 14, stime 15.
+    let rest: Vec<&str> = own[own.rfind(')')? + 1..].split_whitespace().collect();
+    let ticks: u64 = rest.get(11)?.parse::<u64>().ok()? + rest.get(12)?.parse::<u64>().ok()?;
+    Some(ticks as f64 / CLOCK_TICKS_PER_SECOND)
+}
+
+/// Linux's `USER_HZ` (the unit of `/proc/self/stat` times), 100 on every common
+/// configuration.
+const CLOCK_TICKS_PER_SECOND: f64 = 100.0;
 
 fn main() {
     let quick = std::env::args().any(|a| a == "--quick");
@@ -28,6 +49,20 @@ fn main() {
     let points: usize = data.points().map(|p| p.len()).unwrap_or(0);
     let objects = data.objects().len();
     let model = VehicleSsm::new(&data, &truth.policy, &truth.obs, &truth.params).expect("model");
+    if std::env::args().any(|a| a == "--once") {
+        let cfg = FilterConfig { particles: PROFILE_PARTICLES, lag: 8, seed: 1, ..FilterConfig::default() };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+        let (t, cpu) = (Instant::now(), process_cpu_seconds());
+        let run = pool.install(|| run_filter(&model, &cfg, |_| ()));
+        let cpu = process_cpu_seconds().zip(cpu).map(|(b, a)| b - a);
+        println!(
+            "log-likelihood {:.6}; filter run {:.1} ms wall, {} ms CPU (one thread)",
+            run.log_likelihood(),
+            t.elapsed().as_secs_f64() * 1e3,
+            cpu.map_or("?".into(), |c| format!("{:.0}", c * 1e3))
+        );
+        return;
+    }
     println!(
         "particle filter benchmark: {objects} objects, {} steps, {:.1} points per object-step, lag 8, systematic",
         data.steps(),

@@ -4,9 +4,12 @@
 //! scalar `tanh`/`exp`/`ln` (which do not vectorise) dominate run time. These are
 //! the classic Cephes / Eigen polynomial and rational approximations, written
 //! without branches (selects only) so that a loop over a slice compiles to SIMD.
-//! Accuracy (checked in tests against `std` in f64): `exp` and `ln` within
-//! 2 ulp-ish relative error (< 3e-7), `tanh` within 1e-6 absolute, `softplus`
+//! Accuracy (checked in tests against `std` in f64): `exp`, `exp_nonpos` and `ln`
+//! within 2 ulp-ish relative error (< 3e-7), `tanh` within 1e-6 absolute, `softplus`
 //! within 1e-6 relative (also far into its exponential tail).
+//!
+//! Polynomials are evaluated with [`mul_add_f32`]: fused multiply-adds where the
+//! build targets FMA (one instruction, one rounding), separate operations elsewhere.
 
 /// log2(e).
 const LOG2E: f32 = std::f32::consts::LOG2_E;
@@ -28,28 +31,91 @@ fn round_to_int(shifted: f32) -> i32 {
     (shifted.to_bits() as i32).wrapping_sub(ROUND_MAGIC.to_bits() as i32)
 }
 
+/// `a * b + c`: one fused multiply-add (one rounding) when the build targets FMA
+/// (`-C target-cpu` or `-C target-feature=+fma`), else a multiply and an add. Never
+/// the software `fmaf` that `f32::mul_add` falls back to, which is ~50 times slower.
+#[inline(always)]
+pub fn mul_add_f32(a: f32, b: f32, c: f32) -> f32 {
+    if cfg!(target_feature = "fma") {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// `a * b + c` in f64, fused where the build targets FMA (see [`mul_add_f32`]).
+#[inline(always)]
+pub fn mul_add_f64(a: f64, b: f64, c: f64) -> f64 {
+    if cfg!(target_feature = "fma") {
+        a.mul_add(b, c)
+    } else {
+        a * b + c
+    }
+}
+
+/// Below this [`exp_nonpos_f32`] returns exactly 0: the scale `2^n` of its range
+/// reduction is then `2^-127`, whose exponent field is 0 (the bits of +0.0).
+const EXP_NONPOS_LO: f32 = -88.0;
+
+/// e^x for f32 and `x <= 0` (also `-inf`): [`exp_f32`]'s reduction and polynomial
+/// with one clamp and none of its underflow and overflow fix-ups (15 vector
+/// operations instead of 20), for the log-sum-exp kernels whose arguments are
+/// shifted by their maximum.
+///
+/// Relative error below 3e-7 down to `e^-87.3` (the smallest normal f32); between
+/// `-88` and `-87.3` the results are subnormal; below `-88` exactly 0. NaN gives NaN.
+/// Positive `x` give unspecified values (the caller's contract).
+///
+/// ```
+/// use autodiff::fastmath::exp_nonpos_f32;
+/// assert_eq!(exp_nonpos_f32(0.0), 1.0);
+/// assert!((exp_nonpos_f32(-1.0) - (-1.0f32).exp()).abs() < 1e-7);
+/// assert_eq!(exp_nonpos_f32(f32::NEG_INFINITY), 0.0);
+/// ```
+#[inline(always)]
+pub fn exp_nonpos_f32(x: f32) -> f32 {
+    // A clamp that keeps NaN (the comparison is false for it).
+    exp_clamped(if x < EXP_NONPOS_LO { EXP_NONPOS_LO } else { x })
+}
+
+/// `e^xc` for `xc` in `[-88, 88.38]` (NaN gives NaN): `n = round(xc / ln 2)`, `r =
+/// xc - n ln 2` in `[-ln2/2, ln2/2]` (Cody–Waite, fused), `e^r` by Cephes expf's
+/// polynomial, and `2^n` from the bits; `n = -127` gives 0, `n = 128` infinity.
+#[inline(always)]
+fn exp_clamped(xc: f32) -> f32 {
+    let shifted = mul_add_f32(xc, LOG2E, ROUND_MAGIC);
+    let n = shifted - ROUND_MAGIC;
+    let r = mul_add_f32(n, -LN2_LO, mul_add_f32(n, -LN2_HI, xc));
+    let y = mul_add_f32(exp_poly(r), r * r, r) + 1.0;
+    // 2^n: `shifted` holds ROUND_MAGIC + n, whose low 9 bits are those of n (the
+    // magic number's are 0), so the biased exponent n + 127 is the low 9 bits of
+    // bits + 127; the shift drops the rest.
+    y * f32::from_bits(shifted.to_bits().wrapping_add(EXP_BIAS) << 23)
+}
+
+/// The exponent bias of f32.
+const EXP_BIAS: u32 = 127;
+
+/// Cephes expf's polynomial: `e^r = 1 + r + r^2 exp_poly(r)` on `[-ln2/2, ln2/2]`.
+#[inline(always)]
+fn exp_poly(r: f32) -> f32 {
+    let p = mul_add_f32(1.987_569_1e-4, r, 1.398_199_9e-3);
+    let p = mul_add_f32(p, r, 8.333_452e-3);
+    let p = mul_add_f32(p, r, 4.166_579_6e-2);
+    let p = mul_add_f32(p, r, 1.666_666_5e-1);
+    mul_add_f32(p, r, 5.000_000_1e-1)
+}
+
 /// exp(x) for f32: range reduction to [-ln2/2, ln2/2] and a degree-6 polynomial (Cephes expf).
 ///
 /// Returns exactly 0 for x < -87.3 (including -inf), +inf above 88.37, NaN for NaN.
 #[inline(always)]
 pub fn exp_f32(x: f32) -> f32 {
-    let xc = x.clamp(EXP_LO, EXP_HI);
-    // n = round(x / ln 2)
-    let shifted = xc * LOG2E + ROUND_MAGIC;
-    let n = shifted - ROUND_MAGIC;
-    let r = xc - n * LN2_HI - n * LN2_LO;
-    let r2 = r * r;
-    let p = ((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2) * r + 1.666_666_5e-1)
-        * r
-        + 5.000_000_1e-1;
-    let y = p * r2 + r + 1.0;
-    // Scale by 2^n through the exponent bits; n is in [-126, 128).
-    let scale = f32::from_bits(((round_to_int(shifted) + 127) as u32) << 23);
-    let mut out = y * scale;
-    out = if x < EXP_LO { 0.0 } else { out };
-    out = if x > EXP_HI { f32::INFINITY } else { out };
-    if x.is_nan() {
-        f32::NAN
+    // `f32::clamp` keeps NaN, and so does the rest.
+    let out = exp_clamped(x.clamp(EXP_LO, EXP_HI));
+    let out = if x < EXP_LO { 0.0 } else { out };
+    if x > EXP_HI {
+        f32::INFINITY
     } else {
         out
     }
@@ -72,22 +138,15 @@ pub fn ln_f32(x: f32) -> f32 {
     e = if small { e - 1 } else { e };
     m = if small { m + m - 1.0 } else { m - 1.0 };
     let z = m * m;
-    let mut y = ((((((((7.037_683_6e-2 * m - 1.151_461e-1) * m + 1.167_699_9e-1) * m - 1.242_014_1e-1) * m
-        + 1.424_932_3e-1)
-        * m
-        - 1.666_805_8e-1)
-        * m
-        + 2.000_071_4e-1)
-        * m
-        - 2.499_999_4e-1)
-        * m
-        + 3.333_333_1e-1)
-        * m
-        * z;
+    let mut y = mul_add_f32(7.037_683_6e-2, m, -1.151_461e-1);
+    for c in [1.167_699_9e-1, -1.242_014_1e-1, 1.424_932_3e-1, -1.666_805_8e-1, 2.000_071_4e-1, -2.499_999_4e-1] {
+        y = mul_add_f32(y, m, c);
+    }
+    let mut y = mul_add_f32(y, m, 3.333_333_1e-1) * m * z;
     let ef = e as f32 - if tiny { 23.0 } else { 0.0 };
-    y += LN2_LO * ef;
-    y += -0.5 * z;
-    let mut out = m + y + LN2_HI * ef;
+    y = mul_add_f32(LN2_LO, ef, y);
+    y = mul_add_f32(-0.5, z, y);
+    let mut out = mul_add_f32(LN2_HI, ef, m + y);
     out = if x == 0.0 { f32::NEG_INFINITY } else { out };
     out = if x == f32::INFINITY { f32::INFINITY } else { out };
     if x < 0.0 || x.is_nan() {
@@ -97,26 +156,31 @@ pub fn ln_f32(x: f32) -> f32 {
     }
 }
 
-/// tanh(x) for f32: Eigen's 13/6 rational approximation on [-7.9, 7.9].
+/// tanh(x) for f32: Eigen's 13/6 rational approximation on [-7.9, 7.9], in fused
+/// multiply-adds.
+///
+/// Eigen returns `x` itself below `|x| < 4e-4`; here the rational is used throughout
+/// (its relative error there is below 1e-7: `p / q -> x (1 - 8e-8)`, for
+/// `|x| > 1e-30`; below ~1e-36 the numerator is subnormal). The select
+/// cost three operations per vector, and in an in-place loop LLVM turned it into a
+/// masked store (`vmaskmovps`), which is slow on AMD.
 #[inline(always)]
 pub fn tanh_f32(x: f32) -> f32 {
-    const CLAMP: f32 = 7.905_311;
+    // Where the rational first reaches exactly 1 (it stays below 1 before): Eigen's
+    // 7.905311 for separate multiplies and adds; with fused ones it gets there later.
+    const CLAMP: f32 = if cfg!(target_feature = "fma") { 8.005_163 } else { 7.905_311 };
     let xc = x.clamp(-CLAMP, CLAMP);
     let x2 = xc * xc;
-    let p = ((((((-2.760_768_5e-16 * x2 + 2.000_187_9e-13) * x2 - 8.604_671_5e-11) * x2 + 5.122_297e-8) * x2
-        + 1.485_722_4e-5)
-        * x2
-        + 6.372_619_3e-4)
-        * x2
-        + 4.893_524_6e-3)
-        * xc;
-    let q = ((1.198_258_4e-6 * x2 + 1.185_347_1e-4) * x2 + 2.268_434_6e-3) * x2 + 4.893_525e-3;
-    let t = p / q;
-    if x.abs() < 4e-4 {
-        x
-    } else {
-        t
-    }
+    let p = mul_add_f32(-2.760_768_5e-16, x2, 2.000_187_9e-13);
+    let p = mul_add_f32(p, x2, -8.604_671_5e-11);
+    let p = mul_add_f32(p, x2, 5.122_297e-8);
+    let p = mul_add_f32(p, x2, 1.485_722_4e-5);
+    let p = mul_add_f32(p, x2, 6.372_619_3e-4);
+    let p = mul_add_f32(p, x2, 4.893_524_6e-3) * xc;
+    let q = mul_add_f32(1.198_258_4e-6, x2, 1.185_347_1e-4);
+    let q = mul_add_f32(q, x2, 2.268_434_6e-3);
+    let q = mul_add_f32(q, x2, 4.893_525e-3);
+    p / q
 }
 
 /// ln(1 + exp(x)) for f32, stable for any x: max(x, 0) + ln(1 + exp(-|x|)).
@@ -157,12 +221,14 @@ const PIO2_3: f32 = 7.549_79e-8;
 /// reduction loses accuracy slowly beyond; vehicle headings stay far inside).
 #[inline(always)]
 pub fn sin_cos_f32(x: f32) -> (f32, f32) {
-    let shifted = x * FRAC_2_PI + ROUND_MAGIC;
+    let shifted = mul_add_f32(x, FRAC_2_PI, ROUND_MAGIC);
     let k = shifted - ROUND_MAGIC;
-    let r = ((x - k * PIO2_1) - k * PIO2_2) - k * PIO2_3;
+    let r = mul_add_f32(k, -PIO2_3, mul_add_f32(k, -PIO2_2, mul_add_f32(k, -PIO2_1, x)));
     let z = r * r;
-    let s = ((-1.951_529_6e-4 * z + 8.332_161e-3) * z - 1.666_665_5e-1) * z * r + r;
-    let c = ((2.443_315_7e-5 * z - 1.388_731_6e-3) * z + 4.166_664_6e-2) * z * z - 0.5 * z + 1.0;
+    let ps = mul_add_f32(mul_add_f32(-1.951_529_6e-4, z, 8.332_161e-3), z, -1.666_665_5e-1);
+    let s = mul_add_f32(ps * z, r, r);
+    let pc = mul_add_f32(mul_add_f32(2.443_315_7e-5, z, -1.388_731_6e-3), z, 4.166_664_6e-2);
+    let c = mul_add_f32(pc * z, z, mul_add_f32(-0.5, z, 1.0));
     let q = round_to_int(shifted) & 3;
     let (sin, cos) = (if q & 1 == 0 { s } else { c }, if q & 1 == 0 { c } else { s });
     let sin = if q & 2 == 0 { sin } else { -sin };
@@ -207,6 +273,42 @@ mod tests {
     }
 
     #[test]
+    fn exp_nonpos_matches_std_relative() {
+        // Over the whole range of normal results, and finely near 0 where the
+        // reduction's n changes sign.
+        let mut worst = 0.0f64;
+        for x in grid(-87.3, 0.0, 400_000).chain(grid(-1.0, 0.0, 100_000)) {
+            let exact = (x as f64).exp();
+            let rel = ((exp_nonpos_f32(x) as f64 - exact) / exact).abs();
+            worst = worst.max(rel);
+        }
+        assert!(worst < 3e-7, "worst relative error {worst}");
+        // Subnormal results just below, and exactly 0 beyond.
+        for x in grid(-87.99, -87.34, 1000) {
+            let (got, exact) = (exp_nonpos_f32(x) as f64, (x as f64).exp());
+            assert!((got - exact).abs() < 2.0 * f32::MIN_POSITIVE as f64, "exp_nonpos({x}) = {got}");
+        }
+        for x in [-88.0, -88.5, -100.0, -1e30, f32::MIN, f32::NEG_INFINITY] {
+            assert_eq!(exp_nonpos_f32(x), 0.0, "exp_nonpos({x})");
+        }
+        assert!(exp_nonpos_f32(f32::NAN).is_nan());
+        assert_eq!(exp_nonpos_f32(0.0), 1.0);
+        assert_eq!(exp_nonpos_f32(-0.0), 1.0);
+    }
+
+    #[test]
+    fn mul_add_is_exact_or_fused() {
+        // 1 + 2^-23 squared is 1 + 2^-22 + 2^-46: fused keeps the 2^-46 after
+        // subtracting 1 + 2^-22, two roundings lose it. Either is a valid result.
+        let a = 1.0 + f32::EPSILON;
+        let got = mul_add_f32(a, a, -(1.0 + 2.0 * f32::EPSILON));
+        let fused = 2f32.powi(-46);
+        assert!(got == fused || got == 0.0, "{got}");
+        assert_eq!(got == fused, cfg!(target_feature = "fma"));
+        assert_eq!(mul_add_f64(3.0, 4.0, 5.0), 17.0);
+    }
+
+    #[test]
     fn ln_matches_std() {
         let mut worst = 0.0f64;
         // Log-spaced positive inputs across the whole normal and subnormal range.
@@ -232,8 +334,23 @@ mod tests {
         for x in grid(-20.0, 20.0, 400_000) {
             let err = (tanh_f32(x) as f64 - (x as f64).tanh()).abs();
             worst = worst.max(err);
+            assert!(tanh_f32(x).abs() <= 1.0, "|tanh({x})| > 1");
         }
         assert!(worst < 1e-6, "worst absolute error {worst}");
+        // Relative accuracy near 0 (log-spaced from 0.1 down to 1e-31; below ~1e-36
+        // the numerator is subnormal and only the absolute error stays tiny), and signs.
+        let mut worst_rel = 0.0f64;
+        for i in 0..6_000 {
+            let x = (-0.0115f64 * i as f64).exp() as f32 * 0.1;
+            for x in [x, -x] {
+                let exact = (x as f64).tanh();
+                worst_rel = worst_rel.max(((tanh_f32(x) as f64 - exact) / exact).abs());
+            }
+        }
+        assert!(worst_rel < 3e-7, "worst relative error near 0: {worst_rel}");
+        assert_eq!(tanh_f32(0.0), 0.0);
+        assert!(tanh_f32(-0.0) == 0.0 && tanh_f32(-0.0).is_sign_negative());
+        assert!(tanh_f32(f32::NAN).is_nan());
         assert_eq!(tanh_f32(f32::INFINITY), 1.0);
         assert_eq!(tanh_f32(f32::NEG_INFINITY), -1.0);
     }

@@ -60,6 +60,15 @@ pub trait Float:
 
     /// e^x.
     fn exp(self) -> Self;
+    /// e^x for `x <= 0` (and `-inf`), for log-sum-exp kernels whose arguments are
+    /// shifted by their maximum: cheaper than [`Float::exp`] for f32
+    /// ([`fastmath::exp_nonpos_f32`]: exactly 0 below -88, subnormal results just
+    /// above); `exp` itself for f64. Positive `x` give unspecified values.
+    fn exp_nonpos(self) -> Self;
+    /// `self * a + b`, fused (one instruction, one rounding) when the build targets
+    /// FMA, else a multiply and an add ([`fastmath::mul_add_f32`]): for speed,
+    /// results differ between the two at rounding level.
+    fn mul_add(self, a: Self, b: Self) -> Self;
     /// Natural logarithm.
     fn ln(self) -> Self;
     /// ln(1 + x), accurate near 0.
@@ -199,6 +208,14 @@ impl Float for f64 {
         f64::exp(self)
     }
     #[inline(always)]
+    fn exp_nonpos(self) -> Self {
+        f64::exp(self)
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self, b: Self) -> Self {
+        fastmath::mul_add_f64(self, a, b)
+    }
+    #[inline(always)]
     fn ln(self) -> Self {
         f64::ln(self)
     }
@@ -244,6 +261,14 @@ impl Float for f32 {
     #[inline(always)]
     fn exp(self) -> Self {
         fastmath::exp_f32(self)
+    }
+    #[inline(always)]
+    fn exp_nonpos(self) -> Self {
+        fastmath::exp_nonpos_f32(self)
+    }
+    #[inline(always)]
+    fn mul_add(self, a: Self, b: Self) -> Self {
+        fastmath::mul_add_f32(self, a, b)
     }
     #[inline(always)]
     fn ln(self) -> Self {

@@ -208,8 +208,8 @@ impl<'t, F: Float> RowVars<'t, F> {
 }
 
 /// Working memory of the plain (no-tape) paths, reused across calls: after the
-/// first call for a given number of particles the only allocations are the GEMM
-/// kernel's packing buffers (one per network layer and call). One per thread.
+/// first call for a given number of particles the point and box models' plain
+/// paths allocate nothing. One per thread.
 #[derive(Clone, Debug, Default)]
 pub struct Scratch<F> {
     /// Network inputs then outputs, feature-major (`[k * n + i]`).

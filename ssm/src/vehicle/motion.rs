@@ -31,6 +31,8 @@ pub const DEFAULT_DT: f64 = 1.0 / 3.0;
 
 /// Largest Gauss–Legendre rule on offer.
 const MAX_NODES: usize = 16;
+/// Objects advanced together by the batched kernel: one AVX2 vector of f32.
+const LANES: usize = 8;
 
 /// A Gauss–Legendre rule for the position integral.
 ///
@@ -209,12 +211,13 @@ impl MotionModel {
 
     /// One object's next state.
     pub fn step<F: Float>(&self, s: &VehicleState<F>, a: &Action<F>) -> VehicleState<F> {
+        let (s, a) = ([s.x, s.y, s.yaw, s.v, s.kappa].map(|c| [c]), [a.accel, a.pinch].map(|c| [c]));
         let r = match self.quadrature {
-            Quadrature::Gl4 => advance(&self.rule::<F, 4>(), s, a),
-            Quadrature::Gl8 => advance(&self.rule::<F, 8>(), s, a),
-            Quadrature::Gl16 => advance(&self.rule::<F, 16>(), s, a),
+            Quadrature::Gl4 => advance(&self.rule::<F, 4>(), &s, &a),
+            Quadrature::Gl8 => advance(&self.rule::<F, 8>(), &s, &a),
+            Quadrature::Gl16 => advance(&self.rule::<F, 16>(), &s, &a),
         };
-        VehicleState::new(r[0], r[1], r[2], r[3], r[4])
+        VehicleState::new(r[0][0], r[1][0], r[2][0], r[3][0], r[4][0])
     }
 
     /// Advances every state in place by one step under its action.
@@ -223,11 +226,7 @@ impl MotionModel {
     /// allocation. Panics if the lengths differ.
     #[track_caller]
     pub fn propagate_in_place<F: Float>(&self, states: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
-        match self.quadrature {
-            Quadrature::Gl4 => self.run::<F, 4>(states, actions),
-            Quadrature::Gl8 => self.run::<F, 8>(states, actions),
-            Quadrature::Gl16 => self.run::<F, 16>(states, actions),
-        }
+        self.dispatch(None, states, actions);
     }
 
     /// Writes the next state of every `from[i]` under `actions[i]` into `to[i]`.
@@ -236,31 +235,48 @@ impl MotionModel {
     pub fn propagate<F: Float>(&self, from: StatesRef<'_, F>, actions: ActionsRef<'_, F>, to: StatesMut<'_, F>) {
         let n = from.len();
         assert_eq!(n, to.len(), "MotionModel::propagate: {n} states in, room for {} out", to.len());
-        to.x.copy_from_slice(from.x);
-        to.y.copy_from_slice(from.y);
-        to.yaw.copy_from_slice(from.yaw);
-        to.v.copy_from_slice(from.v);
-        to.kappa.copy_from_slice(from.kappa);
-        self.propagate_in_place(to, actions);
+        self.dispatch(Some(from), to, actions);
     }
 
+    /// [`Self::run`] for the model's rule.
     #[track_caller]
-    fn run<F: Float, const N: usize>(&self, st: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
+    fn dispatch<F: Float>(&self, from: Option<StatesRef<'_, F>>, to: StatesMut<'_, F>, actions: ActionsRef<'_, F>) {
+        match self.quadrature {
+            Quadrature::Gl4 => self.run::<F, 4>(from, to, actions),
+            Quadrature::Gl8 => self.run::<F, 8>(from, to, actions),
+            Quadrature::Gl16 => self.run::<F, 16>(from, to, actions),
+        }
+    }
+
+    /// Advances the states `from` (or `st` itself, in place) into `st`.
+    #[track_caller]
+    fn run<F: Float, const N: usize>(
+        &self,
+        from: Option<StatesRef<'_, F>>,
+        st: StatesMut<'_, F>,
+        actions: ActionsRef<'_, F>,
+    ) {
         let n = st.len();
         assert_eq!(n, actions.len(), "MotionModel::propagate: {n} states but {} actions", actions.len());
         let rule = self.rule::<F, N>();
-        // Equal-length reslices let the compiler drop the bounds checks.
-        let (xs, ys, yaws) = (&mut st.x[..n], &mut st.y[..n], &mut st.yaw[..n]);
-        let (vs, ks) = (&mut st.v[..n], &mut st.kappa[..n]);
+        let mut cols: [&mut [F]; 5] = [st.x, st.y, st.yaw, st.v, st.kappa];
         let (acc, pin) = (&actions.accel[..n], &actions.pinch[..n]);
-        for i in 0..n {
-            let s = VehicleState::new(xs[i], ys[i], yaws[i], vs[i], ks[i]);
-            let r = advance(&rule, &s, &Action::new(acc[i], pin[i]));
-            xs[i] = r[0];
-            ys[i] = r[1];
-            yaws[i] = r[2];
-            vs[i] = r[3];
-            ks[i] = r[4];
+        // Whole groups of `LANES` objects: the fixed-size lane loop compiles to SIMD
+        // (a plain loop over the objects stays scalar: its body is too large for the
+        // loop vectoriser). The remainder goes through the same group, padded.
+        let mut start = 0;
+        while start < n {
+            let m = LANES.min(n - start);
+            let load = |c: &[F]| -> [F; LANES] { std::array::from_fn(|l| if l < m { c[start + l] } else { F::ZERO }) };
+            let state = match &from {
+                Some(f) => [f.x, f.y, f.yaw, f.v, f.kappa].map(|c| load(&c[..n])),
+                None => [0, 1, 2, 3, 4].map(|j| load(&cols[j][..n])),
+            };
+            let next = advance(&rule, &state, &[load(acc), load(pin)]);
+            for (col, new) in cols.iter_mut().zip(&next) {
+                col[start..start + m].copy_from_slice(&new[..m]);
+            }
+            start += m;
         }
     }
 
@@ -460,32 +476,43 @@ fn step_tile<F: Float, const N: usize>(
     }
 }
 
-/// The exact step for one object with an `N`-node rule.
+/// The exact step for `L` objects with an `N`-node rule: `s` holds the states'
+/// components `(x, y, yaw, v, kappa)` and `a` the actions' `(accel, pinch)`, one
+/// lane per object; returns the next states' components. Every lane computes the
+/// same operations in the same order whatever `L` is, so a single step (`L = 1`)
+/// and a batch agree bitwise; the loops over lanes are innermost so that a batch
+/// of `L = LANES` compiles to SIMD across objects.
 #[inline(always)]
-fn advance<F: Float, const N: usize>(r: &Rule<F, N>, s: &VehicleState<F>, a: &Action<F>) -> [F; 5] {
+fn advance<F: Float, const N: usize, const L: usize>(r: &Rule<F, N>, s: &[[F; L]; 5], a: &[[F; L]; 2]) -> [[F; L]; 5] {
     let half = F::from_f64(0.5);
     let third = F::from_f64(1.0 / 3.0);
+    let [x, y, yaw, v, kappa] = s;
+    let [accel, pinch] = a;
     // yaw(s) - yaw0 = ((c3 s + c2) s + c1) s
-    let c1 = s.v * s.kappa;
-    let c2 = (s.v * a.pinch + a.accel * s.kappa) * half;
-    let c3 = (a.accel * a.pinch) * third;
-    let (mut lx, mut ly) = (F::ZERO, F::ZERO);
+    let c1: [F; L] = std::array::from_fn(|l| v[l] * kappa[l]);
+    let c2: [F; L] = std::array::from_fn(|l| (v[l] * pinch[l] + accel[l] * kappa[l]) * half);
+    let c3: [F; L] = std::array::from_fn(|l| (accel[l] * pinch[l]) * third);
+    let (mut lx, mut ly) = ([F::ZERO; L], [F::ZERO; L]);
     for i in 0..N {
         let si = r.s[i];
-        let d = ((c3 * si + c2) * si + c1) * si;
-        let wv = r.w[i] * (s.v + a.accel * si);
-        lx += wv * d.cos();
-        ly += wv * d.sin();
+        for l in 0..L {
+            let d = ((c3[l] * si + c2[l]) * si + c1[l]) * si;
+            let wv = r.w[i] * (v[l] + accel[l] * si);
+            lx[l] += wv * d.cos();
+            ly[l] += wv * d.sin();
+        }
     }
-    let (cy, sy) = (s.yaw.cos(), s.yaw.sin());
     let t = r.dt;
-    [
-        s.x + (cy * lx - sy * ly),
-        s.y + (sy * lx + cy * ly),
-        s.yaw + ((c3 * t + c2) * t + c1) * t,
-        s.v + a.accel * t,
-        s.kappa + a.pinch * t,
-    ]
+    let mut out = [[F::ZERO; L]; 5];
+    for l in 0..L {
+        let (cy, sy) = (yaw[l].cos(), yaw[l].sin());
+        out[0][l] = x[l] + (cy * lx[l] - sy * ly[l]);
+        out[1][l] = y[l] + (sy * lx[l] + cy * ly[l]);
+        out[2][l] = yaw[l] + ((c3[l] * t + c2[l]) * t + c1[l]) * t;
+        out[3][l] = v[l] + accel[l] * t;
+        out[4][l] = kappa[l] + pinch[l] * t;
+    }
+    out
 }
 
 /// Which yaw profile a position integral follows.
