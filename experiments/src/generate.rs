@@ -118,7 +118,9 @@ fn run_sampled(args: &GenerateArgs, like: &std::path::Path) -> Result<(), String
         data.scenes().len(),
         data.objects().len(),
         data.steps(),
-        args.params.as_ref().map_or("a fresh neural policy and observation network".into(), |p| p.display().to_string())
+        args.params
+            .as_ref()
+            .map_or("a fresh neural policy and observation network".into(), |p| p.display().to_string())
     );
     Ok(())
 }

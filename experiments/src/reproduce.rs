@@ -43,9 +43,11 @@ pub struct ReproduceArgs {
     /// Experiment: A (25 steps) or B (50 steps).
     #[arg(long, default_value = "A")]
     pub exp: String,
-    /// Output directory.
-    #[arg(long, default_value = "out/reproduce")]
-    pub out: PathBuf,
+    /// Output directory (default: `results/reproduce-<exp>-paper` with --paper, whose
+    /// small files are meant to be committed so that runs accumulate; otherwise
+    /// `out/reproduce-<exp>`).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
     /// Tiny sizes: the whole pipeline in a few minutes.
     #[arg(long, conflicts_with = "paper")]
     pub quick: bool,
@@ -69,6 +71,9 @@ pub struct ReproduceArgs {
     /// tempered filter's settings.
     #[command(flatten)]
     pub filter: FilterArgs,
+    /// Train nothing: rebuild the table, curves and plots from the finished runs.
+    #[arg(long)]
+    pub table_only: bool,
 }
 
 /// The sizes of a reproduction.
@@ -104,7 +109,7 @@ impl Scale {
                 eval_particles: 4096,
                 epochs: 100,
                 seeds: 3,
-                eval_every: 10,
+                eval_every: 50,
                 lag: 8,
                 alpha: 0.8,
             }
@@ -134,12 +139,17 @@ impl Scale {
 }
 
 /// One method's results over seeds.
+#[derive(Clone)]
 struct MethodResult {
     method: String,
     runs: Vec<Metrics>,
     /// Learned (sd accel, sd pinch) per seed, for the hand-crafted policy.
     sds: Vec<(f64, f64)>,
+    /// Test MLL against training step, per seed.
     curves: Vec<Vec<(f64, f64)>>,
+    /// The policy's sds (accel, pinch) against training step, per seed.
+    sd_curves: Vec<(Vec<(f64, f64)>, Vec<(f64, f64)>)>,
+    /// Training seconds, summed over seeds.
     seconds: f64,
 }
 
@@ -167,10 +177,47 @@ fn median_curve(curves: &[Vec<(f64, f64)>]) -> Vec<(f64, f64)> {
         .collect()
 }
 
+/// The output directory of `args`.
+fn out_dir(args: &ReproduceArgs) -> PathBuf {
+    args.out.clone().unwrap_or_else(|| {
+        let exp = args.exp.to_uppercase();
+        if args.paper {
+            PathBuf::from(format!("results/reproduce-{exp}-paper"))
+        } else {
+            PathBuf::from(format!("out/reproduce-{exp}"))
+        }
+    })
+}
+
+/// Where a finished run keeps its final test metrics, with the evaluation's settings.
+const FINAL_METRICS: &str = "final_metrics.json";
+
+/// Metrics cached in `path` for the evaluation `key`, if they are there.
+fn cached_metrics(path: &Path, key: &serde_json::Value) -> Option<Vec<Metrics>> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let doc: serde_json::Value = serde_json::from_str(&text).ok()?;
+    (doc.get("evaluation")? == key).then(|| serde_json::from_value(doc.get("metrics")?.clone()).ok())?
+}
+
+/// `metric_runs` of `models`, cached in `path` under the evaluation `key`.
+fn evaluate_cached(
+    path: &Path,
+    key: &serde_json::Value,
+    evaluate: impl FnOnce() -> Result<Vec<Metrics>, String>,
+) -> Result<Vec<Metrics>, String> {
+    if let Some(m) = cached_metrics(path, key) {
+        return Ok(m);
+    }
+    let metrics = evaluate()?;
+    write_json(path, &json!({ "evaluation": key, "metrics": metrics }))?;
+    Ok(metrics)
+}
+
 /// Runs `sefi reproduce`.
 pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
+    let out = out_dir(args);
     for m in &args.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
@@ -183,8 +230,11 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             ..FilterConfig::default()
         })
     };
-    ensure_dir(&args.out)?;
-    let data_dir = args.out.join("data");
+    let eval_key = |seed: u64, runs: usize| -> Result<serde_json::Value, String> {
+        Ok(json!({ "filter": eval_filter(seed)?, "runs": runs }))
+    };
+    ensure_dir(&out)?;
+    let data_dir = out.join("data");
     if !data_dir.join("generate.json").is_file() {
         generate::run(&GenerateArgs {
             exp: args.exp.clone(),
@@ -200,7 +250,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             params: None,
         })?;
     } else {
-        eprintln!("reusing the data in {}", data_dir.display());
+        eprintln!("reusing the data in {} (regenerated bit for bit from its seed when absent)", data_dir.display());
     }
     let test = Dataset::read(data_dir.join("test")).map_err(|e| e.to_string())?;
     let train_data = Dataset::read(data_dir.join("train")).map_err(|e| e.to_string())?;
@@ -209,76 +259,112 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let true_path = data_dir.join("true_params.bin");
     let true_store = ParamStore::<f64>::load(&true_path).map_err(|e| format!("{}: {e}", true_path.display()))?;
     let true_models = Models::from_store(&true_store, test.kind()).map_err(|e| e.to_string())?;
-    eprintln!("evaluating TRUE ({} runs, {} particles)", scale.seeds, scale.eval_particles);
     let clock = Instant::now();
-    let true_runs = metric_runs(&test, &true_models, &eval_filter(1000)?, scale.seeds)?;
-    let mut results = vec![MethodResult {
+    let true_runs = evaluate_cached(&out.join("true_metrics.json"), &eval_key(1000, scale.seeds)?, || {
+        eprintln!("evaluating TRUE ({} runs, {} particles)", scale.seeds, scale.eval_particles);
+        metric_runs(&test, &true_models, &eval_filter(1000)?, scale.seeds)
+    })?;
+    let truth = MethodResult {
         method: "TRUE".into(),
         runs: true_runs,
         sds: learned_sds(&true_store, &test).into_iter().collect(),
         curves: Vec::new(),
+        sd_curves: Vec::new(),
         seconds: clock.elapsed().as_secs_f64(),
-    }];
-
-    let steps_per_run = scale.epochs * train_data.scenes().len();
-    for method in &args.methods {
-        let clock = Instant::now();
-        let mut result = MethodResult {
-            method: method.clone(),
+    };
+    let mut results: Vec<MethodResult> = args
+        .methods
+        .iter()
+        .map(|m| MethodResult {
+            method: m.clone(),
             runs: Vec::new(),
             sds: Vec::new(),
             curves: Vec::new(),
+            sd_curves: Vec::new(),
             seconds: 0.0,
-        };
-        for seed in 0..scale.seeds as u64 {
-            let dir = args.out.join("runs").join(format!("{method}-seed{seed}"));
-            let (estimator, filter) = method_settings(method);
-            let train_args = TrainArgs {
-                data: data_dir.join("train"),
-                test: data_dir.join("test"),
-                init: None,
-                policy: "hand-crafted".into(),
-                init_sd: "1.0,0.1".into(),
-                estimator: estimator.to_string(),
-                lag: scale.lag,
-                filter: FilterArgs { filter, ..args.filter.clone() },
-                eval_filter: args.filter.filter,
-                alpha: scale.alpha,
-                particles: scale.particles,
-                eval_particles: scale.eval_particles,
-                epochs: scale.epochs,
-                lr: 0.01,
-                clip: None,
-                eval_every: scale.eval_every,
-                checkpoint_every: scale.eval_every,
-                scenes_per_step: 1,
-                chunk_objects: 4,
-                seed,
-                out: dir.clone(),
-                resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
-            };
-            let bar = train::bar(&format!("{method} s{seed}"));
-            train::train_run(&train_args, &bar)?;
-            bar.finish_and_clear();
+        })
+        .collect();
+
+    // Seed-major: after each round every method has one more finished run, so a
+    // table with all methods exists early and grows.
+    let steps_per_run = scale.epochs * train_data.scenes().len();
+    for seed in 0..scale.seeds as u64 {
+        for (method, result) in args.methods.iter().zip(results.iter_mut()) {
+            let dir = out.join("runs").join(format!("{method}-seed{seed}"));
+            let finished = dir.join(FINAL_METRICS);
+            if args.table_only && !finished.is_file() {
+                continue;
+            }
+            let clock = Instant::now();
+            if !args.table_only {
+                let (estimator, filter) = method_settings(method);
+                let train_args = TrainArgs {
+                    data: data_dir.join("train"),
+                    test: data_dir.join("test"),
+                    init: None,
+                    policy: "hand-crafted".into(),
+                    init_sd: "1.0,0.1".into(),
+                    estimator: estimator.to_string(),
+                    lag: scale.lag,
+                    filter: FilterArgs { filter, ..args.filter.clone() },
+                    eval_filter: args.filter.filter,
+                    alpha: scale.alpha,
+                    particles: scale.particles,
+                    eval_particles: scale.eval_particles,
+                    epochs: scale.epochs,
+                    lr: 0.01,
+                    clip: None,
+                    eval_every: scale.eval_every,
+                    checkpoint_every: scale.eval_every,
+                    scenes_per_step: 1,
+                    chunk_objects: 4,
+                    seed,
+                    out: dir.clone(),
+                    resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
+                };
+                let bar = train::bar(&format!("{method} s{seed}"));
+                train::train_run(&train_args, &bar)?;
+                bar.finish_and_clear();
+            }
             let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
             let models = Models::from_store(&store, test.kind()).map_err(|e| e.to_string())?;
-            let mut m = metric_runs(&test, &models, &eval_filter(2000 + seed)?, 1)?;
+            let mut m = evaluate_cached(&finished, &eval_key(2000 + seed, 1)?, || {
+                metric_runs(&test, &models, &eval_filter(2000 + seed)?, 1)
+            })?;
             result.runs.append(&mut m);
             result.sds.extend(learned_sds(&store, &test));
             result.curves.push(read_eval_curve(&dir, "test_mll")?);
+            if let (Ok(a), Ok(p)) = (read_eval_curve(&dir, "sd_accel"), read_eval_curve(&dir, "sd_pinch")) {
+                result.sd_curves.push((a, p));
+            }
+            result.seconds += train_seconds(&dir).unwrap_or(clock.elapsed().as_secs_f64());
             eprintln!(
                 "{method} seed {seed}: test MLL {:.4} ({} steps)",
                 result.runs.last().and_then(|m| m.mll).unwrap_or(f64::NAN),
                 steps_per_run
             );
         }
-        result.seconds = clock.elapsed().as_secs_f64();
-        results.push(result);
+        let mut all = vec![truth.clone()];
+        all.extend(results.iter().filter(|r| !r.runs.is_empty()).cloned());
+        write_outputs(args, &out, &scale, &all, started.elapsed().as_secs_f64())?;
     }
-    write_outputs(args, &scale, &results, started.elapsed().as_secs_f64())
+    Ok(())
 }
 
-fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], seconds: f64) -> Result<(), String> {
+/// Seconds of training a run's log records (the sum of its steps' times).
+fn train_seconds(dir: &Path) -> Option<f64> {
+    let mut reader = csv::Reader::from_path(dir.join(ssm::training::TRAIN_LOG)).ok()?;
+    let col = reader.headers().ok()?.iter().position(|h| h == "seconds")?;
+    Some(reader.records().filter_map(|r| r.ok()?.get(col)?.parse::<f64>().ok()).sum())
+}
+
+fn write_outputs(
+    args: &ReproduceArgs,
+    out: &Path,
+    scale: &Scale,
+    results: &[MethodResult],
+    seconds: f64,
+) -> Result<(), String> {
     let truth = HandCraftedPolicy::truth();
     let (true_sd_a, true_sd_p) = (truth.log_sd_accel().exp(), truth.log_sd_pinch().exp());
     let mut md = format!(
@@ -311,8 +397,8 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
         }
     }
     let _ = writeln!(md, "\nTrue policy sds: accel {true_sd_a}, pinch {true_sd_p}.");
-    write_atomic(&args.out.join("table.md"), md.as_bytes())?;
-    write_atomic(&args.out.join("table.csv"), csv.as_bytes())?;
+    write_atomic(&out.join("table.md"), md.as_bytes())?;
+    write_atomic(&out.join("table.csv"), csv.as_bytes())?;
 
     let mut series: Vec<Series> = results
         .iter()
@@ -324,12 +410,37 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
         series.push(Series { name: "TRUE".into(), points: vec![(0.0, true_mll), (last, true_mll)] });
     }
     line_chart(
-        &args.out.join("curves.svg"),
+        &out.join("curves.svg"),
         &format!("Experiment {}: test MLL during training (median over seeds)", args.exp.to_uppercase()),
         "training step",
         "test MLL (nats/point)",
         &series,
     )?;
+
+    // The learned sds relative to the truth (1 is the truth).
+    let mut sd_series = Vec::new();
+    for r in results.iter().filter(|r| !r.sd_curves.is_empty()) {
+        for (label, pick, truth) in [("accel", 0, true_sd_a), ("pinch", 1, true_sd_p)] {
+            let curves: Vec<Vec<(f64, f64)>> = r
+                .sd_curves
+                .iter()
+                .map(|c| if pick == 0 { &c.0 } else { &c.1 })
+                .map(|c| c.iter().map(|&(x, y)| (x, y / truth)).collect())
+                .collect();
+            sd_series.push(Series { name: format!("{} {label}", r.method), points: median_curve(&curves) });
+        }
+    }
+    if !sd_series.is_empty() {
+        let last = sd_series.iter().flat_map(|s| s.points.last()).map(|p| p.0).fold(1.0, f64::max);
+        sd_series.push(Series { name: "truth".into(), points: vec![(0.0, 1.0), (last, 1.0)] });
+        line_chart(
+            &out.join("sds.svg"),
+            &format!("Experiment {}: learned policy sds / true sds (median over seeds)", args.exp.to_uppercase()),
+            "training step",
+            "learned sd / true sd",
+            &sd_series,
+        )?;
+    }
 
     let doc = json!({
         "experiment": args.exp.to_uppercase(),
@@ -343,9 +454,9 @@ fn write_outputs(args: &ReproduceArgs, scale: &Scale, results: &[MethodResult], 
             "seconds": r.seconds,
         })).collect::<Vec<_>>(),
     });
-    write_json(&args.out.join("reproduce.json"), &doc)?;
+    write_json(&out.join("reproduce.json"), &doc)?;
     println!("{md}");
-    println!("wrote {} (table.csv, table.md, curves.svg, reproduce.json)", display(&args.out));
+    println!("wrote {} (table.csv, table.md, curves.svg, sds.svg, reproduce.json)", display(out));
     Ok(())
 }
 

@@ -61,7 +61,7 @@ pub fn mll(log_likelihood: f64, observed_units: usize) -> Option<f64> {
 }
 
 /// Mean position and yaw errors of state estimates against the truth.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct StateErrors {
     /// Mean Euclidean position error (m); `None` if nothing was compared.
     pub ade: Option<f64>,
@@ -98,7 +98,7 @@ pub fn state_errors(estimates: &[Vec<State>], truth: &StepTable<State>) -> State
 }
 
 /// A mean of per-item values with the number of items.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct MeanOver {
     /// The mean; `None` if there was nothing to average.
     pub mean: Option<f64>,
@@ -223,7 +223,7 @@ pub fn track<P: GaussianPolicy, O: ObservationModel>(
 }
 
 /// Every metric of SPEC §5 for one run.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
 pub struct Metrics {
     /// `l_hat / observed_units` (nats per point).
     pub mll: Option<f64>,

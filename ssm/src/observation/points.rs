@@ -571,17 +571,6 @@ fn edge_term<F: Float, const FAR: bool>(alpha: F, beta: F, k: F, mu: F, invb: F,
     EdgeTerm { ub, fac, inside, e_near, e_far }
 }
 
-/// `log sum_e fac_e e^{ub_e}` over the 4 edges, stable: shift by the largest `ub`.
-#[inline(always)]
-fn mix4<F: Float>(t: &[EdgeTerm<F>; 4]) -> F {
-    let mx = fmax(fmax(t[0].ub, t[1].ub), fmax(t[2].ub, t[3].ub));
-    let s = t[0].fac * (t[0].ub - mx).exp()
-        + t[1].fac * (t[1].ub - mx).exp()
-        + t[2].fac * (t[2].ub - mx).exp()
-        + t[3].fac * (t[3].ub - mx).exp();
-    mx + s.ln()
-}
-
 /// Constants of one object (or row) shared by its points.
 #[derive(Clone, Copy)]
 struct BoxConsts<F> {
