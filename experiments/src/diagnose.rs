@@ -7,7 +7,9 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use plotters::prelude::*;
-use ssm::criticism::diagnose::{diagnose, diagnose_split, CheckReport, DiagnoseConfig, EvalPrecision, Report, Stage};
+use ssm::criticism::diagnose::{
+    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
+};
 use ssm::data::Dataset;
 
 use crate::output::{ensure_dir, write_atomic, write_json, write_with};
@@ -50,28 +52,27 @@ pub struct DiagnoseArgs {
     /// Particles of the held-out evaluation and the smoother draws.
     #[arg(long)]
     eval_particles: Option<usize>,
-    /// Most particles for a held-out object whose runs disagree (re-run with twice the particles until they agree
-    /// or this is reached; at least --eval-particles).
-    #[arg(long)]
-    max_eval_particles: Option<usize>,
-    /// Filter runs averaged per held-out object (at least 2).
+    /// Filter runs averaged per evaluated object (the same seeds for every model).
     #[arg(long)]
     eval_runs: Option<usize>,
-    /// Filter the held-out data with the model's transition alone, without the defensive proposal for the actions.
+    /// Train with the bootstrap filter instead of the tempered one (the checks and the evaluation stay tempered).
     #[arg(long)]
-    no_proposal: bool,
-    /// Train (PF-SEFI) with the defensive proposal too.
+    bootstrap_training: bool,
+    /// The smallest gain that names a cause (nats per observed unit).
     #[arg(long)]
-    train_proposal: bool,
+    min_gain: Option<f64>,
     /// Smoother draws per held-out object.
     #[arg(long)]
     draws: Option<usize>,
     /// Scenes per training step.
     #[arg(long)]
     scenes_per_step: Option<usize>,
-    /// Fraction of the objects held out.
+    /// Fraction of the objects that fit the models.
     #[arg(long)]
-    heldout_fraction: Option<f64>,
+    fit_fraction: Option<f64>,
+    /// Fraction of the objects that check the base and start the candidates (the rest evaluate the gain).
+    #[arg(long)]
+    check_fraction: Option<f64>,
     /// Adam learning rate.
     #[arg(long)]
     lr: Option<f64>,
@@ -91,18 +92,18 @@ impl DiagnoseArgs {
         set(&mut c.candidate_steps, self.candidate_steps);
         set(&mut c.particles, self.particles);
         set(&mut c.eval_particles, self.eval_particles);
-        c.max_eval_particles = c.max_eval_particles.max(c.eval_particles);
-        set(&mut c.max_eval_particles, self.max_eval_particles);
         set(&mut c.eval_runs, self.eval_runs);
-        if self.no_proposal {
-            c.proposal = None;
-        }
-        c.train_with_proposal = self.train_proposal;
+        c.train_tempered = !self.bootstrap_training;
+        let set_f = |target: &mut f64, v: Option<f64>| {
+            if let Some(v) = v {
+                *target = v;
+            }
+        };
+        set_f(&mut c.min_gain, self.min_gain);
+        set_f(&mut c.fit_fraction, self.fit_fraction);
+        set_f(&mut c.check_fraction, self.check_fraction);
         set(&mut c.draws, self.draws);
         set(&mut c.scenes_per_step, self.scenes_per_step);
-        if let Some(f) = self.heldout_fraction {
-            c.heldout_fraction = f;
-        }
         if let Some(lr) = self.lr {
             c.lr = lr;
         }
@@ -129,6 +130,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
             progress.set_position(*step as u64);
         }
         Stage::Checking { model } => progress.set_message(format!("checking {model}")),
+        Stage::Evaluating { model } => progress.set_message(format!("evaluating {model}")),
     };
     let report = match &args.heldout {
         Some(path) => {
@@ -140,9 +142,14 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
     progress.finish_and_clear();
     write_report(&args.out, &report, &args.data)?;
     println!("cause: {}", report.cause);
-    if report.cause != "none" {
+    if !report.finding.is_empty() {
         println!("{}", report.finding);
-        println!("held-out gain: {:+.4} ± {:.4} nats per observed unit", report.gain, report.gain_se);
+    }
+    if report.gain != 0.0 {
+        println!(
+            "gain on the evaluation objects: {:+.4} ± {:.4} nats per observed unit (Holm-adjusted permutation p {:.4})",
+            report.gain, report.gain_se, report.gain_p
+        );
     }
     println!("report: {}", args.out.join("report.md").display());
     Ok(())
@@ -165,58 +172,67 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
 }
 
 /// `refined / imprecise (max particles)` of one model's held-out evaluation.
-fn precision(p: &EvalPrecision) -> String {
-    format!("{} / {} ({})", p.refined_objects, p.imprecise_objects, p.max_particles)
-}
-
 fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
+    let c = &r.config;
     let mut s = String::new();
     let _ = writeln!(s, "# Diagnosis of `{}`\n", data.display());
     let _ = writeln!(
         s,
-        "{:?} data; {} objects fitted, {} held out ({} observed units). Base model (neural policy + observation \
-         network) fitted by PF-SEFI: held-out MLL {:.4} nats per unit.\n",
-        r.kind, r.train_objects, r.heldout_objects, r.heldout_units, r.base_mll
+        "{:?} data; three disjoint parts: {} objects fitted the models, {} checked them, {} ({} observed units) \
+         measured the gain. Base model (neural policy + observation network, from the network's own \
+         initialisation) fitted by PF-SEFI: evaluation MLL {:.4} nats per unit. {:.0} s in all.\n",
+        r.kind, r.train_objects, r.check_objects, r.eval_objects, r.eval_units, r.base_mll, r.seconds
     );
     let _ = writeln!(s, "## Finding\n");
-    if r.cause == "none" {
-        let _ = writeln!(
-            s,
-            "**No cause found.** No catalogue extension that the checks made plausible changed the model materially \
-             and improved the held-out log-likelihood by more than {} standard errors.\n",
-            r.config.significance
-        );
-    } else {
-        let _ = writeln!(s, "**Cause: `{}`** — {}.\n", r.cause, r.finding);
-        let _ = writeln!(
-            s,
-            "Extending the model raises the held-out log-likelihood by **{:+.4} ± {:.4}** nats per observed unit \
-             (paired over {} held-out objects; {:.4} → {:.4}).\n",
-            r.gain, r.gain_se, r.heldout_objects, r.base_mll, r.chosen_mll
-        );
+    match r.cause.as_str() {
+        NO_CAUSE => {
+            let _ = writeln!(
+                s,
+                "**No cause found**, and no check fails at family-wise level {}: nothing here says the base model is \
+                 wrong.\n",
+                c.alpha
+            );
+        }
+        UNEXPLAINED => {
+            let _ = writeln!(
+                s,
+                "**Unexplained: the model is wrong in a way the catalogue does not cover.** {}. No catalogue \
+                 extension qualified (see the candidates below).\n",
+                r.finding
+            );
+        }
+        cause => {
+            let _ = writeln!(s, "**Cause: `{cause}`** — {}.\n", r.finding);
+            let _ = writeln!(
+                s,
+                "Extending the model raises the evaluation objects' log-likelihood by **{:+.4} ± {:.4}** nats per \
+                 observed unit ({:.4} → {:.4}; sign-flip permutation p {:.4}, Holm-adjusted over the candidates).\n",
+                r.gain, r.gain_se, r.base_mll, r.chosen_mll, r.gain_p
+            );
+        }
     }
     let _ = writeln!(s, "## What the simulation gets wrong\n");
     let _ = writeln!(
         s,
-        "Posterior predictive checks on held-out objects: {} paths drawn from the smoother; along each, replicated \
-         observations and actions from the fitted model. z = mean / sd over draws of (measured − replicated); p \
-         two-sided, Holm-adjusted over the {} checks.\n",
-        r.config.draws,
+        "Posterior predictive checks on the check objects: {} paths drawn from the tempered filter's smoother; \
+         along each, replicated observations and actions from the fitted model. z = mean / sd over draws of \
+         (measured − replicated); p two-sided, Holm-adjusted over the {} checks.\n",
+        c.draws,
         r.checks.len()
     );
     let _ = writeln!(s, "| check | suggests | measured | replicated (sd) | z | p adj. | after: z | after: p adj. |");
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|");
     let mut order: Vec<&CheckReport> = r.checks.iter().collect();
     order.sort_by(|a, b| b.before.z.abs().total_cmp(&a.before.z.abs()));
-    for c in order {
-        let b = &c.before;
-        let (az, ap) = c.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt(a.z), fmt(a.p_adjusted)));
+    for ch in order {
+        let b = &ch.before;
+        let (az, ap) = ch.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt(a.z), fmt(a.p_adjusted)));
         let flag = if b.significant { " **" } else { "" };
         let _ = writeln!(
             s,
             "| {}{flag} | {} | {} | {} ({}) | {} | {} | {az} | {ap} |",
-            c.name,
-            c.suggests.as_deref().unwrap_or("-"),
+            ch.name,
+            ch.suggests.as_deref().unwrap_or("-"),
             fmt(b.measured),
             fmt(b.replicated),
             fmt(b.replicated_sd),
@@ -224,43 +240,46 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             fmt(b.p_adjusted),
         );
     }
-    let _ = writeln!(s, "\n(** significant at family-wise level {}.)\n", r.config.alpha);
-    for c in &r.checks {
-        let _ = writeln!(s, "- `{}`: {}", c.name, c.description);
+    let _ = writeln!(s, "\n(** significant at family-wise level {}.)\n", c.alpha);
+    for ch in &r.checks {
+        let _ = writeln!(s, "- `{}`: {}", ch.name, ch.description);
     }
     let _ = writeln!(s, "\n## Candidate extensions\n");
     let _ = writeln!(
         s,
-        "Each extension's parameters learned by PF-SEFI on top of the fitted base, which is held fixed; the gain is \
-         the held-out log-likelihood against the base, paired per object. Only a material change (a delay of at \
-         least 30 ms, a fraction of at least 3%, an extent off by at least 3%) can be the cause.\n"
+        "Each extension the check objects made plausible, started where their discrepancies point, its parameters \
+         learned by PF-SEFI on the fit objects on top of the fixed base. A cause must (a) raise the evaluation \
+         objects' log-likelihood with a Holm-adjusted sign-flip p below {}, (b) by at least {} nats per unit, (c) \
+         change the model materially and (d) lower the mean |z| of the checks that flagged it.\n",
+        c.cause_level, c.min_gain
     );
-    let _ =
-        writeln!(s, "| extension | gain (nats/unit) | SE | learned | material | flagged by | refined / imprecise |");
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|");
-    for c in &r.candidates {
+    let _ = writeln!(
+        s,
+        "| extension | gain (nats/unit) | SE | p adj. | top-2 share | learned | material | flagged by | |z| before → after | qualifies |"
+    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+    for cand in &r.candidates {
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} |",
-            c.cause,
-            c.gain,
-            c.gain_se,
-            c.description,
-            if c.material { "yes" } else { "no" },
-            if c.flagged_by.is_empty() { "(fit all)".into() } else { c.flagged_by.join(", ") },
-            precision(&c.precision)
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} → {} | {} |",
+            cand.cause,
+            cand.gain,
+            cand.gain_se,
+            fmt(cand.p_adjusted),
+            fmt(cand.top_two_share),
+            cand.description,
+            if cand.material { "yes" } else { "no" },
+            if cand.flagged_by.is_empty() { "(fit all)".into() } else { cand.flagged_by.join(", ") },
+            fmt(cand.flagged_z.0),
+            fmt(cand.flagged_z.1),
+            if cand.qualifies { "**yes**" } else { "no" }
         );
     }
     let _ = writeln!(
         s,
-        "\nEach object's log-likelihood is that of the mean likelihood of {} filter runs of {} particles; an object \
-         whose runs' log-likelihoods had an sd above {} nats was re-run with twice the particles, up to {} \
-         (refined / still imprecise objects, most particles used). Base: {}.",
-        r.config.eval_runs,
-        r.config.eval_particles,
-        r.config.eval_tolerance,
-        r.config.max_eval_particles,
-        precision(&r.base_precision)
+        "\nEach object's log-likelihood is that of the mean likelihood of {} runs of the tempered filter with {} \
+         particles, the same seeds for every model.",
+        c.eval_runs, c.eval_particles
     );
     if !r.not_fitted.is_empty() {
         let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));

@@ -42,9 +42,12 @@ pub struct GenerateArgs {
     #[arg(long)]
     pub quick: bool,
     /// Instead of experiment A/B, one dataset with a hidden effect for `sefi diagnose` to find: none, latency,
-    /// clutter, size_bias, heavy_tailed_accel (points) or heading_flip (boxes), at its default size.
+    /// clutter, size_bias (points), heavy_tailed_accel, student_t_accel (another tail family) or heading_flip (boxes).
     #[arg(long)]
     pub hidden: Option<String>,
+    /// With --hidden: the effect's size as a multiple of its default (see `HiddenEffect::at_strength`).
+    #[arg(long, default_value_t = 1.0, requires = "hidden")]
+    pub strength: f64,
     /// With --hidden: box detections instead of point sets.
     #[arg(long)]
     pub boxes: bool,
@@ -72,7 +75,7 @@ pub struct GenerateArgs {
 fn run_hidden(args: &GenerateArgs, effect: &str) -> Result<(), String> {
     use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
     use ssm::data::ObservationKind;
-    let effect = HiddenEffect::by_id(effect).map_err(|e| e.to_string())?;
+    let effect = HiddenEffect::at_strength(effect, args.strength).map_err(|e| e.to_string())?;
     let kind = if args.boxes { ObservationKind::Boxes } else { ObservationKind::Points };
     let config = HiddenConfig {
         scenes: args.scenes,

@@ -12,6 +12,7 @@ mod generate;
 mod import;
 mod output;
 mod plot;
+mod power;
 mod reproduce;
 mod score_check;
 mod table;
@@ -89,6 +90,9 @@ enum Command {
     /// Model criticism: what the fitted simulation gets wrong, its cause among the catalogue's extensions,
     /// and the held-out gain of the extended model.
     Diagnose(diagnose::DiagnoseArgs),
+    /// How often `diagnose` names a hidden effect: effects x strengths x seeds of generated data (the criticism's
+    /// power and false-cause rate).
+    PowerStudy(power::PowerArgs),
 }
 
 fn main() -> ExitCode {
@@ -108,6 +112,7 @@ fn main() -> ExitCode {
         Command::Diagnose(args) => diagnose::run(&args),
         Command::ScoreAt(args) => calibrate::run_score_at(&args),
         Command::Precision(args) => calibrate::run_precision(&args),
+        Command::PowerStudy(args) => power::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -237,6 +237,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let data_dir = out.join("data");
     if !data_dir.join("generate.json").is_file() {
         generate::run(&GenerateArgs {
+            strength: 1.0,
             exp: args.exp.clone(),
             out: data_dir.clone(),
             seed: 0,

@@ -24,8 +24,6 @@ use crate::observation::boxes::wrap_angle;
 use crate::observation::edges::to_box_frame;
 use crate::stats::{mean, normal_cdf, sd};
 
-/// A point farther than this outside its box (m) counts as far (`far_point_fraction`).
-pub const FAR_POINT_DISTANCE: f64 = 2.5;
 /// Fewest points of an object-step for its extents to count (`*_extent_ratio`).
 pub const MIN_EXTENT_POINTS: usize = 4;
 /// Objects whose prior speed is below this (m/s) have no `initial_lag`.
@@ -92,7 +90,8 @@ static CHECKS: [Check; 15] = [
     ),
     check(
         "far_point_fraction",
-        "Fraction of points farther than 2.5 m outside the object's box (unitless).",
+        "Fraction of points farther outside the object's box than the box is wide: a distance in the object's own \
+         size, not a fixed one (unitless).",
         POINTS,
         Some("clutter"),
         far_point_fraction,
@@ -329,7 +328,7 @@ fn across_offset_vs_speed(view: &View) -> f64 {
 }
 
 fn far_point_fraction(view: &View) -> f64 {
-    fraction(view.items().map(|(s, p)| edge_distance(s, p) > FAR_POINT_DISTANCE))
+    fraction(view.items().map(|(s, p)| edge_distance(s, p) > s.width))
 }
 
 fn yaw_reversal_fraction(view: &View) -> f64 {
@@ -532,7 +531,7 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
 
 /// Holm's step-down adjustment: the `i`-th smallest p-value (from 0) becomes
 /// `max over j <= i of min(1, (m - j) p_(j))`.
-fn holm(p: &[f64]) -> Vec<f64> {
+pub fn holm(p: &[f64]) -> Vec<f64> {
     let m = p.len();
     let mut order: Vec<usize> = (0..m).collect();
     order.sort_by(|&a, &b| p[a].total_cmp(&p[b]));

@@ -67,11 +67,15 @@ const MAX_INITIAL_DELAY: f64 = 1.0;
 const INITIAL_FRACTION: f64 = 0.02;
 /// Initial sd of the clutter Gaussian (m).
 const INITIAL_CLUTTER_SD: f64 = 2.0;
-/// Initial sd ratio of the heavy-tailed acceleration component: clearly heavy
-/// (excess kurtosis about 46 at 2%), so that the filter's particles can follow a
-/// jump from the first steps; PF-SEFI narrows it if the data say so. (On the
-/// seed-3 test data, starts of 3 and 8 both ended near 3.2-3.3.)
-const INITIAL_TAIL_RATIO: f64 = 8.0;
+/// Initial sd ratio of the heavy-tailed acceleration component when no check
+/// measured a kurtosis: a component three times as wide, clearly heavier without
+/// claiming any particular tail.
+const INITIAL_TAIL_RATIO: f64 = 3.0;
+/// Fraction of the heavy-tailed component when its start comes from the measured
+/// kurtosis (see [`Extension::initial_from_checks`]).
+const KURTOSIS_START_FRACTION: f64 = 0.05;
+/// Widest start of the heavy-tailed component's sd ratio.
+const MAX_INITIAL_TAIL_RATIO: f64 = 20.0;
 
 /// Mixture fractions are kept in `[FRACTION_GUARD, 1 - FRACTION_GUARD]` on the plain paths.
 const FRACTION_GUARD: f64 = 1e-12;
@@ -162,19 +166,32 @@ impl Extension {
     /// `(name, measured - replicated)`. A sensor lag shows directly in
     /// `initial_lag` (about minus the delay) and reversed headings in
     /// `yaw_reversal_fraction` (the excess fraction), so those extensions start
-    /// there; the others (and these without the check) start at
-    /// [`Extension::initial`]. Training then takes it from there.
+    /// there; heavy tails start at 5% of draws with the sd ratio whose mixture has
+    /// the excess kurtosis `accel_kurtosis` measured beyond the replicates. The
+    /// others (and these without their check) start at [`Extension::initial`].
+    /// Training then takes it from there.
     pub fn initial_from_checks(self, discrepancies: &[(&str, f64)]) -> Tensor<f64> {
         let find = |name: &str| discrepancies.iter().find(|(n, _)| *n == name).map(|d| d.1).filter(|d| d.is_finite());
-        match (self, find("initial_lag"), find("yaw_reversal_fraction")) {
-            (Extension::Latency, Some(lag), _) if -lag > INITIAL_DELAY => {
-                let delay = (-lag).min(MAX_INITIAL_DELAY);
-                Tensor::from_vec(vec![(DELAY_SHARPNESS * delay).exp_m1().ln() / DELAY_SHARPNESS])
-            }
-            (Extension::HeadingFlip, _, Some(excess)) if excess > INITIAL_FRACTION => {
-                let p = excess.min(0.5);
-                Tensor::from_vec(vec![(p / (1.0 - p)).ln() / LOGIT_SCALE])
-            }
+        let logit = |p: f64| (p / (1.0 - p)).ln() / LOGIT_SCALE;
+        match self {
+            Extension::Latency => match find("initial_lag") {
+                Some(lag) if -lag > INITIAL_DELAY => {
+                    let delay = (-lag).min(MAX_INITIAL_DELAY);
+                    Tensor::from_vec(vec![(DELAY_SHARPNESS * delay).exp_m1().ln() / DELAY_SHARPNESS])
+                }
+                _ => self.initial(),
+            },
+            Extension::HeadingFlip => match find("yaw_reversal_fraction") {
+                Some(excess) if excess > INITIAL_FRACTION => Tensor::from_vec(vec![logit(excess.min(0.5))]),
+                _ => self.initial(),
+            },
+            Extension::HeavyTailedAccel => match find("accel_kurtosis") {
+                Some(excess) if excess > 0.0 => {
+                    let ratio = tail_ratio_for_kurtosis(KURTOSIS_START_FRACTION, excess);
+                    Tensor::from_vec(vec![logit(KURTOSIS_START_FRACTION), (ratio - 1.0).ln() / LOG_SCALE])
+                }
+                _ => self.initial(),
+            },
             _ => self.initial(),
         }
     }
@@ -983,4 +1000,28 @@ pub(crate) fn state_at(states: &[f32], n: usize, i: usize) -> State {
     let c = |k: usize| states[k * n + i] as f64;
     debug_assert!(states.len() >= STATE_DIM * n);
     State { x: c(0), y: c(1), yaw: c(YAW), v: c(3), kappa: c(4) }
+}
+
+/// The sd ratio `r` for which a scale mixture of normals, `1 - p` at sd 1 and `p`
+/// at sd `r`, has excess kurtosis `excess`:
+/// `3 ((1 - p) + p r^4) / ((1 - p) + p r^2)^2 - 3`, increasing in `r`; solved by
+/// bisection and kept in `[1, MAX_INITIAL_TAIL_RATIO]`.
+fn tail_ratio_for_kurtosis(p: f64, excess: f64) -> f64 {
+    let kurtosis = |r: f64| {
+        let r2 = r * r;
+        3.0 * ((1.0 - p) + p * r2 * r2) / ((1.0 - p) + p * r2).powi(2) - 3.0
+    };
+    let (mut lo, mut hi) = (1.0, MAX_INITIAL_TAIL_RATIO);
+    if kurtosis(hi) <= excess {
+        return hi;
+    }
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if kurtosis(mid) < excess {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    (0.5 * (lo + hi)).max(1.0 + 1e-3)
 }

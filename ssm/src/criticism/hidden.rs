@@ -63,8 +63,8 @@ use crate::synthetic::{
 use crate::vehicle::HandCraftedPolicy;
 
 /// The catalogue ids of the hidden effects, in catalogue order (`none` first).
-pub const HIDDEN_EFFECT_IDS: [&str; 6] =
-    ["none", "latency", "clutter", "size_bias", "heavy_tailed_accel", "heading_flip"];
+pub const HIDDEN_EFFECT_IDS: [&str; 7] =
+    ["none", "latency", "clutter", "size_bias", "heavy_tailed_accel", "student_t_accel", "heading_flip"];
 
 /// Range of the objects' prior mean positions from the AV (m): nearer than the
 /// paper's 5–50 m, so that every object receives plenty of points.
@@ -116,6 +116,14 @@ pub enum HiddenEffect {
         /// Sd of the wide component over the policy's sd (positive).
         ratio: f64,
     },
+    /// Heavy tails of another family than the catalogue's two-normal mixture: the
+    /// acceleration innovation is Student-t with `dof` degrees of freedom, scaled
+    /// to unit variance (`accel = mean + sd z`; see [`UnitStudentT`]). The
+    /// catalogue's `heavy_tailed_accel` is the extension that should explain it.
+    StudentTAccel {
+        /// Degrees of freedom (finite, > 2).
+        dof: f64,
+    },
     /// With probability `fraction` a detection's yaw is reversed by pi (wrapped to
     /// `(-pi, pi]`) (box data only).
     HeadingFlip {
@@ -154,6 +162,7 @@ impl HiddenEffect {
             HiddenEffect::Clutter { .. } => "clutter",
             HiddenEffect::SizeBias { .. } => "size_bias",
             HiddenEffect::HeavyTailedAccel { .. } => "heavy_tailed_accel",
+            HiddenEffect::StudentTAccel { .. } => "student_t_accel",
             HiddenEffect::HeadingFlip { .. } => "heading_flip",
         }
     }
@@ -172,13 +181,36 @@ impl HiddenEffect {
     /// assert!(HiddenEffect::by_id("gremlins").unwrap_err().to_string().contains("heading_flip"));
     /// ```
     pub fn by_id(id: &str) -> Result<HiddenEffect, SyntheticError> {
+        HiddenEffect::at_strength(id, 1.0)
+    }
+
+    /// The effect `id` at `strength` times its default size (1 = [`HiddenEffect::by_id`]):
+    /// a delay of `0.15 s` times it; a clutter fraction of `0.15` times it (at most
+    /// 0.9); extents off by `25%` and `15%` times it; a wide component of `10%` of
+    /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t with
+    /// `2 + 3 / strength` degrees of freedom (5 at 1, heavier when stronger); a flip
+    /// fraction of `0.2` times it (at most 0.5). Fails for an unknown id or a
+    /// strength that is not positive and finite.
+    ///
+    /// ```
+    /// use ssm::criticism::hidden::HiddenEffect;
+    /// let weak = HiddenEffect::at_strength("latency", 0.5).unwrap();
+    /// assert_eq!(weak, HiddenEffect::Latency { delay: 0.075 });
+    /// assert!(HiddenEffect::at_strength("latency", 0.0).is_err());
+    /// ```
+    pub fn at_strength(id: &str, strength: f64) -> Result<HiddenEffect, SyntheticError> {
+        if !(strength.is_finite() && strength > 0.0) {
+            return Err(config_err(format!("a hidden effect's strength must be positive and finite, got {strength}")));
+        }
+        let s = strength;
         Ok(match id {
             "none" => HiddenEffect::None,
-            "latency" => HiddenEffect::Latency { delay: 0.15 },
-            "clutter" => HiddenEffect::Clutter { fraction: 0.15, scale: 2.5 },
-            "size_bias" => HiddenEffect::SizeBias { length_factor: 1.25, width_factor: 1.15 },
-            "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 10.0 },
-            "heading_flip" => HiddenEffect::HeadingFlip { fraction: 0.2 },
+            "latency" => HiddenEffect::Latency { delay: 0.15 * s },
+            "clutter" => HiddenEffect::Clutter { fraction: (0.15 * s).min(0.9), scale: 2.5 },
+            "size_bias" => HiddenEffect::SizeBias { length_factor: 1.0 + 0.25 * s, width_factor: 1.0 + 0.15 * s },
+            "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 1.0 + 9.0 * s },
+            "student_t_accel" => HiddenEffect::StudentTAccel { dof: 2.0 + 3.0 / s },
+            "heading_flip" => HiddenEffect::HeadingFlip { fraction: (0.2 * s).min(0.5) },
             _ => {
                 return Err(config_err(format!(
                     "unknown hidden effect `{id}` (known: {})",
@@ -191,7 +223,10 @@ impl HiddenEffect {
     /// Which observation kind it applies to (`None` = both).
     pub fn applies_to(&self) -> Option<ObservationKind> {
         match self {
-            HiddenEffect::None | HiddenEffect::Latency { .. } | HiddenEffect::HeavyTailedAccel { .. } => None,
+            HiddenEffect::None
+            | HiddenEffect::Latency { .. }
+            | HiddenEffect::HeavyTailedAccel { .. }
+            | HiddenEffect::StudentTAccel { .. } => None,
             HiddenEffect::Clutter { .. } | HiddenEffect::SizeBias { .. } => Some(ObservationKind::Points),
             HiddenEffect::HeadingFlip { .. } => Some(ObservationKind::Boxes),
         }
@@ -221,6 +256,13 @@ impl HiddenEffect {
                 check_fraction("heavy_tailed_accel: fraction", fraction)?;
                 check_positive("heavy_tailed_accel: ratio", ratio)
             }
+            HiddenEffect::StudentTAccel { dof } => {
+                if dof.is_finite() && dof > 2.0 {
+                    Ok(())
+                } else {
+                    Err(config_err(format!("student_t_accel: dof must be finite and > 2, got {dof}")))
+                }
+            }
             HiddenEffect::HeadingFlip { fraction } => check_fraction("heading_flip: fraction", fraction),
         }
     }
@@ -248,6 +290,30 @@ impl Distribution<f64> for ScaleMixture {
         } else {
             z
         }
+    }
+}
+
+/// Student-t with `dof > 2` degrees of freedom scaled to unit variance:
+/// `t sqrt((dof - 2) / dof)`. Its excess kurtosis is `6 / (dof - 4)` for `dof > 4`
+/// (infinite below).
+#[derive(Clone, Copy, Debug)]
+pub struct UnitStudentT {
+    t: rand_distr::StudentT<f64>,
+    scale: f64,
+}
+
+impl UnitStudentT {
+    /// Fails unless `dof` is finite and above 2.
+    pub fn new(dof: f64) -> Result<Self, SyntheticError> {
+        HiddenEffect::StudentTAccel { dof }.validate()?;
+        let t = rand_distr::StudentT::new(dof).map_err(|e| config_err(format!("student_t_accel: {e}")))?;
+        Ok(UnitStudentT { t, scale: ((dof - 2.0) / dof).sqrt() })
+    }
+}
+
+impl Distribution<f64> for UnitStudentT {
+    fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> f64 {
+        self.scale * rng.sample(self.t)
     }
 }
 
@@ -490,6 +556,9 @@ fn simulate_hidden_scene(
         let SimulatedObject { object, states, actions } = match config.effect {
             HiddenEffect::HeavyTailedAccel { fraction, ratio } => {
                 simulate_object(scene_config, &policy, &motion, start, id, k, &ScaleMixture { fraction, ratio }, rng)
+            }
+            HiddenEffect::StudentTAccel { dof } => {
+                simulate_object(scene_config, &policy, &motion, start, id, k, &UnitStudentT::new(dof)?, rng)
             }
             _ => simulate_object(scene_config, &policy, &motion, start, id, k, &StandardNormal, rng),
         };

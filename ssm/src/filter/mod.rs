@@ -117,6 +117,24 @@ pub struct StepView<'a> {
     pub observation_used: bool,
     /// Normalised log-weights after weighting by `y_t`.
     pub log_weights: &'a [f64],
+    /// The tempered filter's step `t - 1` as it stands after step `t` (`None` for
+    /// the bootstrap filter and at `t = 0`): re-indexed one-to-one with the
+    /// particles of `t` (so `parents` is the identity) and changed by lookback
+    /// moves. An observer that keeps the genealogy replaces its record of `t - 1`
+    /// with it.
+    pub revised_parent: Option<RevisedParent<'a>>,
+}
+
+/// Step `t - 1` of the tempered filter as revised while filtering step `t` (see
+/// [`StepView::revised_parent`]).
+#[derive(Clone, Copy, Debug)]
+pub struct RevisedParent<'a> {
+    /// `x_{t-1}`, dimension-major, one per particle of `t`.
+    pub states: &'a [f32],
+    /// What was drawn to reach `x_{t-1}` (empty when `t - 1 = 0`).
+    pub actions: &'a [f32],
+    /// Each one's parent at `t - 2` (empty when `t - 1 = 0`).
+    pub parents: &'a [usize],
 }
 
 /// Receives what the filter computes for one object, as it computes it.
@@ -498,6 +516,14 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             resampled: t > 0 && resampled,
             observation_used: observed,
             log_weights: &log_w,
+            revised_parent: (temperer.is_some() && t > 0).then(|| {
+                let prev = ring.slot(t - 1);
+                RevisedParent {
+                    states: &ring.states[prev],
+                    actions: if t == 1 { &[] } else { &ring.actions[prev] },
+                    parents: if t == 1 { &[] } else { &ring.parents[prev] },
+                }
+            }),
         });
         observer.filtered(t, &ring.states[slot], &weights);
         if t >= lag {

@@ -1,0 +1,224 @@
+//! `sefi power-study`: how often `diagnose` names a hidden effect (SPEC §7, the
+//! criticism's power and false-cause rate). For every effect, strength and seed it
+//! generates a dataset with that effect hidden ([`ssm::criticism::hidden`]), runs
+//! the quick diagnosis, and tabulates the share of seeds on which the cause is
+//! named, the share of false causes (on the controls, any catalogue cause) and
+//! the error of the learned magnitude. Every finished diagnosis is kept, so an
+//! interrupted study resumes where it stopped.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, UNEXPLAINED};
+use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+use ssm::data::ObservationKind;
+
+use crate::output::{ensure_dir, write_atomic, write_json};
+
+/// Arguments of `sefi power-study`.
+#[derive(Args, Debug)]
+pub struct PowerArgs {
+    /// Output directory (one diagnosis per effect, strength and seed; power.csv, power.md).
+    #[arg(long, default_value = "out/power")]
+    out: PathBuf,
+    /// Hidden effects: catalogue effects, `student_t_accel`, and the controls `none-points`, `none-boxes`.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "latency,clutter,size_bias,heavy_tailed_accel,student_t_accel,heading_flip,none-points,none-boxes"
+    )]
+    effects: Vec<String>,
+    /// Strengths, as multiples of each effect's default size (controls run once per seed).
+    #[arg(long, value_delimiter = ',', default_value = "0.5,1,2")]
+    strengths: Vec<f64>,
+    /// Seeds per effect and strength (data and diagnosis).
+    #[arg(long, default_value_t = 5)]
+    seeds: u64,
+}
+
+/// The study's setting of one effect id: the hidden effect, the data's kind and
+/// scene count (boxes carry less information per step, and heavy tails act on a
+/// latent quantity: both need more scenes), and the cause that should be named.
+pub struct StudyEffect {
+    /// The id given on the command line.
+    pub id: String,
+    /// The effect hidden in the data at strength 1.
+    pub effect_id: &'static str,
+    /// Points or boxes.
+    pub kind: ObservationKind,
+    /// Scenes of 6 objects, 16 steps.
+    pub scenes: usize,
+    /// The cause a correct diagnosis names (`none` for the controls).
+    pub expected: &'static str,
+}
+
+impl StudyEffect {
+    /// The setting of `id`.
+    pub fn of(id: &str) -> Result<StudyEffect, String> {
+        let (effect_id, kind, scenes, expected) = match id {
+            "none-points" => ("none", ObservationKind::Points, 8, NO_CAUSE),
+            "none-boxes" => ("none", ObservationKind::Boxes, 32, NO_CAUSE),
+            "latency" => ("latency", ObservationKind::Points, 8, "latency"),
+            "clutter" => ("clutter", ObservationKind::Points, 8, "clutter"),
+            "size_bias" => ("size_bias", ObservationKind::Points, 8, "size_bias"),
+            "heavy_tailed_accel" => ("heavy_tailed_accel", ObservationKind::Points, 16, "heavy_tailed_accel"),
+            "student_t_accel" => ("student_t_accel", ObservationKind::Points, 16, "heavy_tailed_accel"),
+            "heading_flip" => ("heading_flip", ObservationKind::Boxes, 32, "heading_flip"),
+            _ => return Err(format!("power-study: unknown effect `{id}`")),
+        };
+        Ok(StudyEffect { id: id.to_string(), effect_id, kind, scenes, expected })
+    }
+
+    fn is_control(&self) -> bool {
+        self.expected == NO_CAUSE
+    }
+}
+
+/// The true magnitude the learned one is compared with: `(parameter, value)`.
+fn true_magnitude(effect: &HiddenEffect) -> Option<(&'static str, f64)> {
+    match *effect {
+        HiddenEffect::Latency { delay } => Some(("delay", delay)),
+        HiddenEffect::Clutter { fraction, .. } => Some(("fraction", fraction)),
+        HiddenEffect::SizeBias { length_factor, .. } => Some(("length_factor", length_factor)),
+        HiddenEffect::HeavyTailedAccel { ratio, .. } => Some(("sd_ratio", ratio)),
+        HiddenEffect::HeadingFlip { fraction } => Some(("fraction", fraction)),
+        HiddenEffect::None | HiddenEffect::StudentTAccel { .. } => None,
+    }
+}
+
+/// One diagnosis of the study.
+struct Cell {
+    effect: String,
+    strength: f64,
+    seed: u64,
+    cause: String,
+    named: bool,
+    /// Learned over true magnitude minus 1 (NaN when not applicable or not named).
+    relative_error: f64,
+    gain: f64,
+    seconds: f64,
+}
+
+/// Runs `sefi power-study`.
+pub fn run(args: &PowerArgs) -> Result<(), String> {
+    let effects: Vec<StudyEffect> = args.effects.iter().map(|e| StudyEffect::of(e)).collect::<Result<_, _>>()?;
+    if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err("power-study: seeds must be positive and strengths positive and finite".into());
+    }
+    ensure_dir(&args.out)?;
+    let mut plan = Vec::new();
+    for e in &effects {
+        let strengths = if e.is_control() { vec![1.0] } else { args.strengths.clone() };
+        for &s in &strengths {
+            for seed in 0..args.seeds {
+                plan.push((e, s, seed));
+            }
+        }
+    }
+    let bar = ProgressBar::new(plan.len() as u64).with_style(
+        ProgressStyle::with_template("{prefix:>12} {bar:30} {pos}/{len} diagnoses ({elapsed}, eta {eta}) {msg}")
+            .expect("valid template"),
+    );
+    bar.set_prefix("power-study");
+    let mut cells = Vec::new();
+    for (e, strength, seed) in plan {
+        bar.set_message(format!("{} x{strength} seed {seed}", e.id));
+        cells.push(run_cell(&args.out, e, strength, seed)?);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let md = summarise(&effects, &args.strengths, &cells);
+    let mut csv = String::from("effect,strength,seed,cause,named,relative_error,gain,seconds\n");
+    for c in &cells {
+        let _ = writeln!(
+            csv,
+            "{},{},{},{},{},{},{},{:.1}",
+            c.effect, c.strength, c.seed, c.cause, c.named, c.relative_error, c.gain, c.seconds
+        );
+    }
+    write_atomic(&args.out.join("power.csv"), csv.as_bytes())?;
+    write_atomic(&args.out.join("power.md"), md.as_bytes())?;
+    print!("{md}");
+    println!("wrote {} (power.csv, power.md)", args.out.display());
+    Ok(())
+}
+
+/// The diagnosis of one effect, strength and seed (read back if already done).
+fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cell, String> {
+    let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
+    let dir = out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"));
+    let report_path = dir.join("report.json");
+    let report: Report = match std::fs::read_to_string(&report_path) {
+        Ok(text) => serde_json::from_str(&text).map_err(|err| format!("{}: {err}", report_path.display()))?,
+        Err(_) => {
+            let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
+            let data = generate_hidden(&config).map_err(|err| err.to_string())?;
+            let diagnose_config = DiagnoseConfig { seed, ..DiagnoseConfig::quick() };
+            let report = diagnose(&data, &diagnose_config, &dir, &mut |_| {})?;
+            let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
+            write_json(&report_path, &value)?;
+            report
+        }
+    };
+    let named = report.cause == e.expected;
+    let relative_error = match (named, true_magnitude(&effect)) {
+        (true, Some((name, truth))) => report
+            .candidates
+            .iter()
+            .find(|c| c.cause == report.cause)
+            .and_then(|c| c.params.iter().find(|p| p.0 == name))
+            .map_or(f64::NAN, |p| p.1 / truth - 1.0),
+        _ => f64::NAN,
+    };
+    Ok(Cell {
+        effect: e.id.clone(),
+        strength,
+        seed,
+        cause: report.cause.clone(),
+        named,
+        relative_error,
+        gain: report.gain,
+        seconds: report.seconds,
+    })
+}
+
+/// The study's table: per effect and strength, the share named, false causes,
+/// `unexplained`, and the median |relative error| of the learned magnitude.
+fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> String {
+    let mut s = String::from(
+        "| effect | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for e in effects {
+        let list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
+        for st in list {
+            let group: Vec<&Cell> = cells.iter().filter(|c| c.effect == e.id && c.strength == st).collect();
+            if group.is_empty() {
+                continue;
+            }
+            let n = group.len() as f64;
+            let named = group.iter().filter(|c| c.named).count() as f64 / n;
+            let catalogue = |c: &&Cell| c.cause != NO_CAUSE && c.cause != UNEXPLAINED;
+            let false_cause = group.iter().filter(|c| catalogue(c) && !c.named).count() as f64 / n;
+            let unexplained = group.iter().filter(|c| c.cause == UNEXPLAINED).count() as f64 / n;
+            let mut errors: Vec<f64> = group.iter().map(|c| c.relative_error.abs()).filter(|x| x.is_finite()).collect();
+            errors.sort_by(f64::total_cmp);
+            let error =
+                if errors.is_empty() { "-".to_string() } else { format!("{:.0}%", 100.0 * errors[errors.len() / 2]) };
+            let time = group.iter().map(|c| c.seconds).sum::<f64>() / n;
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} |",
+                e.id,
+                if e.is_control() { "-".to_string() } else { format!("{st}") },
+                group.len(),
+                100.0 * named,
+                100.0 * false_cause,
+                100.0 * unexplained
+            );
+        }
+    }
+    s
+}
