@@ -3,8 +3,9 @@
 //! generates a dataset with that effect hidden ([`ssm::criticism::hidden`]), runs
 //! the quick diagnosis, and tabulates the share of seeds on which the cause is
 //! named, the share of false causes (on the controls, any catalogue cause) and
-//! the error of the learned magnitude. Every finished diagnosis is kept, so an
-//! interrupted study resumes where it stopped.
+//! the error of the learned magnitude. Every finished diagnosis keeps its
+//! `report.json` (its training runs are removed), so an interrupted study resumes
+//! where it stopped and a study's state is small enough to commit.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -159,6 +160,11 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cel
             let report = diagnose(&data, &diagnose_config, &dir, &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
+            // The report is what the study keeps: the training runs (checkpoints,
+            // parameters) only served to resume an interrupted diagnosis.
+            for run in ["base", "candidates"] {
+                let _ = std::fs::remove_dir_all(dir.join(run));
+            }
             report
         }
     };

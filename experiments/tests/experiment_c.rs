@@ -11,7 +11,9 @@ use autodiff::nn::ParamStore;
 use ssm::data::ObservationKind;
 use ssm::params::Models;
 
-const METHODS: [&str; 4] = ["pf-sefi", "dpf-sgr", "pfnet", "pf"];
+/// The methods `experiment-c` trains by default: the paper's four on the bootstrap
+/// filter, and PF-SEFI on the tempered filter.
+const METHODS: [&str; 5] = ["pf-sefi", "dpf-sgr", "pfnet", "pf", "pf-sefi-tempered"];
 
 mod common;
 

@@ -87,7 +87,7 @@ fn reproduce_quick_writes_the_table_curves_and_every_method() {
     let doc: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("reproduce.json")).unwrap()).unwrap();
     let methods: Vec<&str> = doc["methods"].as_array().unwrap().iter().map(|m| m["method"].as_str().unwrap()).collect();
-    assert_eq!(methods, ["TRUE", "pf-sefi", "dpf-sgr", "pfnet", "pf"]);
+    assert_eq!(methods, ["TRUE", "pf-sefi", "dpf-sgr", "pfnet", "pf", "pf-sefi-tempered"]);
     for m in doc["methods"].as_array().unwrap() {
         for run in m["runs"].as_array().unwrap() {
             assert!(run["mll"].as_f64().unwrap().is_finite(), "{}", m["method"]);

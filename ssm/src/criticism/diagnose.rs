@@ -162,13 +162,13 @@ impl Default for DiagnoseConfig {
 pub const MIN_GAIN: f64 = 0.003;
 
 impl DiagnoseConfig {
-    /// A small scale for generated data (tests, demos): 40% of the objects fit,
+    /// A small scale for generated data (tests, demos): 300 base steps, 40% of the objects fit,
     /// 20% check, 40% evaluate.
     pub fn quick() -> Self {
         DiagnoseConfig {
             fit_fraction: 0.4,
             check_fraction: 0.2,
-            base_steps: 500,
+            base_steps: 300,
             candidate_steps: 150,
             particles: 256,
             eval_particles: 1024,
