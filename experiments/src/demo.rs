@@ -8,6 +8,12 @@
 //!    motion); its test scene is filtered and smoothed with the true model at
 //!    several particle counts, and the metrics (MLL, ADE, AYE, AOTLL, APTLL) are
 //!    written with a bird's-eye plot of the scene.
+//! 3. Learning: the policy's sds and the observation network are learned from
+//!    the experiment's observations alone, by PF-SEFI (on the tempered filter)
+//!    and by the PF baseline (through the bootstrap filter), from the same start;
+//!    their test MLL against training step is plotted beside TRUE's.
+//! 4. Criticism: a small dataset with a hidden sensor lag is diagnosed
+//!    ([`ssm::criticism::diagnose`]), and what it found is printed.
 
 use std::path::Path;
 use std::time::Instant;
@@ -22,12 +28,20 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use serde_json::json;
 
+use ssm::criticism::diagnose::{diagnose, DiagnoseConfig};
+use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+use ssm::data::{Dataset, ObservationKind};
+use ssm::filter::{FilterConfig, Tempering};
 use ssm::metrics::{metrics_of, track, Metrics};
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, TruthConfig};
+use ssm::params::Models;
+use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
 
 use crate::birdseye;
+use crate::calibrate::{FilterArgs, FilterKind};
+use crate::evaluate::metric_runs;
 use crate::output::{ensure_dir, write_csv, write_json, write_with};
 use crate::plot::{line_chart, Series};
+use crate::train::{read_eval_curve, train_run, TrainArgs};
 
 const COMPONENTS: usize = 2;
 
@@ -115,7 +129,9 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
     write_with(&out.join("demo_loss.svg"), |p| {
         line_chart(p, "Mixture density network fit", "step", "NLL (nats/point)", &series)
     })?;
-    let model = model_stage(out, seed, quick)?;
+    let (model, experiment) = model_stage(out, seed, quick)?;
+    let learning = learning_stage(out, &experiment, seed, quick)?;
+    let criticism = criticism_stage(out, seed, quick)?;
     write_json(
         &out.join("demo_summary.json"),
         &json!({
@@ -125,6 +141,8 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
                 "initial_nll": curve[0][1], "final_nll": final_nll, "skipped_steps": skipped,
             },
             "model": model,
+            "learning": learning,
+            "criticism": criticism,
         }),
     )?;
     println!("wrote {}", out.display());
@@ -132,10 +150,11 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
 }
 
 /// Generates a small synthetic experiment, filters its test scene with the true model
-/// at increasing particle counts and writes metrics and a bird's-eye plot.
-fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Value, String> {
+/// at increasing particle counts and writes metrics and a bird's-eye plot; returns
+/// them with the experiment (its training scenes serve the learning stage).
+fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value, SyntheticExperiment), String> {
     let mut config = ExperimentConfig::quick(Experiment::A);
-    config.train_scenes = 0;
+    config.train_scenes = if quick { 1 } else { LEARNING_SCENES };
     config.test_scenes = 1;
     if !quick {
         config.truth = TruthConfig::paper();
@@ -211,10 +230,172 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Value, 
         metrics.aptll.mean.unwrap_or(f64::NAN),
         plot.display()
     );
-    Ok(json!({
+    let summary = json!({
         "objects": data.objects().len(),
         "steps": data.steps(),
         "heldout_aotll_true_network": experiment.truth.heldout_aotll,
         "metrics_by_particles": rows.iter().map(|r| header.iter().zip(r).map(|(h, v)| (h.to_string(), json!(v))).collect::<serde_json::Map<_, _>>()).collect::<Vec<_>>(),
+    });
+    Ok((summary, experiment))
+}
+
+/// Training scenes of the learning stage (of 20 objects each, besides the test scene).
+const LEARNING_SCENES: usize = 4;
+
+/// The methods the learning stage trains: `(name, estimator, training filter)`.
+const LEARNING_METHODS: [(&str, &str, FilterKind); 2] =
+    [("pf-sefi", "pf-sefi", FilterKind::Tempered), ("pf", "pf", FilterKind::Bootstrap)];
+
+/// Learns the experiment's policy sds and observation network from its training
+/// scenes' observations alone, by PF-SEFI and by the PF baseline from the same
+/// start (hand-crafted policy at sds 1.0 and 0.1, a fresh network), and plots
+/// their test MLL against training step beside TRUE's (`demo_learning.svg`).
+fn learning_stage(
+    out: &Path,
+    experiment: &SyntheticExperiment,
+    seed: u64,
+    quick: bool,
+) -> Result<serde_json::Value, String> {
+    let dir = out.join("learning");
+    let _ = std::fs::remove_dir_all(&dir);
+    let (train_dir, test_dir) = (dir.join("data/train"), dir.join("data/test"));
+    experiment.train.write(&train_dir).map_err(|e| e.to_string())?;
+    experiment.test.write(&test_dir).map_err(|e| e.to_string())?;
+    let (particles, eval_particles, epochs, eval_every) = if quick { (32, 64, 2, 1) } else { (256, 1024, 12, 8) };
+    let tempered = FilterArgs {
+        filter: FilterKind::Tempered,
+        temper_ess: Tempering::default().ess_fraction,
+        temper_moves: Tempering::default().moves,
+    };
+    // TRUE, evaluated as every run's test MLL is: the tempered filter at `eval_particles`.
+    let truth =
+        Models::from_store(&experiment.truth.model.params, ObservationKind::Points).map_err(|e| e.to_string())?;
+    let eval_filter = FilterConfig {
+        particles: eval_particles,
+        lag: 0,
+        seed: seed.wrapping_add(7),
+        tempering: Some(Tempering::default()),
+        ..FilterConfig::default()
+    };
+    let true_mll = metric_runs(&experiment.test, &truth, &eval_filter, 1)?[0].mll.unwrap_or(f64::NAN);
+    println!(
+        "learning from observations alone ({} training scenes of {} objects; TRUE test MLL {true_mll:.3} nats/point):",
+        experiment.train.scenes().len(),
+        experiment.train.objects().len() / experiment.train.scenes().len().max(1)
+    );
+    let mut series = Vec::new();
+    let mut methods = Vec::new();
+    for (name, estimator, filter) in LEARNING_METHODS {
+        let args = TrainArgs {
+            data: train_dir.clone(),
+            test: test_dir.clone(),
+            init: None,
+            policy: "hand-crafted".into(),
+            init_sd: "1.0,0.1".into(),
+            estimator: estimator.into(),
+            lag: ssm::metrics::EVAL_LAG,
+            filter: FilterArgs { filter, ..tempered.clone() },
+            eval_filter: FilterKind::Tempered,
+            alpha: 0.8,
+            particles,
+            eval_particles,
+            epochs,
+            lr: 0.02,
+            clip: None,
+            eval_every,
+            checkpoint_every: eval_every,
+            scenes_per_step: 1,
+            chunk_objects: 4,
+            seed,
+            out: dir.join(name),
+            resume: false,
+        };
+        let bar = crate::train::bar(name);
+        let outcome = train_run(&args, &bar)?;
+        bar.finish_and_clear();
+        let curve = read_eval_curve(&args.out, "test_mll")?;
+        let sds = (read_eval_curve(&args.out, "sd_accel")?, read_eval_curve(&args.out, "sd_pinch")?);
+        let (first, last) = (curve.first().map_or(f64::NAN, |p| p.1), curve.last().map_or(f64::NAN, |p| p.1));
+        let learned = (sds.0.last().map_or(f64::NAN, |p| p.1), sds.1.last().map_or(f64::NAN, |p| p.1));
+        println!(
+            "  {name:<8} test MLL {first:.3} -> {last:.3} in {} steps ({:.1} s); policy sds {:.3}, {:.4} (true {:.3}, {:.4})",
+            outcome.steps,
+            outcome.seconds,
+            learned.0,
+            learned.1,
+            experiment.truth.model.policy.log_sd_accel().exp(),
+            experiment.truth.model.policy.log_sd_pinch().exp(),
+        );
+        methods.push(json!({
+            "method": name, "steps": outcome.steps, "seconds": outcome.seconds, "skipped_steps": outcome.skipped_steps,
+            "test_mll": curve, "learned_sds": [learned.0, learned.1],
+        }));
+        series.push(Series { name: name.to_string(), points: curve });
+    }
+    let span = series.iter().flat_map(|s| s.points.iter().map(|p| p.0)).fold(0.0, f64::max);
+    series.push(Series { name: "TRUE".into(), points: vec![(0.0, true_mll), (span, true_mll)] });
+    let plot = out.join("demo_learning.svg");
+    line_chart(&plot, "Learning from observations alone", "training step", "test MLL (nats/point)", &series)?;
+    println!("  curves: {}", plot.display());
+    Ok(json!({ "true_test_mll": true_mll, "methods": methods }))
+}
+
+/// Generates a small point dataset with a hidden sensor lag (observations of the
+/// pose 0.15 s ago) and diagnoses it, told nothing but the data.
+fn criticism_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Value, String> {
+    let dir = out.join("criticism");
+    let _ = std::fs::remove_dir_all(&dir);
+    let effect = HiddenEffect::at_strength("latency", 1.0).map_err(|e| e.to_string())?;
+    let mut hidden = HiddenConfig::quick(ObservationKind::Points, effect, seed);
+    let config = if quick {
+        hidden.scenes = 3;
+        hidden.steps = 6;
+        DiagnoseConfig {
+            base_steps: 4,
+            candidate_steps: 2,
+            particles: 32,
+            eval_particles: 64,
+            draws: 5,
+            permutations: 99,
+            seed,
+            ..DiagnoseConfig::quick()
+        }
+    } else {
+        // The quick scale with shorter fits, so that the whole demo stays within a
+        // few minutes; `sefi diagnose --quick` runs the full quick scale.
+        DiagnoseConfig { base_steps: 150, candidate_steps: 60, seed, ..DiagnoseConfig::quick() }
+    };
+    let data: Dataset = generate_hidden(&hidden).map_err(|e| e.to_string())?;
+    let data_dir = dir.join("data");
+    data.write(&data_dir).map_err(|e| e.to_string())?;
+    println!(
+        "criticising {} objects of point data with a hidden sensor lag of 0.15 s (the diagnosis is told nothing of it):",
+        data.objects().len()
+    );
+    let bar = crate::train::bar("diagnose");
+    let mut on_stage = |s: &ssm::criticism::diagnose::Stage| {
+        if let ssm::criticism::diagnose::Stage::Training { step, total, .. } = s {
+            bar.set_length(*total as u64);
+            bar.set_position(*step as u64);
+        }
+    };
+    let report = diagnose(&data, &config, &dir.join("runs"), &mut on_stage)?;
+    bar.finish_and_clear();
+    crate::diagnose::write_report(&dir, &report, &data_dir)?;
+    println!("  cause: {} {}", report.cause, report.finding);
+    if report.gain != 0.0 {
+        println!(
+            "  held-out gain {:+.4} ± {:.4} nats per point (Holm-adjusted permutation p {:.4}); report: {}",
+            report.gain,
+            report.gain_se,
+            report.gain_p,
+            dir.join("report.md").display()
+        );
+    } else {
+        println!("  report: {}", dir.join("report.md").display());
+    }
+    Ok(json!({
+        "hidden": "latency 0.15 s", "cause": report.cause, "finding": report.finding,
+        "gain": report.gain, "gain_se": report.gain_se, "gain_p": report.gain_p, "seconds": report.seconds,
     }))
 }

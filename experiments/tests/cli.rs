@@ -38,6 +38,23 @@ fn quick_demo_writes_its_results() {
     assert!(std::fs::read_to_string(dir.join("demo_loss.svg")).unwrap().contains("<svg"));
     let csv = std::fs::read_to_string(dir.join("demo_loss.csv")).unwrap();
     assert!(csv.starts_with("step,nll\n") && csv.lines().count() > 100);
+    // The learning stage trained PF-SEFI and PF from observations alone, each with a
+    // finite test-MLL curve, beside a finite TRUE.
+    let learning = &summary["learning"];
+    assert!(learning["true_test_mll"].as_f64().is_some_and(f64::is_finite));
+    let methods: Vec<&str> =
+        learning["methods"].as_array().unwrap().iter().map(|m| m["method"].as_str().unwrap()).collect();
+    assert_eq!(methods, ["pf-sefi", "pf"]);
+    for m in learning["methods"].as_array().unwrap() {
+        let curve = m["test_mll"].as_array().unwrap();
+        assert!(curve.len() >= 2 && curve.iter().all(|p| p[1].as_f64().is_some_and(f64::is_finite)), "{m}");
+    }
+    assert!(std::fs::read_to_string(dir.join("demo_learning.svg")).unwrap().contains("<svg"));
+    // The criticism stage diagnosed the hidden-lag data and wrote its report.
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let cause = summary["criticism"]["cause"].as_str().unwrap();
+    assert!(stdout.contains(&format!("cause: {cause}")), "{stdout}");
+    assert!(dir.join("criticism/report.json").is_file() && dir.join("criticism/report.md").is_file());
     std::fs::remove_dir_all(&dir).ok();
 }
 
