@@ -286,29 +286,19 @@ fn learning_stage(
     let mut series = Vec::new();
     let mut methods = Vec::new();
     for (name, estimator, filter) in LEARNING_METHODS {
+        // The command line's defaults (hand-crafted policy from sds 1.0 and 0.1,
+        // PF-SEFI's lag 8, the tempered evaluation filter) at a small scale.
         let args = TrainArgs {
-            data: train_dir.clone(),
-            test: test_dir.clone(),
-            init: None,
-            policy: "hand-crafted".into(),
-            init_sd: "1.0,0.1".into(),
             estimator: estimator.into(),
-            lag: ssm::metrics::EVAL_LAG,
             filter: FilterArgs { filter, ..tempered.clone() },
-            eval_filter: FilterKind::Tempered,
-            alpha: 0.8,
             particles,
             eval_particles,
             epochs,
             lr: 0.02,
-            clip: None,
             eval_every,
             checkpoint_every: eval_every,
-            scenes_per_step: 1,
-            chunk_objects: 4,
             seed,
-            out: dir.join(name),
-            resume: false,
+            ..TrainArgs::with_defaults(train_dir.clone(), test_dir.clone(), dir.join(name))
         };
         let bar = crate::train::bar(name);
         let outcome = train_run(&args, &bar)?;

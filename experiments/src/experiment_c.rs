@@ -376,11 +376,7 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
         let dir = args.out.join("runs").join(method);
         let (estimator, filter) = method_settings(method);
         let train_args = TrainArgs {
-            data: train_dir.clone(),
-            test: val_dir.clone(),
-            init: None,
             policy: "neural".into(),
-            init_sd: "1.0,0.1".into(),
             estimator: estimator.to_string(),
             lag: scale.lag,
             filter: FilterArgs { filter, ..args.filter.clone() },
@@ -396,8 +392,8 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
             scenes_per_step: scale.scenes_per_step,
             chunk_objects: scale.chunk_objects,
             seed: args.seed,
-            out: dir.clone(),
             resume: dir.join(CHECKPOINT_FILE).is_file(),
+            ..TrainArgs::with_defaults(train_dir.clone(), val_dir.clone(), dir.clone())
         };
         let bar = train::bar(method);
         let outcome = train::train_run(&train_args, &bar)?;

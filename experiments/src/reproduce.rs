@@ -299,12 +299,9 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             let clock = Instant::now();
             if !args.table_only {
                 let (estimator, filter) = method_settings(method);
+                // The command line's defaults: the hand-crafted policy from sds 1.0
+                // and 0.1, Adam at 0.01 without clipping, one scene per step.
                 let train_args = TrainArgs {
-                    data: data_dir.join("train"),
-                    test: data_dir.join("test"),
-                    init: None,
-                    policy: "hand-crafted".into(),
-                    init_sd: "1.0,0.1".into(),
                     estimator: estimator.to_string(),
                     lag: scale.lag,
                     filter: FilterArgs { filter, ..args.filter.clone() },
@@ -313,15 +310,11 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
                     particles: scale.particles,
                     eval_particles: scale.eval_particles,
                     epochs: scale.epochs,
-                    lr: 0.01,
-                    clip: None,
                     eval_every: scale.eval_every,
                     checkpoint_every: scale.eval_every,
-                    scenes_per_step: 1,
-                    chunk_objects: 4,
                     seed,
-                    out: dir.clone(),
                     resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
+                    ..TrainArgs::with_defaults(data_dir.join("train"), data_dir.join("test"), dir.clone())
                 };
                 let bar = train::bar(&format!("{method} s{seed}"));
                 train::train_run(&train_args, &bar)?;

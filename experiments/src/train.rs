@@ -96,6 +96,21 @@ pub struct TrainArgs {
     pub resume: bool,
 }
 
+impl TrainArgs {
+    /// The command line's defaults (one source of truth for `sefi train` and every
+    /// command that trains) for a run on `data`, evaluated on `test`, written to `out`.
+    pub fn with_defaults(data: PathBuf, test: PathBuf, out: PathBuf) -> TrainArgs {
+        #[derive(clap::Parser)]
+        struct Defaults {
+            #[command(flatten)]
+            args: TrainArgs,
+        }
+        let argv: [std::ffi::OsString; 7] =
+            ["train".into(), "--data".into(), data.into(), "--test".into(), test.into(), "--out".into(), out.into()];
+        <Defaults as clap::Parser>::try_parse_from(argv).expect("the required arguments are given").args
+    }
+}
+
 /// Parses `a,b` as two positive numbers.
 fn parse_sds(text: &str) -> Result<(f64, f64), String> {
     let v: Vec<f64> = text.split(',').filter_map(|p| p.trim().parse().ok()).collect();
