@@ -262,11 +262,6 @@ fn learning_stage(
     experiment.train.write(&train_dir).map_err(|e| e.to_string())?;
     experiment.test.write(&test_dir).map_err(|e| e.to_string())?;
     let (particles, eval_particles, epochs, eval_every) = if quick { (32, 64, 2, 1) } else { (256, 1024, 12, 8) };
-    let tempered = FilterArgs {
-        filter: FilterKind::Tempered,
-        temper_ess: Tempering::default().ess_fraction,
-        temper_moves: Tempering::default().moves,
-    };
     // TRUE, evaluated as every run's test MLL is: the tempered filter at `eval_particles`.
     let truth =
         Models::from_store(&experiment.truth.model.params, ObservationKind::Points).map_err(|e| e.to_string())?;
@@ -288,9 +283,10 @@ fn learning_stage(
     for (name, estimator, filter) in LEARNING_METHODS {
         // The command line's defaults (hand-crafted policy from sds 1.0 and 0.1,
         // PF-SEFI's lag 8, the tempered evaluation filter) at a small scale.
+        let defaults = TrainArgs::with_defaults(train_dir.clone(), test_dir.clone(), dir.join(name));
         let args = TrainArgs {
             estimator: estimator.into(),
-            filter: FilterArgs { filter, ..tempered.clone() },
+            filter: FilterArgs { filter, ..defaults.filter.clone() },
             particles,
             eval_particles,
             epochs,
@@ -298,7 +294,7 @@ fn learning_stage(
             eval_every,
             checkpoint_every: eval_every,
             seed,
-            ..TrainArgs::with_defaults(train_dir.clone(), test_dir.clone(), dir.join(name))
+            ..defaults
         };
         let bar = crate::train::bar(name);
         let outcome = train_run(&args, &bar)?;
@@ -363,27 +359,10 @@ fn criticism_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Val
         data.objects().len()
     );
     let bar = crate::train::bar("diagnose");
-    let mut on_stage = |s: &ssm::criticism::diagnose::Stage| {
-        if let ssm::criticism::diagnose::Stage::Training { step, total, .. } = s {
-            bar.set_length(*total as u64);
-            bar.set_position(*step as u64);
-        }
-    };
-    let report = diagnose(&data, &config, &dir.join("runs"), &mut on_stage)?;
+    let report = diagnose(&data, &config, &dir.join("runs"), &mut crate::diagnose::stage_progress(&bar))?;
     bar.finish_and_clear();
     crate::diagnose::write_report(&dir, &report, &data_dir)?;
-    println!("  cause: {} {}", report.cause, report.finding);
-    if report.gain != 0.0 {
-        println!(
-            "  held-out gain {:+.4} ± {:.4} nats per point (Holm-adjusted permutation p {:.4}); report: {}",
-            report.gain,
-            report.gain_se,
-            report.gain_p,
-            dir.join("report.md").display()
-        );
-    } else {
-        println!("  report: {}", dir.join("report.md").display());
-    }
+    crate::diagnose::print_outcome(&report, &dir);
     Ok(json!({
         "hidden": "latency 0.15 s", "cause": report.cause, "finding": report.finding,
         "gain": report.gain, "gain_se": report.gain_se, "gain_p": report.gain_p, "seconds": report.seconds,

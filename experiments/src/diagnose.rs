@@ -6,6 +6,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use clap::Args;
+use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::diagnose::{
     diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
@@ -118,8 +119,25 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
     config.validate()?;
     ensure_dir(&args.out)?;
     let progress = bar("diagnose");
+    let mut on_stage = stage_progress(&progress);
+    let report = match &args.heldout {
+        Some(path) => {
+            let heldout = Dataset::read(path).map_err(|e| e.to_string())?;
+            diagnose_split(&data, &heldout, &config, &args.out, &mut on_stage)?
+        }
+        None => diagnose(&data, &config, &args.out, &mut on_stage)?,
+    };
+    progress.finish_and_clear();
+    write_report(&args.out, &report, &args.data)?;
+    print_outcome(&report, &args.out);
+    Ok(())
+}
+
+/// A progress callback for [`diagnose`] that drives `progress`: one bar per
+/// training run, and the stage in its message.
+pub fn stage_progress(progress: &ProgressBar) -> impl FnMut(&Stage) + '_ {
     let mut current = String::new();
-    let mut on_stage = |s: &Stage| match s {
+    move |s: &Stage| match s {
         Stage::Training { model, step, total } => {
             if *model != current {
                 current = model.clone();
@@ -131,16 +149,11 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
         }
         Stage::Checking { model } => progress.set_message(format!("checking {model}")),
         Stage::Evaluating { model } => progress.set_message(format!("evaluating {model}")),
-    };
-    let report = match &args.heldout {
-        Some(path) => {
-            let heldout = Dataset::read(path).map_err(|e| e.to_string())?;
-            diagnose_split(&data, &heldout, &config, &args.out, &mut on_stage)?
-        }
-        None => diagnose(&data, &config, &args.out, &mut on_stage)?,
-    };
-    progress.finish_and_clear();
-    write_report(&args.out, &report, &args.data)?;
+    }
+}
+
+/// Prints a diagnosis's cause, finding and gain, and where its report is (`out`).
+pub fn print_outcome(report: &Report, out: &Path) {
     println!("cause: {}", report.cause);
     if !report.finding.is_empty() {
         println!("{}", report.finding);
@@ -151,8 +164,7 @@ pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
             report.gain, report.gain_se, report.gain_p
         );
     }
-    println!("report: {}", args.out.join("report.md").display());
-    Ok(())
+    println!("report: {}", out.join("report.md").display());
 }
 
 /// Writes `report.json`, `report.md` and the check plots into `out`.
