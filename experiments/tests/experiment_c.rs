@@ -109,3 +109,25 @@ fn an_unknown_method_is_refused_before_any_work() {
     assert!(!out.join("data").exists(), "nothing imported");
     std::fs::remove_dir_all(&out).ok();
 }
+
+#[test]
+fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
+    let Some(kitti) = kitti() else {
+        eprintln!("skipped: the KITTI data (../shared/data/kitti-tracking from the workspace root) is not present");
+        return;
+    };
+    let out = temp("stride");
+    let base = ["experiment-c", "--quick", "--kitti", s(&kitti), "--out", s(&out), "--methods", "pf-sefi"];
+    ok(&sefi(&[&base[..], &["--stride", "3", "--steps", "12"]].concat()));
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("data/train/meta.json")).unwrap()).unwrap();
+    assert_eq!(meta["steps"], 12);
+    assert!((meta["dt"].as_f64().unwrap() - 0.3).abs() < 1e-9, "dt {}", meta["dt"]);
+    // Other windows over the same import: refused, naming both, and the import kept.
+    let r = sefi(&[&base[..], &["--stride", "2", "--steps", "12"]].concat());
+    assert!(!r.status.success());
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(err.contains("--stride 2") && err.contains("dt = 0.3"), "{err}");
+    assert!(out.join("data/train/meta.json").is_file());
+    std::fs::remove_dir_all(&out).ok();
+}
