@@ -19,6 +19,7 @@ pub mod model;
 pub mod objective;
 pub mod observation;
 pub mod params;
+pub mod seed;
 pub mod stats;
 pub mod supervised;
 pub mod synthetic;

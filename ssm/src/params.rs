@@ -244,6 +244,15 @@ pub enum AnyObservation {
 }
 
 impl AnyObservation {
+    /// A fresh model for a dataset of `kind`, its network added to `store` under
+    /// [`OBS_PREFIX`] with standard initialisation drawn from `rng`.
+    pub fn init(kind: ObservationKind, store: &mut ParamStore<f64>, rng: &mut StdRng) -> AnyObservation {
+        match kind {
+            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(store, OBS_PREFIX, rng)),
+            ObservationKind::Boxes => AnyObservation::Boxes(BoxObservationModel::init_params(store, OBS_PREFIX, rng)),
+        }
+    }
+
     /// The kind of dataset the model reads.
     pub fn kind(&self) -> ObservationKind {
         match self {
@@ -278,16 +287,7 @@ impl Models {
     pub fn initial(kind: ObservationKind, policy: AnyPolicy, seed: u64) -> Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
-        let observation = match kind {
-            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(
-                &mut observation_params,
-                OBS_PREFIX,
-                &mut rng,
-            )),
-            ObservationKind::Boxes => {
-                AnyObservation::Boxes(BoxObservationModel::init_params(&mut observation_params, OBS_PREFIX, &mut rng))
-            }
-        };
+        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
         Models { policy, observation, observation_params }
     }
 
@@ -301,16 +301,7 @@ impl Models {
         }
         let mut observation_params = ParamStore::new();
         let mut rng = StdRng::seed_from_u64(0);
-        let observation = match kind {
-            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(
-                &mut observation_params,
-                OBS_PREFIX,
-                &mut rng,
-            )),
-            ObservationKind::Boxes => {
-                AnyObservation::Boxes(BoxObservationModel::init_params(&mut observation_params, OBS_PREFIX, &mut rng))
-            }
-        };
+        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
         let model = match kind {
             ObservationKind::Points => "point observation model (this dataset holds points.csv)",
             ObservationKind::Boxes => "box-detection observation model (this dataset holds boxes.csv)",

@@ -75,6 +75,8 @@ use autodiff::optim::{clip_global_norm, global_norm, Adam, StepError};
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
+use crate::seed::splitmix64;
+
 /// The per-step log, one row per step.
 pub const TRAIN_LOG: &str = "train.csv";
 /// The evaluation log: `step`, then the objective's metric names.
@@ -474,14 +476,6 @@ impl std::error::Error for TrainError {
             _ => None,
         }
     }
-}
-
-/// SplitMix64's output function: a bijective 64-bit mixer.
-fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
 }
 
 /// Stream tags, so the step seeds, evaluation seeds and batch orders of one run

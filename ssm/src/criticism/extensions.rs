@@ -27,6 +27,7 @@
 //! component's mixture parameters get their gradient through the transition
 //! log-density, which is what PF-SEFI differentiates.
 
+use autodiff::dist::LN_2PI;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Float, Tensor, Var};
 use rand::rngs::SmallRng;
@@ -79,8 +80,6 @@ const MAX_INITIAL_TAIL_RATIO: f64 = 20.0;
 
 /// Mixture fractions are kept in `[FRACTION_GUARD, 1 - FRACTION_GUARD]` on the plain paths.
 const FRACTION_GUARD: f64 = 1e-12;
-
-const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// One entry of the catalogue.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -146,15 +146,6 @@ impl Clutter {
     }
 }
 
-/// `ln(1 + e^x)` in f64 without overflow or loss for large `|x|`.
-fn softplus64(x: f64) -> f64 {
-    if x > 0.0 {
-        x + (-x).exp().ln_1p()
-    } else {
-        x.exp().ln_1p()
-    }
-}
-
 /// The clutter's constants in the kernels' float type: with `c(d) = eps N2` at
 /// distance `d` from the centre, `ln c = ln_peak - half_prec d^2`.
 #[derive(Clone, Copy, Debug)]
@@ -200,7 +191,7 @@ impl<F: Float> ClutterConsts<F> {
             lambda.is_finite() && sigma.is_finite(),
             "{op}: clutter logit fraction {lambda} and log scale {sigma} must be finite"
         );
-        Self::new(-softplus64(lambda), -softplus64(-lambda), sigma)
+        Self::new(-lambda.softplus(), -(-lambda).softplus(), sigma)
     }
 }
 
