@@ -58,8 +58,8 @@ use serde_json::json;
 use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
-use ssm::observation::{BoxObservationModel, FitConfig};
-use ssm::params::{AnyObservation, Models};
+use ssm::models::observation::{BoxObservationModel, FitConfig};
+use ssm::models::params::{AnyObservation, Models};
 use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
 

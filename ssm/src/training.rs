@@ -12,9 +12,9 @@
 //!   [`step_seed`]`(config.seed, k)`, so the whole run is a function of the config
 //!   and a resumed run repeats exactly what an uninterrupted one would have done.
 //! * **Non-finite estimates never reach the parameters.** A gradient holding NaN or
-//!   an infinity, a non-finite log-likelihood, or an `estimate` error whose message
-//!   starts with [`NON_FINITE`] skips the step (counted, marked in the log); any
-//!   other error aborts training with the step named.
+//!   an infinity, a non-finite log-likelihood, or an [`EstimateError::NonFinite`]
+//!   from `estimate` skips the step (counted, marked in the log); any other error
+//!   aborts training with the step named.
 //! * **Clipping.** With `clip` set the global norm of the score is clipped before
 //!   the update; the log records the norm before clipping.
 //! * **Files in `out_dir`.** [`TRAIN_LOG`] (one row per step, header
@@ -31,7 +31,7 @@
 //! ```
 //! use autodiff::nn::ParamStore;
 //! use autodiff::Tensor;
-//! use ssm::training::{train, BatchEstimate, Objective, TrainConfig};
+//! use ssm::training::{train, BatchEstimate, EstimateError, Objective, TrainConfig};
 //!
 //! /// Log-likelihood -(x - 3)^2 on every batch: its maximiser is x = 3.
 //! struct Quadratic;
@@ -39,7 +39,7 @@
 //!     fn batches(&self) -> usize {
 //!         2
 //!     }
-//!     fn estimate(&mut self, p: &ParamStore<f64>, _batch: usize, _seed: u64) -> Result<BatchEstimate, String> {
+//!     fn estimate(&mut self, p: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, EstimateError> {
 //!         let x = p.values()[0].item();
 //!         Ok(BatchEstimate {
 //!             log_likelihood: -(x - 3.0) * (x - 3.0),
@@ -107,26 +107,58 @@ pub const TRAIN_LOG_HEADER: [&str; 11] = [
     "collapsed_steps",
     "seconds",
 ];
-/// An [`Objective::estimate`] error whose message starts with this is a non-finite
-/// estimate: the step is skipped, not fatal. [`non_finite`] builds such a message.
-pub const NON_FINITE: &str = "non-finite";
-
-/// An error message that [`train`] reads as "the estimate is not finite" (the step is
-/// skipped): [`NON_FINITE`], then `detail`.
-///
-/// ```
-/// let m = ssm::training::non_finite("log-weights all -inf at t = 7");
-/// assert!(ssm::training::is_non_finite(&m));
-/// assert!(!ssm::training::is_non_finite("data file missing"));
-/// ```
-pub fn non_finite(detail: impl fmt::Display) -> String {
-    format!("{NON_FINITE} estimate: {detail}")
+/// Why [`Objective::estimate`] returned no estimate. [`train`] skips the step on
+/// [`EstimateError::NonFinite`] and stops on [`EstimateError::Failed`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum EstimateError {
+    /// The estimate is not finite (e.g. every particle impossible): the step is
+    /// skipped, not fatal. What was not finite, and where.
+    NonFinite(String),
+    /// Anything else: training stops with the step named. What went wrong.
+    Failed(String),
 }
 
-/// Whether an estimate error message says the estimate is not finite (starts with
-/// [`NON_FINITE`]).
-pub fn is_non_finite(message: &str) -> bool {
-    message.starts_with(NON_FINITE)
+impl EstimateError {
+    /// Whether the step is skipped rather than fatal.
+    pub fn is_non_finite(&self) -> bool {
+        matches!(self, EstimateError::NonFinite(_))
+    }
+}
+
+/// A non-finite estimate error (the step is skipped): `detail` says what was not
+/// finite and where.
+///
+/// ```
+/// let e = ssm::training::non_finite("log-weights all -inf at t = 7");
+/// assert!(e.is_non_finite());
+/// assert_eq!(e.to_string(), "non-finite estimate: log-weights all -inf at t = 7");
+/// assert!(!ssm::training::EstimateError::from("data file missing").is_non_finite());
+/// ```
+pub fn non_finite(detail: impl fmt::Display) -> EstimateError {
+    EstimateError::NonFinite(detail.to_string())
+}
+
+impl fmt::Display for EstimateError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            EstimateError::NonFinite(detail) => write!(f, "non-finite estimate: {detail}"),
+            EstimateError::Failed(message) => f.write_str(message),
+        }
+    }
+}
+
+impl std::error::Error for EstimateError {}
+
+impl From<String> for EstimateError {
+    fn from(message: String) -> Self {
+        EstimateError::Failed(message)
+    }
+}
+
+impl From<&str> for EstimateError {
+    fn from(message: &str) -> Self {
+        EstimateError::Failed(message.to_string())
+    }
 }
 
 /// What one gradient estimate returned for one batch (a scene).
@@ -152,9 +184,10 @@ pub trait Objective {
 
     /// The log-likelihood and score estimate of batch `batch` (`0..batches()`) at
     /// `params`; all randomness must come from `seed`, so that a resumed run repeats
-    /// an uninterrupted one. An error starting with [`NON_FINITE`] skips the step;
-    /// any other error aborts training.
-    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String>;
+    /// an uninterrupted one. [`EstimateError::NonFinite`] skips the step; any other
+    /// error aborts training.
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64)
+        -> Result<BatchEstimate, EstimateError>;
 
     /// Test metrics, e.g. `[("test_mll", -1.5)]`; the names are the columns of
     /// [`EVAL_LOG`] and must be the same, in the same order, on every call.
@@ -694,8 +727,8 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                     }
                     (est.log_likelihood, est.observed_units, est.collapsed_steps, norm, clipped, skipped)
                 }
-                Err(message) if is_non_finite(&message) => (f64::NAN, 0, 0, f64::NAN, false, true),
-                Err(message) => return Err(estimate_err(message)),
+                Err(EstimateError::NonFinite(_)) => (f64::NAN, 0, 0, f64::NAN, false, true),
+                Err(EstimateError::Failed(message)) => return Err(estimate_err(message)),
             };
         if skipped {
             self.skipped += 1;

@@ -47,18 +47,18 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use super::checks::{calibrate, checks_for, holm, statistics, CheckResult};
-use super::extensions::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
+use crate::models::extended::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
 use super::{ObjectObservations, ObjectSample};
 use crate::data::{Action, Dataset, ObservationKind, State};
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::{run_filter, stream_seed, FilterConfig, Observer, StepView, Tempering};
-use crate::model::ParticleModel;
+use crate::models::ParticleModel;
 use crate::objective::{ObjectiveConfig, SceneObjective};
-use crate::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::stats::{log_sum_exp, sd};
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
-use crate::vehicle::NeuralPolicy;
-use crate::vehicle_ssm::VehicleSsm;
+use crate::models::vehicle::NeuralPolicy;
+use crate::models::road_user::VehicleSsm;
 
 /// The outcome when no extension qualifies but some check fails at the
 /// family-wise level: the model is wrong in a way the catalogue does not cover.
@@ -90,7 +90,7 @@ pub struct DiagnoseConfig {
     /// Adam learning rate of the base fit.
     pub lr: f64,
     /// Adam learning rate of the extensions' parameters (their stored values are
-    /// scaled, see [`super::extensions`]).
+    /// scaled, see [`crate::models::extended`]).
     pub candidate_lr: f64,
     /// Global gradient-norm clipping.
     pub clip: Option<f64>,
@@ -854,7 +854,7 @@ fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) -> Result<E
 /// Filters every object of `model`'s data once with the tempered filter, draws
 /// `config.draws` paths per object from its smoother (the filter's genealogy),
 /// and evaluates the checks' statistics on measured and replicated data per draw.
-fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+fn posterior_predictive_checks<P: crate::models::vehicle::GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
     config: &DiagnoseConfig,
 ) -> ModelChecks {
@@ -900,7 +900,7 @@ fn measured_observations<O: ExtensibleObservation>(data: &Dataset, object: usize
 /// where the state is drawn from the object's prior (the `initial_lag` check
 /// compares the smoother's initial states with the prior's) and the observation
 /// at that state.
-fn replicate<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+fn replicate<P: crate::models::vehicle::GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
     sample: &ObjectSample,
     rng: &mut SmallRng,
@@ -927,7 +927,7 @@ fn replicate<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
 }
 
 /// The standardised acceleration innovations of a path's actions.
-fn innovations<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
+fn innovations<P: crate::models::vehicle::GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
     states: &[State],
     actions: &[Action],
@@ -1087,8 +1087,8 @@ mod tests {
                         for t in 1..states.len() {
                             let (s, a) = (&states[t - 1], &actions[t - 1]);
                             let from =
-                                crate::vehicle::VehicleState { x: s.x, y: s.y, yaw: s.yaw, v: s.v, kappa: s.kappa };
-                            let action = crate::vehicle::Action { accel: a.accel, pinch: a.pinch };
+                                crate::models::vehicle::VehicleState { x: s.x, y: s.y, yaw: s.yaw, v: s.v, kappa: s.kappa };
+                            let action = crate::models::vehicle::Action { accel: a.accel, pinch: a.pinch };
                             let next = motion.step(&from, &action);
                             let to = &states[t];
                             worst =

@@ -18,8 +18,9 @@ use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{accumulate, columns, zeros_like, Block, DifferentiableModel, EstimatorConfig, Precision};
+use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
 use super::{ScoreEstimate, ScoreEstimator};
+use crate::models::{Block, DifferentiableModel};
 use crate::filter::{filter_object, LagView, ObjectSummary, Observer, StepView};
 
 /// PF-SEFI with fixed lag `L`.

@@ -36,7 +36,7 @@ pub use resample::{effective_sample_size, Resampling};
 pub use tempering::Tempering;
 use tempering::{reweight, ParentStep, StepParticles, Temperer};
 
-use crate::model::ParticleModel;
+use crate::models::ParticleModel;
 use crate::seed::splitmix64;
 
 /// Settings of a particle-filter run.

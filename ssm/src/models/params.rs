@@ -21,9 +21,9 @@
 //! use autodiff::nn::ParamStore;
 //! use rand::SeedableRng;
 //! use ssm::data::ObservationKind;
-//! use ssm::observation::{ObservationModel, PointObservationModel};
-//! use ssm::params::{AnyPolicy, Models, OBS_PREFIX};
-//! use ssm::vehicle::HandCraftedPolicy;
+//! use ssm::models::observation::{ObservationModel, PointObservationModel};
+//! use ssm::models::params::{AnyPolicy, Models, OBS_PREFIX};
+//! use ssm::models::vehicle::HandCraftedPolicy;
 //!
 //! let mut store = ParamStore::new();
 //! AnyPolicy::HandCrafted(HandCraftedPolicy::truth()).add_to_store(&mut store);
@@ -41,19 +41,18 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
-use crate::criticism::extensions::ExtensibleObservation;
+use crate::models::extended::ExtensibleObservation;
 use crate::data::{Dataset, ObservationKind};
-use crate::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
-use crate::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
-use crate::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use crate::vehicle_ssm::VehicleSsm;
+use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
+use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
+use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
+use crate::models::road_user::VehicleSsm;
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";
 /// Name prefix of the observation network's parameters.
 pub const OBS_PREFIX: &str = "obs";
-/// The hand-crafted policy's one parameter: `[log sd accel, log sd pinch]`.
-pub const HAND_CRAFTED_PARAM: &str = "policy.log_sd";
+pub use crate::models::vehicle::policy::HAND_CRAFTED_PARAM;
 
 /// What is wrong with a parameter store.
 #[derive(Clone, Debug, PartialEq)]

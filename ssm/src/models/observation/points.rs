@@ -111,7 +111,7 @@ pub struct EdgeMixture {
 /// sd `scale` centred on the box centre instead of from the box's edges.
 ///
 /// ```
-/// use ssm::observation::points::Clutter;
+/// use ssm::models::observation::points::Clutter;
 /// let c = Clutter::from_logits(0.0, 2f64.ln());
 /// assert_eq!(c, Clutter { fraction: 0.5, scale: 2.0 });
 /// ```
@@ -323,7 +323,7 @@ impl PointObservationModel {
     /// use autodiff::{Tape, Tensor};
     /// use rand::SeedableRng;
     /// use ssm::data::Pose;
-    /// use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, RowVars};
+    /// use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, RowVars};
     ///
     /// let mut rng = rand::rngs::StdRng::seed_from_u64(0);
     /// let mut store = ParamStore::new();
