@@ -53,10 +53,10 @@ use rand::SeedableRng;
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use ssm::filter::{run_filter, FilterConfig};
+use ssm::models::road_user::VehicleSsm;
+use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::ParticleModel;
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
-use ssm::models::vehicle::policy::HandCraftedPolicy;
-use ssm::models::road_user::VehicleSsm;
 
 /// Particles per object.
 const PARTICLES: usize = 1024;

@@ -26,8 +26,8 @@ use ssm::data::Dataset;
 use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
 use ssm::models::params::{AnyPolicy, Models};
-use ssm::training::PARAMS_FILE;
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
+use ssm::training::PARAMS_FILE;
 
 use crate::calibrate::{check_method, method_settings, FilterArgs};
 use crate::evaluate::metric_runs;

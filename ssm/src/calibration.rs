@@ -20,16 +20,16 @@ use autodiff::nn::ParamStore;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::models::extended::ExtensibleObservation;
 use crate::data::Dataset;
 use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
-use crate::models::DifferentiableModel;
 use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
+use crate::models::extended::ExtensibleObservation;
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::road_user::VehicleSsm;
+use crate::models::DifferentiableModel;
 use crate::models::ParticleModel;
 use crate::objective::gradient_in_store_order;
-use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::stats::normal_cdf;
-use crate::models::road_user::VehicleSsm;
 
 /// One entry of a parameter tensor's mean score.
 #[derive(Clone, Debug, PartialEq, Serialize)]

@@ -30,8 +30,8 @@ use serde::Serialize;
 use crate::data::{Dataset, Pose, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary};
 use crate::models::observation::{ObsContext, ObservationModel};
-use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
 use crate::models::road_user::{VehicleSsm, YAW};
+use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
 
 /// Particles of an evaluation run (SPEC §5).
 pub const EVAL_PARTICLES: usize = 4096;

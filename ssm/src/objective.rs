@@ -14,15 +14,15 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::data::Dataset;
 use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
-use crate::models::DifferentiableModel;
 use crate::filter::{run_filter, FilterConfig, Tempering};
+use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
-use crate::training::{non_finite, BatchEstimate, EstimateError, Objective};
-use crate::models::vehicle::GaussianPolicy;
 use crate::models::road_user::VehicleSsm;
+use crate::models::vehicle::GaussianPolicy;
+use crate::models::DifferentiableModel;
+use crate::training::{non_finite, BatchEstimate, EstimateError, Objective};
 
 /// How the objective estimates and evaluates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

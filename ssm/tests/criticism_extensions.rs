@@ -8,17 +8,17 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
+use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+use ssm::data::{Action, Dataset, ObservationKind, State};
+use ssm::filter::{run_filter, FilterConfig};
 use ssm::models::extended::{
     mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
 };
-use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
-use ssm::data::{Action, Dataset, ObservationKind, State};
-use ssm::models::{Block, DifferentiableModel};
-use ssm::filter::{run_filter, FilterConfig};
-use ssm::models::ParticleModel;
 use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
-use ssm::models::vehicle::NeuralPolicy;
 use ssm::models::road_user::VehicleSsm;
+use ssm::models::vehicle::NeuralPolicy;
+use ssm::models::ParticleModel;
+use ssm::models::{Block, DifferentiableModel};
 
 /// A small dataset of `kind` (2 scenes of 2 objects, 5 steps).
 fn data(kind: ObservationKind) -> Dataset {

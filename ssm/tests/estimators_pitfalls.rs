@@ -13,11 +13,11 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, ScoreEstimator};
-use ssm::models::{Block, DifferentiableModel};
 use ssm::filter::{filter_object, run_filter, FilterConfig, ObjectSummary, Observer, Resampling, StepView};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
 use ssm::models::ParticleModel;
+use ssm::models::{Block, DifferentiableModel};
 
 // ---------------------------------------------------------------------------
 // Helpers
@@ -717,8 +717,8 @@ mod vehicle {
     use super::*;
     use ssm::models::observation::PointGenerator;
     use ssm::models::params::{AnyObservation, Models};
-    use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TruthConfig};
     use ssm::models::road_user::VehicleSsm;
+    use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TruthConfig};
 
     /// On the vehicle model (hand-crafted policy, fitted point network, 3 objects,
     /// T = 11, N = 64): every estimator gives a finite gradient with one tensor per

@@ -12,7 +12,9 @@ use ssm::filter::FilterConfig;
 use ssm::metrics::{
     aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff, Summary,
 };
-use ssm::models::observation::{BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch};
+use ssm::models::observation::{
+    BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
+};
 use ssm::models::params::{AnyObservation, AnyPolicy, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX};
 use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,

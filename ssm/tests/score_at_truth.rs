@@ -24,8 +24,8 @@ use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Tempering;
 use ssm::models::params::{AnyPolicy, Models, HAND_CRAFTED_PARAM as POLICY_LOG_SD};
-use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
+use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
 
 /// The smallest Bonferroni p-value a tensor may have at the truth.
 const P_FLOOR: f64 = 1e-3;

@@ -8,11 +8,11 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
 use ssm::models::observation::{ObsContext, ObservationModel, PointGenerator};
+use ssm::models::vehicle::{Action, GaussianPolicy, HandCraftedPolicy, MotionModel, VehicleState};
 use ssm::synthetic::{
     build_dataset, fit_true_model, generate_dataset, generate_experiment, simulate_scene, summarize, Experiment,
     ExperimentConfig, SceneConfig, TrueModel, TruthConfig, OBS_PREFIX, POLICY_LOG_SD,
 };
-use ssm::models::vehicle::{Action, GaussianPolicy, HandCraftedPolicy, MotionModel, VehicleState};
 
 /// Statistical checks allow 4 standard errors: with the fixed seeds below a false
 /// failure is impossible, and with any seed it has probability ~6e-5 per check.

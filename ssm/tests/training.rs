@@ -12,8 +12,8 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::training::{
-    non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError, TrainEvent, CHECKPOINT_FILE,
-    EVAL_LOG, PARAMS_FILE, TRAIN_LOG, TRAIN_LOG_HEADER,
+    non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError, TrainEvent,
+    CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, TRAIN_LOG, TRAIN_LOG_HEADER,
 };
 
 /// The data's parameters: `(phi, ln s_v, ln s_w)`.

@@ -9,11 +9,11 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
-use ssm::stats::ks_distance_to_normal;
 use ssm::models::vehicle::{
     ActionBatch, ActionGaussianVars, ActionGaussians, ActionVars, GaussianPolicy, HandCraftedPolicy, NeuralPolicy,
     PolicyError,
 };
+use ssm::stats::ks_distance_to_normal;
 
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
 

@@ -47,18 +47,19 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use super::checks::{calibrate, checks_for, holm, statistics, CheckResult};
-use crate::models::extended::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
 use super::{ObjectObservations, ObjectSample};
 use crate::data::{Action, Dataset, ObservationKind, State};
 use crate::estimators::{Estimator, EstimatorConfig};
-use crate::filter::{run_filter, stream_seed, FilterConfig, Observer, StepView, Tempering};
+use crate::filter::paths::PathRecorder;
+use crate::filter::{run_filter, stream_seed, FilterConfig, Tempering};
+use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::road_user::VehicleSsm;
+use crate::models::vehicle::NeuralPolicy;
 use crate::models::ParticleModel;
 use crate::objective::{ObjectiveConfig, SceneObjective};
-use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::stats::{log_sum_exp, sd};
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
-use crate::models::vehicle::NeuralPolicy;
-use crate::models::road_user::VehicleSsm;
 
 /// The outcome when no extension qualifies but some check fails at the
 /// family-wise level: the model is wrong in a way the catalogue does not cover.
@@ -935,80 +936,6 @@ fn innovations<P: crate::models::vehicle::GaussianPolicy, O: ExtensibleObservati
     states.iter().zip(actions).map(|(s, a)| model.accel_innovation_of(s, a)).collect()
 }
 
-/// Records one object's filter steps and, at the last, draws paths from the
-/// genealogy with the final weights (the particle approximation of the smoother).
-struct PathRecorder {
-    steps: usize,
-    draws: usize,
-    seed: u64,
-    states: Vec<Vec<f32>>,
-    actions: Vec<Vec<f32>>,
-    parents: Vec<Vec<usize>>,
-    /// The drawn paths: states `x_0..x_T` and actions `a_1..a_T`.
-    paths: Vec<(Vec<State>, Vec<Action>)>,
-}
-
-impl PathRecorder {
-    fn new(steps: usize, draws: usize, seed: u64) -> Self {
-        PathRecorder {
-            steps,
-            draws,
-            seed,
-            states: Vec::with_capacity(steps),
-            actions: Vec::with_capacity(steps),
-            parents: Vec::with_capacity(steps),
-            paths: Vec::new(),
-        }
-    }
-}
-
-impl Observer for PathRecorder {
-    fn step(&mut self, view: &StepView<'_>) {
-        if let Some(parent) = &view.revised_parent {
-            let t = view.t;
-            self.states[t - 1] = parent.states.to_vec();
-            self.actions[t - 1] = parent.actions.to_vec();
-            self.parents[t - 1] = parent.parents.to_vec();
-        }
-        self.states.push(view.states.to_vec());
-        self.actions.push(view.actions.to_vec());
-        self.parents.push(view.parents.to_vec());
-        if view.t + 1 < self.steps {
-            return;
-        }
-        let n = view.n;
-        let weights: Vec<f64> = view.log_weights.iter().map(|l| l.exp()).collect();
-        let total: f64 = weights.iter().sum();
-        let mut rng = SmallRng::seed_from_u64(self.seed);
-        for _ in 0..self.draws {
-            let mut u = rng.random::<f64>() * total;
-            let mut i = n - 1;
-            for (j, w) in weights.iter().enumerate() {
-                if u < *w {
-                    i = j;
-                    break;
-                }
-                u -= w;
-            }
-            let mut states = vec![State::default(); self.steps];
-            let mut actions = vec![Action::default(); self.steps - 1];
-            for t in (0..self.steps).rev() {
-                states[t] = state_at(&self.states[t], n, i);
-                if t > 0 {
-                    let a = &self.actions[t];
-                    actions[t - 1] = Action { accel: a[i] as f64, pinch: a[n + i] as f64 };
-                    i = self.parents[t][i];
-                }
-            }
-            self.paths.push((states, actions));
-        }
-        // The genealogy is no longer needed: free it.
-        self.states = Vec::new();
-        self.actions = Vec::new();
-        self.parents = Vec::new();
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1086,8 +1013,13 @@ mod tests {
                     for (states, actions) in &rec.paths {
                         for t in 1..states.len() {
                             let (s, a) = (&states[t - 1], &actions[t - 1]);
-                            let from =
-                                crate::models::vehicle::VehicleState { x: s.x, y: s.y, yaw: s.yaw, v: s.v, kappa: s.kappa };
+                            let from = crate::models::vehicle::VehicleState {
+                                x: s.x,
+                                y: s.y,
+                                yaw: s.yaw,
+                                v: s.v,
+                                kappa: s.kappa,
+                            };
                             let action = crate::models::vehicle::Action { accel: a.accel, pinch: a.pinch };
                             let next = motion.step(&from, &action);
                             let to = &states[t];

@@ -51,16 +51,16 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use crate::models::extended::lagged_pose;
 use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
+use crate::models::extended::lagged_pose;
 use crate::models::observation::boxes::wrap_angle;
 use crate::models::observation::edges::sample_laplace;
 use crate::models::observation::{ObsContext, PointGenerator};
+use crate::models::vehicle::HandCraftedPolicy;
 use crate::synthetic::{
     build_dataset, ground_truth_builder, scene_motion, simulate_object, SceneConfig, SimulatedObject, SyntheticError,
     SyntheticScene,
 };
-use crate::models::vehicle::HandCraftedPolicy;
 
 /// The catalogue ids of the hidden effects, in catalogue order (`none` first).
 pub const HIDDEN_EFFECT_IDS: [&str; 7] =

@@ -30,8 +30,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
 use super::{ScoreEstimate, ScoreEstimator};
-use crate::models::{Block, DifferentiableModel};
 use crate::filter::{filter_object, ObjectSummary, Observer, StepView};
+use crate::models::{Block, DifferentiableModel};
 
 /// Which baseline.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -20,8 +20,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
 use super::{ScoreEstimate, ScoreEstimator};
-use crate::models::{Block, DifferentiableModel};
 use crate::filter::{filter_object, LagView, ObjectSummary, Observer, StepView};
+use crate::models::{Block, DifferentiableModel};
 
 /// PF-SEFI with fixed lag `L`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

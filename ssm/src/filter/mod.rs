@@ -18,8 +18,11 @@
 //! step's observation is skipped, the previous weights are kept and the step is
 //! counted in [`ObjectSummary::collapsed_steps`]: no NaN or `-inf` ever reaches the
 //! weights or the likelihood.
+//!
+//! [`paths`] draws whole paths from an object's genealogy (the smoother's draws).
 
 mod moments;
+pub mod paths;
 mod resample;
 mod tempering;
 

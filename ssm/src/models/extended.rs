@@ -36,16 +36,16 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
-use crate::models::{Block, DifferentiableModel, NoiseDims, ParticleModel};
 use crate::models::observation::boxes::wrap_angle;
 use crate::models::observation::points::Clutter;
 use crate::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
-use crate::stats::{log_sum_exp, normal_cdf};
+use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
 use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::models::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
-use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
+use crate::models::{Block, DifferentiableModel, NoiseDims, ParticleModel};
+use crate::stats::{log_sum_exp, normal_cdf};
 
 /// One object's observations, per step `t = 0..T`, of either kind.
 #[derive(Clone, Debug, PartialEq)]

@@ -41,12 +41,12 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
-use crate::models::extended::ExtensibleObservation;
 use crate::data::{Dataset, ObservationKind};
+use crate::models::extended::ExtensibleObservation;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
+use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use crate::models::road_user::VehicleSsm;
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";
@@ -247,7 +247,9 @@ impl AnyObservation {
     /// [`OBS_PREFIX`] with standard initialisation drawn from `rng`.
     pub fn init(kind: ObservationKind, store: &mut ParamStore<f64>, rng: &mut StdRng) -> AnyObservation {
         match kind {
-            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(store, OBS_PREFIX, rng)),
+            ObservationKind::Points => {
+                AnyObservation::Points(PointObservationModel::init_params(store, OBS_PREFIX, rng))
+            }
             ObservationKind::Boxes => AnyObservation::Boxes(BoxObservationModel::init_params(store, OBS_PREFIX, rng)),
         }
     }

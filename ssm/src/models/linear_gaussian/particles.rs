@@ -9,8 +9,8 @@ use rand::rngs::SmallRng;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use crate::models::{Block, DifferentiableModel};
 use crate::models::linear_gaussian::kalman::{Lgssm, ThetaVars};
+use crate::models::{Block, DifferentiableModel};
 use crate::models::{NoiseDims, ParticleModel};
 
 /// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
