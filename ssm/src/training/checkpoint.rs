@@ -10,10 +10,8 @@ use autodiff::optim::Adam;
 use serde::{Deserialize, Serialize};
 
 use super::{TrainConfig, TrainError, CHECKPOINT_VERSION};
-#[allow(unused_imports)] // the doc links
-use super::{CHECKPOINT_FILE, EVAL_LOG};
 
-/// The resumable state of a run, as stored in [`CHECKPOINT_FILE`] (format version
+/// The resumable state of a run, as stored in [`CHECKPOINT_FILE`](super::CHECKPOINT_FILE) (format version
 /// [`CHECKPOINT_VERSION`] in the file header).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Checkpoint {
@@ -29,7 +27,7 @@ pub struct Checkpoint {
     pub config: TrainConfig,
     /// The objective's batches per epoch (a resume must see the same).
     pub batches: usize,
-    /// The objective's metric names, the columns of [`EVAL_LOG`] after `step`.
+    /// The objective's metric names, the columns of [`EVAL_LOG`](super::EVAL_LOG) after `step`.
     pub eval_names: Vec<String>,
     /// The latest evaluation: its step and values.
     pub last_eval: (usize, Vec<f64>),

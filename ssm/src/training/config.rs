@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainError;
 
-/// Settings of [`train`]. A resumed run must use the same settings.
+/// Settings of [`train`](super::train). A resumed run must use the same settings.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct TrainConfig {

@@ -7,10 +7,7 @@ use std::path::PathBuf;
 
 use autodiff::nn::ParamError;
 
-#[allow(unused_imports)] // the doc links
-use super::{train, Objective};
-
-/// Why [`Objective::estimate`] returned no estimate. [`train`] skips the step on
+/// Why [`Objective::estimate`](super::Objective::estimate) returned no estimate. [`train`](super::train) skips the step on
 /// [`EstimateError::NonFinite`] and stops on [`EstimateError::Failed`].
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum EstimateError {
@@ -114,7 +111,7 @@ pub enum TrainError {
         /// The underlying error.
         source: std::io::Error,
     },
-    /// [`Objective::estimate`] failed (other than by a non-finite estimate), or
+    /// [`Objective::estimate`](super::Objective::estimate) failed (other than by a non-finite estimate), or
     /// returned gradients that do not match the parameters.
     Estimate {
         /// The step (from 1).
@@ -124,7 +121,7 @@ pub enum TrainError {
         /// The objective's message.
         message: String,
     },
-    /// [`Objective::evaluate`] failed or changed its metric names.
+    /// [`Objective::evaluate`](super::Objective::evaluate) failed or changed its metric names.
     Evaluate {
         /// Steps taken when it was called.
         step: usize,

@@ -2,8 +2,6 @@
 //! (through [`crate::seed::splitmix64`]), so a resumed run repeats an
 //! uninterrupted one.
 
-#[allow(unused_imports)] // the doc links
-use super::{train, Objective};
 use crate::seed::splitmix64;
 
 /// Stream tags, so the step seeds, evaluation seeds and batch orders of one run
@@ -16,7 +14,7 @@ fn derive_seed(seed: u64, stream: u64, index: u64) -> u64 {
     splitmix64(splitmix64(seed ^ splitmix64(stream)) ^ index)
 }
 
-/// The seed [`train`] passes to [`Objective::estimate`] at step `step` (from 1): a
+/// The seed [`train`](super::train) passes to [`Objective::estimate`](super::Objective::estimate) at step `step` (from 1): a
 /// fixed function of the run's seed and the step.
 ///
 /// ```
@@ -29,7 +27,7 @@ pub fn step_seed(seed: u64, step: usize) -> u64 {
     derive_seed(seed, STEP_STREAM, step as u64)
 }
 
-/// The seed [`train`] passes to [`Objective::evaluate`] after `step` steps.
+/// The seed [`train`](super::train) passes to [`Objective::evaluate`](super::Objective::evaluate) after `step` steps.
 pub fn eval_seed(seed: u64, step: usize) -> u64 {
     derive_seed(seed, EVAL_STREAM, step as u64)
 }
