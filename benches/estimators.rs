@@ -53,10 +53,10 @@ use rand::SeedableRng;
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use ssm::filter::{run_filter, FilterConfig};
-use ssm::model::ParticleModel;
+use ssm::models::road_user::VehicleSsm;
+use ssm::models::vehicle::policy::HandCraftedPolicy;
+use ssm::models::ParticleModel;
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
-use ssm::vehicle::policy::HandCraftedPolicy;
-use ssm::vehicle_ssm::VehicleSsm;
 
 /// Particles per object.
 const PARTICLES: usize = 1024;
@@ -186,7 +186,7 @@ impl Problem {
         Problem { truth, data }
     }
 
-    fn model(&self) -> VehicleSsm<'_, HandCraftedPolicy, ssm::observation::PointObservationModel> {
+    fn model(&self) -> VehicleSsm<'_, HandCraftedPolicy, ssm::models::observation::PointObservationModel> {
         VehicleSsm::new(&self.data, &self.truth.policy, &self.truth.obs, &self.truth.params).expect("model")
     }
 }
@@ -204,7 +204,7 @@ fn estimator_config(chunk: usize) -> EstimatorConfig {
 }
 
 /// Runs `workload` once on the whole batch of objects.
-fn run_once<M: ssm::estimators::DifferentiableModel>(model: &M, workload: Workload, chunk: usize) -> Outcome {
+fn run_once<M: ssm::models::DifferentiableModel>(model: &M, workload: Workload, chunk: usize) -> Outcome {
     let config = estimator_config(chunk);
     match workload.estimator() {
         None => {
@@ -321,7 +321,7 @@ impl Timing {
 /// Times `workloads` after waiting for a quiet machine, their repetitions
 /// interleaved (`a b a b ...`) so that a change in other processes' load falls on
 /// all of them alike.
-fn time_workloads<M: ssm::estimators::DifferentiableModel>(
+fn time_workloads<M: ssm::models::DifferentiableModel>(
     model: &M,
     workloads: &[Workload],
     chunk: usize,

@@ -15,9 +15,9 @@ use std::time::Instant;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::filter::{run_filter, FilterConfig, PhaseTimes};
+use ssm::models::road_user::VehicleSsm;
+use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
-use ssm::vehicle::policy::HandCraftedPolicy;
-use ssm::vehicle_ssm::VehicleSsm;
 
 const OBJECTS_STEPS: usize = 26; // T + 1 for 25 transitions
 /// Particles of the `--once` profiling run (experiment A's size).

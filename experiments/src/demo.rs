@@ -33,7 +33,7 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::{FilterConfig, Tempering};
 use ssm::metrics::{metrics_of, track, Metrics};
-use ssm::params::Models;
+use ssm::models::params::Models;
 use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
 
 use crate::birdseye;

@@ -1,7 +1,7 @@
 //! `sefi eval` and `sefi track`: load a dataset and a parameter file, run the
 //! particle filter and write the metrics (SPEC §5) or the estimated states.
 //!
-//! The parameter file is a [`ParamStore`] laid out as [`ssm::params`] describes:
+//! The parameter file is a [`ParamStore`] laid out as [`ssm::models::params`] describes:
 //! the policy under `policy` (`policy.log_sd` for the hand-crafted policy,
 //! otherwise the neural network `policy.0.w`, ...), the observation network under
 //! `obs`. The observation model follows the dataset: points -> point model,
@@ -15,8 +15,8 @@ use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
 use ssm::filter::FilterConfig;
 use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
-use ssm::observation::ObservationModel;
-use ssm::params::{AnyObservation, AnyPolicy, Models};
+use ssm::models::observation::ObservationModel;
+use ssm::models::params::{AnyObservation, AnyPolicy, Models};
 
 use crate::birdseye;
 use crate::calibrate::FilterArgs;

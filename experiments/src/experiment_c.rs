@@ -49,7 +49,6 @@
 //! `--particles`, `--eval-particles`, `--epochs`, `--scenes-per-step` and `--runs`
 //! override a scale's value.
 
-use std::f64::consts::TAU;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -61,9 +60,8 @@ use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
-use ssm::observation::boxes::{BOX_MIN_SCALE, BOX_MIN_YAW_SCALE};
-use ssm::observation::FitConfig;
-use ssm::params::{AnyObservation, Models};
+use ssm::models::observation::{BoxObservationModel, FitConfig};
+use ssm::models::params::{AnyObservation, Models};
 use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
 
@@ -515,19 +513,11 @@ struct Context<'a> {
     policy_from: &'a str,
 }
 
-/// The largest value `log g(det | x)` of the box model can take: both centre
-/// offsets and the yaw offset at their means with the floored scales. An MLL per
-/// detection above it is not a likelihood but a numerical artefact.
-fn max_log_density_per_detection() -> f64 {
-    let b = BOX_MIN_YAW_SCALE;
-    -2.0 * (2.0 * BOX_MIN_SCALE).ln() - (2.0 * b).ln() + (-TAU / b).exp().ln_1p() - (-(-TAU / b).exp()).ln_1p()
-}
-
 /// Notes on rows whose numbers are not what they seem: non-finite state estimates
 /// (the model diverged) and MLLs above what the density allows.
 fn validity_notes(rows: &[Row]) -> String {
     let mut notes = String::new();
-    let bound = max_log_density_per_detection();
+    let bound = BoxObservationModel::max_log_density();
     for r in rows {
         let bad_states = r.runs.iter().any(|m| m.smoothed.ade.is_some_and(|a| !a.is_finite()));
         let over: Vec<f64> = r.runs.iter().filter_map(|m| m.mll).filter(|&v| v > bound).collect();
@@ -652,7 +642,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
     // A diverged run's curve swings by thousands of nats (and above what the
     // density allows): plot only the plausible range, from 10 nats below the
     // initial MLL up to the density's bound, and say how many points were left out.
-    let bound = max_log_density_per_detection();
+    let bound = BoxObservationModel::max_log_density();
     let floor = rows.iter().flat_map(|r| r.curve.first()).map(|p| p.1).fold(f64::INFINITY, f64::min) - 10.0;
     let mut omitted = 0usize;
     let mut series: Vec<Series> = rows

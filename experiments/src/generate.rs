@@ -21,7 +21,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use serde_json::json;
-use ssm::observation::ObservationModel;
+use ssm::models::observation::ObservationModel;
 use ssm::synthetic::{generate_experiment, summarize, Experiment, ExperimentConfig, Progress};
 
 use crate::output::{ensure_dir, write_json};
@@ -100,8 +100,8 @@ fn run_hidden(args: &GenerateArgs, effect: &str) -> Result<(), String> {
 /// Writes data drawn from a model on the scenes of `like` into `args.out`.
 fn run_sampled(args: &GenerateArgs, like: &std::path::Path) -> Result<(), String> {
     use autodiff::nn::ParamStore;
-    use ssm::params::{AnyPolicy, Models};
-    use ssm::vehicle::NeuralPolicy;
+    use ssm::models::params::{AnyPolicy, Models};
+    use ssm::models::vehicle::NeuralPolicy;
     let skeleton = ssm::data::Dataset::read(like).map_err(|e| format!("dataset {}: {e}", like.display()))?;
     let store = match &args.params {
         Some(p) => ParamStore::<f64>::load(p).map_err(|e| format!("parameter file {}: {e}", p.display()))?,

@@ -25,9 +25,9 @@ use serde_json::json;
 use ssm::data::Dataset;
 use ssm::filter::FilterConfig;
 use ssm::metrics::{Metrics, Summary};
-use ssm::params::{AnyPolicy, Models};
+use ssm::models::params::{AnyPolicy, Models};
+use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 use ssm::training::PARAMS_FILE;
-use ssm::vehicle::{GaussianPolicy, HandCraftedPolicy};
 
 use crate::calibrate::{check_method, method_settings, FilterArgs};
 use crate::evaluate::metric_runs;

@@ -17,7 +17,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow, COMPONENTS};
 use ssm::estimators::{Estimator, EstimatorConfig, Precision};
-use ssm::lgssm::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 
 use crate::output::{ensure_dir, write_atomic};
 

@@ -14,10 +14,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
+use ssm::models::params::{AnyPolicy, Models};
+use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{ObjectiveConfig, SceneObjective};
-use ssm::params::{AnyPolicy, Models};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
-use ssm::vehicle::{HandCraftedPolicy, NeuralPolicy};
 
 use crate::calibrate::{FilterArgs, FilterKind};
 use crate::output::{ensure_dir, write_json};

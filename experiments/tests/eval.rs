@@ -7,9 +7,9 @@ use autodiff::nn::ParamStore;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Action, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::observation::{BoxObservationModel, ObsContext, ObservationModel, PointObservationModel};
-use ssm::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
-use ssm::vehicle::{
+use ssm::models::observation::{BoxObservationModel, ObsContext, ObservationModel, PointObservationModel};
+use ssm::models::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,
     VehicleState,
 };

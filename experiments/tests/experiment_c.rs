@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 use autodiff::nn::ParamStore;
 use ssm::data::ObservationKind;
-use ssm::params::Models;
+use ssm::models::params::Models;
 
 /// The methods `experiment-c` trains by default: the paper's four on the bootstrap
 /// filter, and PF-SEFI on the tempered filter.

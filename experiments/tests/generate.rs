@@ -83,7 +83,7 @@ fn quick_generation_writes_datasets_and_is_reproducible() {
     assert_eq!(train.steps(), 6);
     assert!(train.states().unwrap().is_complete());
     let truth = TrueModel::load(&a.join("true_params.bin")).unwrap();
-    assert_eq!(truth.policy, ssm::vehicle::HandCraftedPolicy::truth());
+    assert_eq!(truth.policy, ssm::models::vehicle::HandCraftedPolicy::truth());
     let s = summary(&a);
     assert_eq!(s["experiment"], "B");
     assert_eq!(s["seed"], 5);

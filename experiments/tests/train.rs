@@ -118,7 +118,10 @@ fn score_check_prints_the_exact_score_and_names_bad_lines() {
     let file = dir.join("ys.txt");
     std::fs::write(&file, "0.5\n# a comment\n-0.25\n1.5\n").unwrap();
     let stdout = ok(&sefi(&["score-check", "--observations", s(&file), "--params", "0.8,0.5,1.2"]));
-    let model = ssm::lgssm::Lgssm::stationary(ssm::lgssm::LgssmTheta::new(0.8, 0.5, 1.2)).unwrap();
+    let model = ssm::models::linear_gaussian::kalman::Lgssm::stationary(
+        ssm::models::linear_gaussian::kalman::LgssmTheta::new(0.8, 0.5, 1.2),
+    )
+    .unwrap();
     let (ll, _) = model.score(&[0.5, -0.25, 1.5]);
     assert!(stdout.contains(&format!("exact log-likelihood: {ll:.10}")), "{stdout}");
 

@@ -12,7 +12,7 @@
 //!   across filter runs and the effective sample size per step.
 //!
 //! Both read the models from a parameter store the way training does
-//! ([`crate::params::Models`]).
+//! ([`crate::models::params::Models`]).
 
 use std::time::Instant;
 
@@ -20,15 +20,16 @@ use autodiff::nn::ParamStore;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::criticism::extensions::ExtensibleObservation;
 use crate::data::Dataset;
-use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimator};
+use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
-use crate::model::ParticleModel;
+use crate::models::extended::ExtensibleObservation;
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::road_user::VehicleSsm;
+use crate::models::DifferentiableModel;
+use crate::models::ParticleModel;
 use crate::objective::gradient_in_store_order;
-use crate::params::{AnyPolicy, ModelVisitor, Models};
 use crate::stats::normal_cdf;
-use crate::vehicle_ssm::VehicleSsm;
 
 /// One entry of a parameter tensor's mean score.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -180,7 +181,7 @@ struct CompleteData {
 impl ModelVisitor for CompleteData {
     type Output = Result<(Vec<autodiff::Tensor<f64>>, Vec<String>), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        use crate::estimators::Block;
+        use crate::models::Block;
         use autodiff::{Tape, Tensor};
         let data = model.data();
         let (states, actions) = match (data.states(), data.actions()) {
@@ -385,9 +386,9 @@ struct SampleFromModel<'a> {
 impl ModelVisitor for SampleFromModel<'_> {
     type Output = Result<(), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        use crate::criticism::extensions::ExtendedSsm;
-        use crate::criticism::ObjectObservations;
-        use crate::vehicle::state::{Action as VAction, VehicleState};
+        use crate::models::extended::ExtendedSsm;
+        use crate::models::extended::ObjectObservations;
+        use crate::models::vehicle::state::{Action as VAction, VehicleState};
         use rand::SeedableRng;
 
         let data = model.data();

@@ -29,9 +29,9 @@ use serde::Serialize;
 
 use crate::data::{Dataset, Pose, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary};
-use crate::observation::{ObsContext, ObservationModel};
-use crate::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
-use crate::vehicle_ssm::{VehicleSsm, YAW};
+use crate::models::observation::{ObsContext, ObservationModel};
+use crate::models::road_user::{VehicleSsm, YAW};
+use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
 
 /// Particles of an evaluation run (SPEC §5).
 pub const EVAL_PARTICLES: usize = 4096;

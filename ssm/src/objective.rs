@@ -3,7 +3,7 @@
 //! estimator of [`crate::estimators`] and the test MLL as its evaluation.
 //!
 //! Parameters live in one [`ParamStore`] under the convention of
-//! [`crate::params`]; each step rebuilds the models from it
+//! [`crate::models::params`]; each step rebuilds the models from it
 //! ([`Models::from_store`]), estimates the score on the batch's objects and maps
 //! the gradient back onto the store by name. The gradient handed to the trainer
 //! is the score divided by the batch's observed units (the gradient of the
@@ -14,14 +14,15 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::criticism::extensions::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::data::Dataset;
-use crate::estimators::{DifferentiableModel, Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
+use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
 use crate::filter::{run_filter, FilterConfig, Tempering};
-use crate::params::{AnyPolicy, ModelVisitor, Models};
-use crate::training::{non_finite, BatchEstimate, Objective};
-use crate::vehicle::GaussianPolicy;
-use crate::vehicle_ssm::VehicleSsm;
+use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::road_user::VehicleSsm;
+use crate::models::vehicle::GaussianPolicy;
+use crate::models::DifferentiableModel;
+use crate::training::{non_finite, BatchEstimate, EstimateError, Objective};
 
 /// How the objective estimates and evaluates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -35,7 +36,7 @@ pub struct ObjectiveConfig {
     /// Particles of the test evaluation (SPEC §5: 4096).
     pub eval_particles: usize,
     /// A catalogue extension of the base model to fit along with it
-    /// ([`crate::criticism::extensions`]); its parameter is `ext.<id>` in the store.
+    /// ([`crate::models::extended`]); its parameter is `ext.<id>` in the store.
     #[serde(default)]
     pub extension: Option<Extension>,
     /// With an extension: learn only its parameter, the base model held fixed
@@ -144,7 +145,7 @@ impl Objective for SceneObjective {
         self.batches.len()
     }
 
-    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String> {
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError> {
         let models = self.models(params)?;
         let visit = Estimate {
             estimator: &self.config.estimator,

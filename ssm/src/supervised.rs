@@ -23,7 +23,7 @@
 //!
 //! ```
 //! use rand::{rngs::StdRng, SeedableRng};
-//! use ssm::observation::PointObservationModel;
+//! use ssm::models::observation::PointObservationModel;
 //! use ssm::supervised::{fit_supervised, SupervisedConfig};
 //! use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig};
 //!
@@ -44,8 +44,8 @@ use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind, Pose};
-use crate::observation::{fit_network, Example, FitConfig, ObsContext, ObservationModel};
-use crate::params::{AnyObservation, Models, OBS_PREFIX};
+use crate::models::observation::{fit_network, Example, FitConfig, ObsContext, ObservationModel};
+use crate::models::params::{AnyObservation, Models, OBS_PREFIX};
 
 /// Why a supervised fit cannot run.
 #[derive(Clone, Debug, PartialEq, Eq)]

@@ -70,11 +70,11 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Poisson, StandardNormal};
 
 use crate::data::{Action, DataError, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
-use crate::observation::{
+use crate::models::observation::{
     aotll, fit_network, random_point_examples, FitConfig, FitReport, ObsContext, ObservationModel, PointGenerator,
     PointObservationModel, SceneRanges,
 };
-use crate::vehicle::{
+use crate::models::vehicle::{
     Action as VAction, ActionGaussians, GaussianPolicy, HandCraftedPolicy, MotionModel, Quadrature, VehicleState,
     DEFAULT_DT,
 };
@@ -358,8 +358,8 @@ impl ExperimentConfig {
 /// parameters and the fitted point network. `params` holds the network under
 /// [`OBS_PREFIX`] (first, so a store laid out for the network alone shares its
 /// ids) and the policy's log sds under [`POLICY_LOG_SD`] (last) — the names of the
-/// project's parameter-file convention ([`crate::params`]), so a saved true model
-/// can be read by [`crate::params::Models::from_store`] too.
+/// project's parameter-file convention ([`crate::models::params`]), so a saved true model
+/// can be read by [`crate::models::params::Models::from_store`] too.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrueModel {
     /// The policy.
@@ -430,7 +430,7 @@ pub fn fit_true_model<R: Rng + ?Sized>(config: &TruthConfig, rng: &mut R) -> Res
     let fit = FitConfig { seed: rng.random(), ..config.fit.clone() };
     let report = fit_network(&model.obs, &mut model.params, &train, &fit);
     let heldout_aotll = aotll(&model.obs, &model.params, &heldout);
-    let points = |ex: &[crate::observation::Example<[f64; 2]>]| ex.iter().map(|e| e.items.len()).sum();
+    let points = |ex: &[crate::models::observation::Example<[f64; 2]>]| ex.iter().map(|e| e.items.len()).sum();
     Ok(FittedTruth { heldout_aotll, train_points: points(&train), heldout_points: points(&heldout), model, report })
 }
 

@@ -5,9 +5,10 @@
 use std::f64::consts::{FRAC_PI_2, PI};
 
 use ssm::criticism::checks::{calibrate, checks_for, statistics, CheckDef};
-use ssm::criticism::{lagged_pose, ObjectObservations, ObjectSample};
+use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::observation::edges::from_box_frame;
+use ssm::models::extended::{lagged_pose, ObjectObservations};
+use ssm::models::observation::edges::from_box_frame;
 use ssm::stats::normal_cdf;
 
 const LENGTH: f64 = 4.0;

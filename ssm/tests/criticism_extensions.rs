@@ -1,4 +1,4 @@
-//! The catalogue's model extensions (`ssm::criticism::extensions`): the filter's
+//! The catalogue's model extensions (`ssm::models::extended`): the filter's
 //! f32 path and the estimators' tape path compute the same log-densities, their
 //! tape gradients match finite differences in f64, no extension changes the base
 //! model before it is switched on, and the replicate sampler agrees with the
@@ -8,17 +8,17 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
-use ssm::criticism::extensions::{
-    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
-};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Action, Dataset, ObservationKind, State};
-use ssm::estimators::{Block, DifferentiableModel};
 use ssm::filter::{run_filter, FilterConfig};
-use ssm::model::ParticleModel;
-use ssm::params::{AnyPolicy, ModelVisitor, Models};
-use ssm::vehicle::NeuralPolicy;
-use ssm::vehicle_ssm::VehicleSsm;
+use ssm::models::extended::{
+    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
+};
+use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
+use ssm::models::road_user::VehicleSsm;
+use ssm::models::vehicle::NeuralPolicy;
+use ssm::models::ParticleModel;
+use ssm::models::{Block, DifferentiableModel};
 
 /// A small dataset of `kind` (2 scenes of 2 objects, 5 steps).
 fn data(kind: ObservationKind) -> Dataset {

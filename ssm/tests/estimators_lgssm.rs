@@ -7,8 +7,8 @@ use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow};
 use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimator};
 use ssm::filter::Resampling;
-use ssm::lgssm::{Lgssm, LgssmTheta};
-use ssm::linear_gaussian::LgssmBatch;
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::particles::LgssmBatch;
 
 fn batch(len: usize, objects: usize, seed: u64) -> LgssmBatch {
     let model = Lgssm::stationary(LgssmTheta::new(0.9, 0.7, 1.0)).unwrap();

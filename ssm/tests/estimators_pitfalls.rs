@@ -12,13 +12,12 @@ use std::collections::HashSet;
 use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::estimators::{
-    Block, DifferentiableModel, Estimator, EstimatorConfig, Precision, ScoreEstimate, ScoreEstimator,
-};
+use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, ScoreEstimator};
 use ssm::filter::{filter_object, run_filter, FilterConfig, ObjectSummary, Observer, Resampling, StepView};
-use ssm::lgssm::{Lgssm, LgssmTheta};
-use ssm::linear_gaussian::LgssmBatch;
-use ssm::model::ParticleModel;
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::particles::LgssmBatch;
+use ssm::models::ParticleModel;
+use ssm::models::{Block, DifferentiableModel};
 
 // ---------------------------------------------------------------------------
 // Helpers
@@ -716,10 +715,10 @@ fn naive_dpf_sgr_accumulation_sums_prefix_scores() {
 
 mod vehicle {
     use super::*;
-    use ssm::observation::PointGenerator;
-    use ssm::params::{AnyObservation, Models};
+    use ssm::models::observation::PointGenerator;
+    use ssm::models::params::{AnyObservation, Models};
+    use ssm::models::road_user::VehicleSsm;
     use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TruthConfig};
-    use ssm::vehicle_ssm::VehicleSsm;
 
     /// On the vehicle model (hand-crafted policy, fitted point network, 3 objects,
     /// T = 11, N = 64): every estimator gives a finite gradient with one tensor per
@@ -747,7 +746,7 @@ mod vehicle {
         let steps = data.steps();
         let names = model.parameter_names();
         assert_eq!(names.len(), params.len());
-        assert_eq!(names[0], ssm::params::HAND_CRAFTED_PARAM);
+        assert_eq!(names[0], ssm::models::params::HAND_CRAFTED_PARAM);
         let empty =
             (0..3).flat_map(|j| (0..steps).map(move |t| (j, t))).filter(|&(j, t)| model.observation_count(j, t) == 0);
         let empty = empty.count();

@@ -6,9 +6,9 @@
 use rand::rngs::{SmallRng, StdRng};
 use rand::SeedableRng;
 use ssm::filter::{run_filter, FilterConfig, LagView, Moments, Observer, Resampling};
-use ssm::lgssm::{Lgssm, LgssmTheta};
-use ssm::linear_gaussian::LgssmBatch;
-use ssm::model::ParticleModel;
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::particles::LgssmBatch;
+use ssm::models::ParticleModel;
 
 fn model() -> Lgssm {
     Lgssm::stationary(LgssmTheta::new(0.9, 0.5, 0.7)).unwrap()

@@ -11,8 +11,8 @@ use rand::SeedableRng;
 use ssm::estimators::study::score_study;
 use ssm::estimators::{Estimator, EstimatorConfig, Precision};
 use ssm::filter::{run_filter, FilterConfig, FilterRun, Tempering};
-use ssm::lgssm::{Lgssm, LgssmTheta};
-use ssm::linear_gaussian::LgssmBatch;
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::particles::LgssmBatch;
 
 /// A broad prior (sd 5), a transition of sd `sv` and observations of sd `sw`.
 fn sharp_model(sv: f64, sw: f64) -> Lgssm {

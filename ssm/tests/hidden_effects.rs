@@ -12,8 +12,8 @@ use rand_distr::StandardNormal;
 use ssm::criticism::hidden::{generate_hidden, BoxGenerator, HiddenConfig, HiddenEffect, HIDDEN_EFFECT_IDS};
 use ssm::data::{Dataset, ObservationKind, Pose, State};
 use ssm::metrics::wrapped_abs_diff;
-use ssm::observation::{ObsContext, PointGenerator};
-use ssm::vehicle::{GaussianPolicy, HandCraftedPolicy};
+use ssm::models::observation::{ObsContext, PointGenerator};
+use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 
 /// Statistical checks allow 4 standard errors: with the fixed seeds below a false
 /// failure cannot happen, and with any seed it has probability ~6e-5 per check.
@@ -218,7 +218,7 @@ fn size_bias_makes_points_reach_beyond_the_stated_extents() {
 fn accel_innovations(d: &Dataset) -> Vec<f64> {
     let (states, actions) = (d.states().unwrap(), d.actions().unwrap());
     let policy = HandCraftedPolicy::truth();
-    let mut g = ssm::vehicle::ActionGaussians::<f64>::default();
+    let mut g = ssm::models::vehicle::ActionGaussians::<f64>::default();
     let mut z = Vec::new();
     for o in 0..d.objects().len() {
         for t in 1..d.steps() {

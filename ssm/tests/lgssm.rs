@@ -7,7 +7,7 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use ssm::lgssm::{Lgssm, LgssmError, LgssmTheta, ThetaVars};
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmError, LgssmTheta, ThetaVars};
 
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
 

@@ -1,5 +1,5 @@
 //! The metrics of SPEC §5 on hand-made cases with known answers, and the
-//! parameter-file convention of `ssm::params`.
+//! parameter-file convention of `ssm::models::params`.
 
 use std::f64::consts::PI;
 
@@ -12,9 +12,11 @@ use ssm::filter::FilterConfig;
 use ssm::metrics::{
     aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff, Summary,
 };
-use ssm::observation::{BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch};
-use ssm::params::{AnyObservation, AnyPolicy, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX};
-use ssm::vehicle::{
+use ssm::models::observation::{
+    BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
+};
+use ssm::models::params::{AnyObservation, AnyPolicy, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX};
+use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,
     VehicleState,
 };

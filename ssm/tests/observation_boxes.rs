@@ -15,8 +15,8 @@ use common::{assert_tape_rows_match_plain, poses, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};
-use ssm::observation::boxes::wrap_angle;
-use ssm::observation::{BoxObservationModel, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
+use ssm::models::observation::boxes::wrap_angle;
+use ssm::models::observation::{BoxObservationModel, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 
 fn model(seed: u64) -> (BoxObservationModel, ParamStore<f64>) {
     let mut store = ParamStore::new();

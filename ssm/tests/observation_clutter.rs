@@ -14,8 +14,8 @@ use common::{clear_of_kinks, ctx, model, poses, row_contexts, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::points::Clutter;
-use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
+use ssm::models::observation::points::Clutter;
+use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
 
 /// `ln(2 pi)`.
 const LN_2PI: f64 = 1.837_877_066_409_345_5;

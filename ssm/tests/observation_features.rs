@@ -7,7 +7,7 @@ use autodiff::{Tape, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::{av_features, av_features_on_tape, av_features_one, ObsContext, PosesRef, RowVars};
+use ssm::models::observation::{av_features, av_features_on_tape, av_features_one, ObsContext, PosesRef, RowVars};
 
 fn random_case(rng: &mut StdRng) -> (ObsContext, Pose) {
     let av =

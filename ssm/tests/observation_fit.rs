@@ -7,8 +7,8 @@ use autodiff::nn::ParamStore;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::observation::edges::{edge_coords, edge_lengths, to_box_frame};
-use ssm::observation::{
+use ssm::models::observation::edges::{edge_coords, edge_lengths, to_box_frame};
+use ssm::models::observation::{
     aotll, fit_network, random_point_examples, BoxObservationModel, Example, FitConfig, ObsContext, ObservationModel,
     PointGenerator, PointObservationModel, PosesRef, SceneRanges, Scratch,
 };

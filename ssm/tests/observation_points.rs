@@ -13,10 +13,10 @@ use common::{assert_tape_rows_match_plain, clear_of_kinks, ctx, model, poses, ro
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::edges::{
+use ssm::models::observation::edges::{
     edge_coords, edge_lengths, from_box_frame, log_soft_uniform, sample_soft_uniform, to_box_frame,
 };
-use ssm::observation::{
+use ssm::models::observation::{
     av_features_on_tape, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
 

@@ -11,7 +11,7 @@ use autodiff::{Parallelism, Tape, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::{
+use ssm::models::observation::{
     av_features, BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
 
@@ -111,7 +111,7 @@ fn observation_hot_paths() {
             let tape = serial();
             let p = s32.bind(&tape);
             let rv = RowVars::constant(&tape, &rx, &ry, &ryaw, &len, &wid);
-            let o = model.mlp().forward(&p, ssm::observation::av_features_on_tape(&rv, &av));
+            let o = model.mlp().forward(&p, ssm::models::observation::av_features_on_tape(&rv, &av));
             std::hint::black_box(p.gradients(&tape.backward(o.sum())));
         },
         11,

@@ -23,9 +23,9 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Tempering;
-use ssm::params::{AnyPolicy, Models, HAND_CRAFTED_PARAM as POLICY_LOG_SD};
+use ssm::models::params::{AnyPolicy, Models, HAND_CRAFTED_PARAM as POLICY_LOG_SD};
+use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
-use ssm::vehicle::{HandCraftedPolicy, NeuralPolicy};
 
 /// The smallest Bonferroni p-value a tensor may have at the truth.
 const P_FLOOR: f64 = 1e-3;

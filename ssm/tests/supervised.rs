@@ -8,11 +8,11 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Dataset, ObservationKind, Pose};
 use ssm::metrics::aotll;
-use ssm::observation::{BoxObservationModel, FitConfig, ObsContext, ObservationModel, PointObservationModel};
-use ssm::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+use ssm::models::observation::{BoxObservationModel, FitConfig, ObsContext, ObservationModel, PointObservationModel};
+use ssm::models::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+use ssm::models::vehicle::HandCraftedPolicy;
 use ssm::supervised::{fit_observation, fit_supervised, labelled_examples, SupervisedConfig, SupervisedError};
 use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment};
-use ssm::vehicle::HandCraftedPolicy;
 
 /// The quick synthetic experiment (2 train and 1 test scene, 6 steps) with
 /// `objects` objects per scene: point observations with labelled states.

@@ -7,12 +7,12 @@
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
-use ssm::observation::{ObsContext, ObservationModel, PointGenerator};
+use ssm::models::observation::{ObsContext, ObservationModel, PointGenerator};
+use ssm::models::vehicle::{Action, GaussianPolicy, HandCraftedPolicy, MotionModel, VehicleState};
 use ssm::synthetic::{
     build_dataset, fit_true_model, generate_dataset, generate_experiment, simulate_scene, summarize, Experiment,
     ExperimentConfig, SceneConfig, TrueModel, TruthConfig, OBS_PREFIX, POLICY_LOG_SD,
 };
-use ssm::vehicle::{Action, GaussianPolicy, HandCraftedPolicy, MotionModel, VehicleState};
 
 /// Statistical checks allow 4 standard errors: with the fixed seeds below a false
 /// failure is impossible, and with any seed it has probability ~6e-5 per check.
@@ -54,7 +54,7 @@ fn actions_are_draws_from_the_true_policy() {
     let (_, data) = scene_data(21, 1);
     let (states, actions) = (data.states().unwrap(), data.actions().unwrap());
     let policy = HandCraftedPolicy::truth();
-    let mut g = ssm::vehicle::ActionGaussians::<f64>::default();
+    let mut g = ssm::models::vehicle::ActionGaussians::<f64>::default();
     let (mut z_accel, mut z_pinch) = (Vec::new(), Vec::new());
     for o in 0..data.objects().len() {
         assert!(actions.get(o, 0).is_none(), "no action at t = 0");
@@ -201,9 +201,9 @@ fn datasets_round_trip_through_files() {
     let log_sd = back.params.get(back.params.id(POLICY_LOG_SD).unwrap()).data().to_vec();
     assert_eq!(log_sd, vec![0.5f64.ln(), 0.02f64.ln()]);
     assert_eq!(back.policy, HandCraftedPolicy::truth());
-    // The file follows the project's parameter convention (`ssm::params`).
-    let models = ssm::params::Models::from_store(&back.params, ssm::data::ObservationKind::Points).unwrap();
-    assert!(matches!(models.policy, ssm::params::AnyPolicy::HandCrafted(_)));
+    // The file follows the project's parameter convention (`ssm::models::params`).
+    let models = ssm::models::params::Models::from_store(&back.params, ssm::data::ObservationKind::Points).unwrap();
+    assert!(matches!(models.policy, ssm::models::params::AnyPolicy::HandCrafted(_)));
     // A store of another layout is refused.
     let mut other = back.params.clone();
     other.add("extra", autodiff::Tensor::from_vec(vec![1.0]));

@@ -10,10 +10,10 @@ use autodiff::optim::{clip_global_norm, Adam};
 use autodiff::Tensor;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::lgssm::{Lgssm, LgssmTheta};
+use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::training::{
-    non_finite, train, BatchEstimate, Checkpoint, Objective, TrainConfig, TrainError, TrainEvent, CHECKPOINT_FILE,
-    EVAL_LOG, PARAMS_FILE, TRAIN_LOG, TRAIN_LOG_HEADER,
+    non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError, TrainEvent,
+    CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, TRAIN_LOG, TRAIN_LOG_HEADER,
 };
 
 /// The data's parameters: `(phi, ln s_v, ln s_w)`.
@@ -123,7 +123,7 @@ impl Objective for LgssmObjective {
         self.train.len()
     }
 
-    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, _seed: u64) -> Result<BatchEstimate, String> {
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, _seed: u64) -> Result<BatchEstimate, EstimateError> {
         let ys = &self.train[batch];
         let (ll, g) = self.model(theta_of(params))?.score(ys);
         Ok(BatchEstimate {
@@ -174,7 +174,7 @@ impl<O: Objective> Objective for Faulty<O> {
         self.inner.batches()
     }
 
-    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String> {
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError> {
         self.calls += 1;
         self.seen.push(params.values()[0].data().to_vec());
         self.calls_log.push((batch, seed));
@@ -396,8 +396,8 @@ fn other_estimate_errors_abort_naming_the_step() {
         fn batches(&self) -> usize {
             2
         }
-        fn estimate(&mut self, _: &ParamStore<f64>, batch: usize, _: u64) -> Result<BatchEstimate, String> {
-            Err(format!("scene {batch} unreadable"))
+        fn estimate(&mut self, _: &ParamStore<f64>, batch: usize, _: u64) -> Result<BatchEstimate, EstimateError> {
+            Err(format!("scene {batch} unreadable").into())
         }
         fn evaluate(&mut self, _: &ParamStore<f64>, _: u64) -> Result<Vec<(String, f64)>, String> {
             Ok(vec![])
@@ -414,7 +414,7 @@ fn other_estimate_errors_abort_naming_the_step() {
         fn batches(&self) -> usize {
             1
         }
-        fn estimate(&mut self, _: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, String> {
+        fn estimate(&mut self, _: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, EstimateError> {
             Ok(BatchEstimate {
                 log_likelihood: 0.0,
                 observed_units: 1,
@@ -540,7 +540,7 @@ fn a_run_that_fails_at_once_leaves_no_files_and_metric_names_must_not_change() {
         fn batches(&self) -> usize {
             1
         }
-        fn estimate(&mut self, _: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, String> {
+        fn estimate(&mut self, _: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, EstimateError> {
             Ok(BatchEstimate {
                 log_likelihood: -1.0,
                 observed_units: 2,

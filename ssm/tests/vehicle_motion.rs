@@ -6,8 +6,8 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use ssm::vehicle::motion::{closed_form_step, gauss_legendre, reference_step, YawProfile};
-use ssm::vehicle::{
+use ssm::models::vehicle::motion::{closed_form_step, gauss_legendre, reference_step, YawProfile};
+use ssm::models::vehicle::{
     Action, ActionBatch, ActionVars, MotionError, MotionModel, Quadrature, StateBatch, StateVars, VehicleState,
     DEFAULT_DT,
 };

@@ -9,11 +9,11 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
-use ssm::stats::ks_distance_to_normal;
-use ssm::vehicle::{
+use ssm::models::vehicle::{
     ActionBatch, ActionGaussianVars, ActionGaussians, ActionVars, GaussianPolicy, HandCraftedPolicy, NeuralPolicy,
     PolicyError,
 };
+use ssm::stats::ks_distance_to_normal;
 
 const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
@@ -32,7 +32,7 @@ impl GaussianPolicy for CorrelatedPolicy {
         vec!["policy.theta".into()]
     }
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {
-        ssm::vehicle::policy::check_parameters(&self.parameters(), params)?;
+        ssm::models::vehicle::policy::check_parameters(&self.parameters(), params)?;
         self.theta.copy_from_slice(params[0].data());
         Ok(())
     }
@@ -211,7 +211,7 @@ fn densities_integrate_to_one() {
             l22: vec![g.l22[0]; m * m],
         };
         let mut lp = vec![0.0; m * m];
-        big.log_density(ssm::vehicle::ActionsRef { accel: &acc, pinch: &pin }, &mut lp);
+        big.log_density(ssm::models::vehicle::ActionsRef { accel: &acc, pinch: &pin }, &mut lp);
         let total: f64 = lp.iter().map(|l| l.exp()).sum::<f64>() * ha * hp;
         assert!((total - 1.0).abs() < 1e-9, "density integrates to {total}");
     }

@@ -20,8 +20,8 @@ use serde::{Deserialize, Serialize};
 
 use super::{ObjectObservations, ObjectSample};
 use crate::data::{Dataset, ObservationKind, Pose};
-use crate::observation::boxes::wrap_angle;
-use crate::observation::edges::to_box_frame;
+use crate::models::observation::boxes::wrap_angle;
+use crate::models::observation::edges::to_box_frame;
 use crate::stats::{mean, normal_cdf, sd};
 
 /// Fewest points of an object-step for its extents to count (`*_extent_ratio`).

@@ -51,16 +51,16 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use super::lagged_pose;
 use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
-use crate::observation::boxes::wrap_angle;
-use crate::observation::edges::sample_laplace;
-use crate::observation::{ObsContext, PointGenerator};
+use crate::models::extended::lagged_pose;
+use crate::models::observation::boxes::wrap_angle;
+use crate::models::observation::edges::sample_laplace;
+use crate::models::observation::{ObsContext, PointGenerator};
+use crate::models::vehicle::HandCraftedPolicy;
 use crate::synthetic::{
     build_dataset, ground_truth_builder, scene_motion, simulate_object, SceneConfig, SimulatedObject, SyntheticError,
     SyntheticScene,
 };
-use crate::vehicle::HandCraftedPolicy;
 
 /// The catalogue ids of the hidden effects, in catalogue order (`none` first).
 pub const HIDDEN_EFFECT_IDS: [&str; 7] =
@@ -76,7 +76,7 @@ pub const HIDDEN_RANGE: (f64, f64) = (5.0, 35.0);
 pub const HIDDEN_PRIOR_SD_POSITION: f64 = 0.2;
 
 /// One hidden effect and its size (or none), as the catalogue of model extensions
-/// ([`super::extensions`]) defines it. Serialised with the catalogue ids as tags,
+/// ([`crate::models::extended`]) defines it. Serialised with the catalogue ids as tags,
 /// e.g. `{"latency":{"delay":0.15}}` or `"none"`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -331,7 +331,7 @@ impl Distribution<f64> for UnitStudentT {
 /// use rand::{rngs::StdRng, SeedableRng};
 /// use ssm::criticism::hidden::BoxGenerator;
 /// use ssm::data::Pose;
-/// use ssm::observation::ObsContext;
+/// use ssm::models::observation::ObsContext;
 ///
 /// let g = BoxGenerator::default();
 /// assert!((g.along_scale(20.0) - 0.35).abs() < 1e-12);

@@ -13,19 +13,10 @@
 
 pub mod checks;
 pub mod diagnose;
-pub mod extensions;
 pub mod hidden;
 
-use crate::data::{Action, BoxDetection, Pose, State};
-
-/// One object's observations, per step `t = 0..T`, of either kind.
-#[derive(Clone, Debug, PartialEq)]
-pub enum ObjectObservations {
-    /// Point sets (possibly empty) per step.
-    Points(Vec<Vec<[f64; 2]>>),
-    /// At most one detection per step.
-    Boxes(Vec<Option<BoxDetection>>),
-}
+use crate::data::{Action, State};
+use crate::models::extended::ObjectObservations;
 
 /// A path of one object with observations: what a discrepancy statistic looks at.
 /// For the measured data the observations are the dataset's and the path a draw
@@ -45,13 +36,4 @@ pub struct ObjectSample {
     /// Gaussian policy, `(accel - mean(x_{t-1})) / sd(x_{t-1})`, one per action;
     /// empty when unknown (the checks then use the raw accelerations).
     pub accel_innovations: Vec<f64>,
-}
-
-/// The pose seen by a sensor whose observations lag the state by `delay` seconds:
-/// the state extrapolated back along its own motion at constant speed and
-/// curvature, `x - delay v cos(yaw)`, `y - delay v sin(yaw)`, `yaw - delay v kappa`
-/// (first order in the delay; the `latency` extension and its generator share it).
-pub fn lagged_pose(state: &State, delay: f64) -> Pose {
-    let d = delay * state.v;
-    Pose { x: state.x - d * state.yaw.cos(), y: state.y - d * state.yaw.sin(), yaw: state.yaw - d * state.kappa }
 }

@@ -1,6 +1,7 @@
 //! Score estimators (SPEC §2): PF-SEFI and the through-filter baselines (PF,
 //! DPF-SGR in two variants, PFNET), behind one trait, [`ScoreEstimator`], over any
-//! model that can evaluate its log-densities on a tape, [`DifferentiableModel`].
+//! model that can evaluate its log-densities on a tape
+//! ([`DifferentiableModel`], defined with the models in [`crate::models`]).
 //!
 //! Every estimator runs the same bootstrap particle filter
 //! ([`crate::filter::filter_object`]) with the same per-object random streams, so
@@ -30,81 +31,10 @@ use autodiff::{Float, Tape, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
 use crate::filter::{FilterConfig, Resampling, Tempering};
-use crate::model::ParticleModel;
+use crate::models::DifferentiableModel;
 
 pub use replay::{ThroughFilter, ThroughFilterKind};
 pub use sefi::PfSefi;
-
-/// A run of consecutive rows on a tape that all belong to one object at one step.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Block {
-    /// The object.
-    pub object: usize,
-    /// The step.
-    pub t: usize,
-    /// Number of rows.
-    pub len: usize,
-}
-
-/// Total rows of `blocks`.
-pub fn block_rows(blocks: &[Block]) -> usize {
-    blocks.iter().map(|b| b.len).sum()
-}
-
-/// A [`ParticleModel`] whose log-densities and transition can be evaluated on a
-/// tape as functions of its parameters `theta`.
-///
-/// States and actions on the tape are dimension-major lists of `Var`s of shape
-/// `[R]` (one per component) whose rows are laid out by `blocks`. The parameters
-/// are a list of tensors ([`DifferentiableModel::parameters`]); the tape methods
-/// take them as `Var`s in the same order, bound by the caller, so the caller
-/// decides what is tracked.
-pub trait DifferentiableModel: ParticleModel {
-    /// The parameter tensors (an f64 master copy), in the order of the tape methods.
-    fn parameters(&self) -> Vec<Tensor<f64>>;
-
-    /// A name per parameter tensor (the names of a [`autodiff::nn::ParamStore`]).
-    fn parameter_names(&self) -> Vec<String>;
-
-    /// The parameters as tracked leaves of `tape`.
-    fn bind<'t, F: Float>(&self, tape: &'t Tape<F>) -> Vec<Var<'t, F>> {
-        self.parameters().iter().map(|p| tape.param(p.cast())).collect()
-    }
-
-    /// `log g(y_t | x)` per row (shape `[R]`). Every block must be at a step with an
-    /// observation (`observation_count > 0`).
-    fn observation_log_density<'t, F: Float>(
-        &self,
-        params: &[Var<'t, F>],
-        blocks: &[Block],
-        states: &[Var<'t, F>],
-    ) -> Var<'t, F>;
-
-    /// The transition's log-density per row (shape `[R]`, blocks at `t >= 1`), up
-    /// to terms that do not depend on the parameters: `log f(next | prev)`, or, for
-    /// a deterministic injective motion model driven by actions, `log pi(a | prev)`
-    /// (the paper's Lemma: same gradient).
-    fn transition_log_density<'t, F: Float>(
-        &self,
-        params: &[Var<'t, F>],
-        blocks: &[Block],
-        prev: &[Var<'t, F>],
-        next: &[Var<'t, F>],
-        actions: &[Var<'t, F>],
-    ) -> Var<'t, F>;
-
-    /// The reparameterised transition: the states reached from `prev` by the
-    /// recorded `actions` (constants), as functions of the parameters and of
-    /// `prev`. The noise is the recorded actions standardised at the current
-    /// values, held constant, so the values equal the filter's.
-    fn propagate_on_tape<'t, F: Float>(
-        &self,
-        params: &[Var<'t, F>],
-        blocks: &[Block],
-        prev: &[Var<'t, F>],
-        actions: &[Var<'t, F>],
-    ) -> Vec<Var<'t, F>>;
-}
 
 /// Floating-point type of the estimators' tapes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

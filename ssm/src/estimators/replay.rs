@@ -28,9 +28,10 @@ use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{accumulate, columns, zeros_like, Block, DifferentiableModel, EstimatorConfig, Precision};
+use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
 use super::{ScoreEstimate, ScoreEstimator};
 use crate::filter::{filter_object, ObjectSummary, Observer, StepView};
+use crate::models::{Block, DifferentiableModel};
 
 /// Which baseline.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -18,9 +18,10 @@ use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{accumulate, columns, zeros_like, Block, DifferentiableModel, EstimatorConfig, Precision};
+use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
 use super::{ScoreEstimate, ScoreEstimator};
 use crate::filter::{filter_object, LagView, ObjectSummary, Observer, StepView};
+use crate::models::{Block, DifferentiableModel};
 
 /// PF-SEFI with fixed lag `L`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

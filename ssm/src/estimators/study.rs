@@ -7,10 +7,10 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use super::{Estimator, EstimatorConfig, ScoreEstimator};
-use crate::lgssm::Lgssm;
-use crate::linear_gaussian::LgssmBatch;
+use crate::models::linear_gaussian::kalman::Lgssm;
+use crate::models::linear_gaussian::particles::LgssmBatch;
 
-/// Names of the score components, in the order of [`crate::lgssm::LgssmTheta::to_array`].
+/// Names of the score components, in the order of [`crate::models::linear_gaussian::kalman::LgssmTheta::to_array`].
 pub const COMPONENTS: [&str; 3] = ["phi", "log_sv", "log_sw"];
 
 /// One estimator's error on one score component.

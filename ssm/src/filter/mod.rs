@@ -18,8 +18,11 @@
 //! step's observation is skipped, the previous weights are kept and the step is
 //! counted in [`ObjectSummary::collapsed_steps`]: no NaN or `-inf` ever reaches the
 //! weights or the likelihood.
+//!
+//! [`paths`] draws whole paths from an object's genealogy (the smoother's draws).
 
 mod moments;
+pub mod paths;
 mod resample;
 mod tempering;
 
@@ -36,7 +39,8 @@ pub use resample::{effective_sample_size, Resampling};
 pub use tempering::Tempering;
 use tempering::{reweight, ParentStep, StepParticles, Temperer};
 
-use crate::model::ParticleModel;
+use crate::models::ParticleModel;
+use crate::seed::splitmix64;
 
 /// Settings of a particle-filter run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -232,13 +236,7 @@ impl<O> FilterRun<O> {
 
 /// The seed of one object's random stream (SplitMix64 of seed and object).
 pub fn stream_seed(seed: u64, object: usize) -> u64 {
-    let mix = |mut z: u64| {
-        z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    };
-    mix(seed ^ mix(object as u64 ^ 0x5eed))
+    splitmix64(seed ^ splitmix64(object as u64 ^ 0x5eed))
 }
 
 /// Filters every object of `model`, in parallel over objects. `make_observer(object)`

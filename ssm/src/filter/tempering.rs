@@ -39,7 +39,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::resample::Resampling;
-use crate::model::{NoiseDims, ParticleModel};
+use crate::models::{NoiseDims, ParticleModel};
 
 /// Settings of the tempered filter (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

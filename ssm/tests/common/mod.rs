@@ -9,8 +9,8 @@ use autodiff::{Tape, Tensor};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
-use ssm::observation::edges::{edge_coords, edge_lengths, to_box_frame};
-use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
+use ssm::models::observation::edges::{edge_coords, edge_lengths, to_box_frame};
+use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
 
 /// One batch of rows: poses, contexts (varying extents), AV poses and items.
 pub struct Rows<I> {

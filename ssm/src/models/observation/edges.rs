@@ -69,7 +69,7 @@ pub fn from_box_frame(pose: Pose, u: f64, v: f64) -> [f64; 2] {
 /// 4 edges (see the module table).
 ///
 /// ```
-/// use ssm::observation::edges::{edge_coords, edge_point};
+/// use ssm::models::observation::edges::{edge_coords, edge_point};
 /// let (hl, hw) = (2.0, 1.0);
 /// let c = edge_coords(2.5, 0.0, hl, hw);
 /// assert_eq!(c[0], (1.0, 0.5)); // half way along the front, 0.5 m out
@@ -105,7 +105,7 @@ fn tail_offset(len: f64, scale: f64) -> f64 {
 /// positive `len`, `scale`.
 ///
 /// ```
-/// use ssm::observation::edges::log_soft_uniform;
+/// use ssm::models::observation::edges::log_soft_uniform;
 /// // Deep inside an edge it is the uniform density 1 / len.
 /// assert!((log_soft_uniform(2.0, 4.0, 0.05) + 4.0f64.ln()).abs() < 1e-12);
 /// // Far outside it is linear in the distance, never -inf.

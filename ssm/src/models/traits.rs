@@ -1,12 +1,15 @@
-//! The interface between models and the particle filter: a batch of independent
-//! objects, each a state-space model with its own observations, under fixed
-//! parameters. The filter runs forward only (f32, no tape); estimators evaluate
-//! the same model's log-densities on the tape through their own traits.
+//! The model traits: what the particle filter needs of a model
+//! ([`ParticleModel`]: a batch of independent objects, each a state-space model
+//! with its own observations, under fixed parameters, run forward only in f32
+//! without a tape) and what the score estimators need of it
+//! ([`DifferentiableModel`]: the same model's log-densities on a tape, over rows
+//! laid out in [`Block`]s).
 //!
 //! Particle sets are stored dimension-major: for `n` particles of dimension `d`,
 //! component `k` of particle `i` is `states[k * n + i]`, so every loop over
 //! particles reads contiguous memory.
 
+use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::SmallRng;
 
 /// Dimensions of the standard-normal noise that drives a model's draws (see
@@ -128,4 +131,75 @@ pub trait ParticleModel: Sync {
     /// How many observed units (points, detections, scalars) `y_t` holds: the
     /// normaliser of per-point metrics.
     fn observation_count(&self, object: usize, t: usize) -> usize;
+}
+
+/// A run of consecutive rows on a tape that all belong to one object at one step.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Block {
+    /// The object.
+    pub object: usize,
+    /// The step.
+    pub t: usize,
+    /// Number of rows.
+    pub len: usize,
+}
+
+/// Total rows of `blocks`.
+pub fn block_rows(blocks: &[Block]) -> usize {
+    blocks.iter().map(|b| b.len).sum()
+}
+
+/// A [`ParticleModel`] whose log-densities and transition can be evaluated on a
+/// tape as functions of its parameters `theta`.
+///
+/// States and actions on the tape are dimension-major lists of `Var`s of shape
+/// `[R]` (one per component) whose rows are laid out by `blocks`. The parameters
+/// are a list of tensors ([`DifferentiableModel::parameters`]); the tape methods
+/// take them as `Var`s in the same order, bound by the caller, so the caller
+/// decides what is tracked.
+pub trait DifferentiableModel: ParticleModel {
+    /// The parameter tensors (an f64 master copy), in the order of the tape methods.
+    fn parameters(&self) -> Vec<Tensor<f64>>;
+
+    /// A name per parameter tensor (the names of a [`autodiff::nn::ParamStore`]).
+    fn parameter_names(&self) -> Vec<String>;
+
+    /// The parameters as tracked leaves of `tape`.
+    fn bind<'t, F: Float>(&self, tape: &'t Tape<F>) -> Vec<Var<'t, F>> {
+        self.parameters().iter().map(|p| tape.param(p.cast())).collect()
+    }
+
+    /// `log g(y_t | x)` per row (shape `[R]`). Every block must be at a step with an
+    /// observation (`observation_count > 0`).
+    fn observation_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Var<'t, F>;
+
+    /// The transition's log-density per row (shape `[R]`, blocks at `t >= 1`), up
+    /// to terms that do not depend on the parameters: `log f(next | prev)`, or, for
+    /// a deterministic injective motion model driven by actions, `log pi(a | prev)`
+    /// (the paper's Lemma: same gradient).
+    fn transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        next: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Var<'t, F>;
+
+    /// The reparameterised transition: the states reached from `prev` by the
+    /// recorded `actions` (constants), as functions of the parameters and of
+    /// `prev`. The noise is the recorded actions standardised at the current
+    /// values, held constant, so the values equal the filter's.
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>>;
 }

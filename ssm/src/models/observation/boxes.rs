@@ -118,6 +118,14 @@ pub struct BoxObservationModel {
 }
 
 impl BoxObservationModel {
+    /// The largest value `log g(det | x)` can take, whatever the parameters: both
+    /// centre offsets and the yaw offset at their means with the floored scales. An
+    /// MLL per detection above it is not a likelihood but a numerical artefact.
+    pub fn max_log_density() -> f64 {
+        let b = BOX_MIN_YAW_SCALE;
+        -2.0 * (2.0 * BOX_MIN_SCALE).ln() - (2.0 * b).ln() + (-TAU / b).exp().ln_1p() - (-(-TAU / b).exp()).ln_1p()
+    }
+
     /// The network layout.
     pub fn mlp(&self) -> &Mlp {
         &self.mlp

@@ -27,6 +27,7 @@
 //! component's mixture parameters get their gradient through the transition
 //! log-density, which is what PF-SEFI differentiates.
 
+use autodiff::dist::LN_2PI;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Float, Tensor, Var};
 use rand::rngs::SmallRng;
@@ -34,19 +35,35 @@ use rand::Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
-use super::{lagged_pose, ObjectObservations};
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
-use crate::estimators::{Block, DifferentiableModel};
-use crate::model::{NoiseDims, ParticleModel};
-use crate::observation::boxes::wrap_angle;
-use crate::observation::points::Clutter;
-use crate::observation::{
+use crate::models::observation::boxes::wrap_angle;
+use crate::models::observation::points::Clutter;
+use crate::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
+use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
+use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
+use crate::models::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
+use crate::models::{Block, DifferentiableModel, NoiseDims, ParticleModel};
 use crate::stats::{log_sum_exp, normal_cdf};
-use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
-use crate::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
-use crate::vehicle_ssm::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
+
+/// One object's observations, per step `t = 0..T`, of either kind.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ObjectObservations {
+    /// Point sets (possibly empty) per step.
+    Points(Vec<Vec<[f64; 2]>>),
+    /// At most one detection per step.
+    Boxes(Vec<Option<BoxDetection>>),
+}
+
+/// The pose seen by a sensor whose observations lag the state by `delay` seconds:
+/// the state extrapolated back along its own motion at constant speed and
+/// curvature, `x - delay v cos(yaw)`, `y - delay v sin(yaw)`, `yaw - delay v kappa`
+/// (first order in the delay; the `latency` extension and its generator share it).
+pub fn lagged_pose(state: &State, delay: f64) -> Pose {
+    let d = delay * state.v;
+    Pose { x: state.x - d * state.yaw.cos(), y: state.y - d * state.yaw.sin(), yaw: state.yaw - d * state.kappa }
+}
 
 /// Name prefix of the extensions' parameters.
 pub const EXTENSION_PREFIX: &str = "ext";
@@ -79,8 +96,6 @@ const MAX_INITIAL_TAIL_RATIO: f64 = 20.0;
 
 /// Mixture fractions are kept in `[FRACTION_GUARD, 1 - FRACTION_GUARD]` on the plain paths.
 const FRACTION_GUARD: f64 = 1e-12;
-
-const LN_2PI: f64 = 1.837_877_066_409_345_5;
 
 /// One entry of the catalogue.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]

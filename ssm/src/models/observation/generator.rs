@@ -80,7 +80,7 @@ impl PointGenerator {
     ///
     /// ```
     /// use ssm::data::Pose;
-    /// use ssm::observation::{ObsContext, PointGenerator};
+    /// use ssm::models::observation::{ObsContext, PointGenerator};
     /// // AV 20 m straight behind a car: only the rear is seen.
     /// let ctx = ObsContext::new(Pose { x: -20.0, y: 0.0, yaw: 0.0 }, 4.5, 1.8);
     /// let w = PointGenerator::default().edge_weights(&ctx, Pose { x: 0.0, y: 0.0, yaw: 0.0 });

@@ -21,9 +21,9 @@
 //! use autodiff::nn::ParamStore;
 //! use rand::SeedableRng;
 //! use ssm::data::ObservationKind;
-//! use ssm::observation::{ObservationModel, PointObservationModel};
-//! use ssm::params::{AnyPolicy, Models, OBS_PREFIX};
-//! use ssm::vehicle::HandCraftedPolicy;
+//! use ssm::models::observation::{ObservationModel, PointObservationModel};
+//! use ssm::models::params::{AnyPolicy, Models, OBS_PREFIX};
+//! use ssm::models::vehicle::HandCraftedPolicy;
 //!
 //! let mut store = ParamStore::new();
 //! AnyPolicy::HandCrafted(HandCraftedPolicy::truth()).add_to_store(&mut store);
@@ -41,19 +41,18 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 
-use crate::criticism::extensions::ExtensibleObservation;
 use crate::data::{Dataset, ObservationKind};
-use crate::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
-use crate::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
-use crate::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use crate::vehicle_ssm::VehicleSsm;
+use crate::models::extended::ExtensibleObservation;
+use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
+use crate::models::road_user::VehicleSsm;
+use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
+use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";
 /// Name prefix of the observation network's parameters.
 pub const OBS_PREFIX: &str = "obs";
-/// The hand-crafted policy's one parameter: `[log sd accel, log sd pinch]`.
-pub const HAND_CRAFTED_PARAM: &str = "policy.log_sd";
+pub use crate::models::vehicle::policy::HAND_CRAFTED_PARAM;
 
 /// What is wrong with a parameter store.
 #[derive(Clone, Debug, PartialEq)]
@@ -244,6 +243,17 @@ pub enum AnyObservation {
 }
 
 impl AnyObservation {
+    /// A fresh model for a dataset of `kind`, its network added to `store` under
+    /// [`OBS_PREFIX`] with standard initialisation drawn from `rng`.
+    pub fn init(kind: ObservationKind, store: &mut ParamStore<f64>, rng: &mut StdRng) -> AnyObservation {
+        match kind {
+            ObservationKind::Points => {
+                AnyObservation::Points(PointObservationModel::init_params(store, OBS_PREFIX, rng))
+            }
+            ObservationKind::Boxes => AnyObservation::Boxes(BoxObservationModel::init_params(store, OBS_PREFIX, rng)),
+        }
+    }
+
     /// The kind of dataset the model reads.
     pub fn kind(&self) -> ObservationKind {
         match self {
@@ -278,16 +288,7 @@ impl Models {
     pub fn initial(kind: ObservationKind, policy: AnyPolicy, seed: u64) -> Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
-        let observation = match kind {
-            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(
-                &mut observation_params,
-                OBS_PREFIX,
-                &mut rng,
-            )),
-            ObservationKind::Boxes => {
-                AnyObservation::Boxes(BoxObservationModel::init_params(&mut observation_params, OBS_PREFIX, &mut rng))
-            }
-        };
+        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
         Models { policy, observation, observation_params }
     }
 
@@ -301,16 +302,7 @@ impl Models {
         }
         let mut observation_params = ParamStore::new();
         let mut rng = StdRng::seed_from_u64(0);
-        let observation = match kind {
-            ObservationKind::Points => AnyObservation::Points(PointObservationModel::init_params(
-                &mut observation_params,
-                OBS_PREFIX,
-                &mut rng,
-            )),
-            ObservationKind::Boxes => {
-                AnyObservation::Boxes(BoxObservationModel::init_params(&mut observation_params, OBS_PREFIX, &mut rng))
-            }
-        };
+        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
         let model = match kind {
             ObservationKind::Points => "point observation model (this dataset holds points.csv)",
             ObservationKind::Boxes => "box-detection observation model (this dataset holds boxes.csv)",

@@ -111,7 +111,7 @@ pub struct EdgeMixture {
 /// sd `scale` centred on the box centre instead of from the box's edges.
 ///
 /// ```
-/// use ssm::observation::points::Clutter;
+/// use ssm::models::observation::points::Clutter;
 /// let c = Clutter::from_logits(0.0, 2f64.ln());
 /// assert_eq!(c, Clutter { fraction: 0.5, scale: 2.0 });
 /// ```
@@ -143,15 +143,6 @@ impl Clutter {
             "{op}: clutter scale must be positive and finite, got {}",
             self.scale
         );
-    }
-}
-
-/// `ln(1 + e^x)` in f64 without overflow or loss for large `|x|`.
-fn softplus64(x: f64) -> f64 {
-    if x > 0.0 {
-        x + (-x).exp().ln_1p()
-    } else {
-        x.exp().ln_1p()
     }
 }
 
@@ -200,7 +191,7 @@ impl<F: Float> ClutterConsts<F> {
             lambda.is_finite() && sigma.is_finite(),
             "{op}: clutter logit fraction {lambda} and log scale {sigma} must be finite"
         );
-        Self::new(-softplus64(lambda), -softplus64(-lambda), sigma)
+        Self::new(-lambda.softplus(), -(-lambda).softplus(), sigma)
     }
 }
 
@@ -332,7 +323,7 @@ impl PointObservationModel {
     /// use autodiff::{Tape, Tensor};
     /// use rand::SeedableRng;
     /// use ssm::data::Pose;
-    /// use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, RowVars};
+    /// use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, RowVars};
     ///
     /// let mut rng = rand::rngs::StdRng::seed_from_u64(0);
     /// let mut store = ParamStore::new();

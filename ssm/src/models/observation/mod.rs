@@ -121,8 +121,8 @@ impl<'a, F> PosesRef<'a, F> {
     }
 }
 
-impl<'a, F: Float> From<crate::vehicle::StatesRef<'a, F>> for PosesRef<'a, F> {
-    fn from(s: crate::vehicle::StatesRef<'a, F>) -> Self {
+impl<'a, F: Float> From<crate::models::vehicle::StatesRef<'a, F>> for PosesRef<'a, F> {
+    fn from(s: crate::models::vehicle::StatesRef<'a, F>) -> Self {
         PosesRef { x: s.x, y: s.y, yaw: s.yaw }
     }
 }
@@ -260,7 +260,7 @@ pub(crate) fn fit_len<F: Float>(v: &mut Vec<F>, n: usize) {
 /// use autodiff::nn::ParamStore;
 /// use rand::SeedableRng;
 /// use ssm::data::Pose;
-/// use ssm::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch};
+/// use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch};
 ///
 /// let mut rng = rand::rngs::StdRng::seed_from_u64(0);
 /// let mut store = ParamStore::new();

@@ -16,7 +16,7 @@
 //!
 //! ```
 //! use rand::SeedableRng;
-//! use ssm::lgssm::{Lgssm, LgssmTheta};
+//! use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 //! let model = Lgssm::new(0.0, 1.0, LgssmTheta::new(0.9, 0.5, 0.8)).unwrap();
 //! let data = model.simulate(20, &mut rand::rngs::StdRng::seed_from_u64(0));
 //! let (ll, score) = model.score(&data.ys);

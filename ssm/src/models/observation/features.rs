@@ -41,7 +41,7 @@ pub const RANGE_EPS: f64 = 0.01;
 ///
 /// ```
 /// use ssm::data::Pose;
-/// use ssm::observation::{av_features_one, ObsContext};
+/// use ssm::models::observation::{av_features_one, ObsContext};
 /// // AV at the origin facing +x; a 5 m x 2 m object 10 m ahead, facing away.
 /// let ctx = ObsContext::new(Pose { x: 0.0, y: 0.0, yaw: 0.0 }, 5.0, 2.0);
 /// let f = av_features_one(&ctx, Pose { x: 10.0, y: 0.0, yaw: 0.0 });

@@ -73,7 +73,7 @@ impl Quadrature {
 /// computed by Newton's method on the Legendre polynomial to full f64 precision.
 ///
 /// ```
-/// let (x, w) = ssm::vehicle::motion::gauss_legendre(3);
+/// let (x, w) = ssm::models::vehicle::motion::gauss_legendre(3);
 /// assert!((x[2] - (0.6f64).sqrt()).abs() < 1e-15);
 /// assert!((w[1] - 8.0 / 9.0).abs() < 1e-15);
 /// ```
@@ -141,7 +141,7 @@ impl std::error::Error for MotionError {}
 /// The exact motion model: cubic yaw, positions by Gauss–Legendre quadrature.
 ///
 /// ```
-/// use ssm::vehicle::{Action, MotionModel, VehicleState};
+/// use ssm::models::vehicle::{Action, MotionModel, VehicleState};
 /// let m = MotionModel::default();
 /// // Straight line, accelerating: x = v0 dt + accel dt^2 / 2.
 /// let s = m.step(&VehicleState::new(0.0f64, 0.0, 0.0, 10.0, 0.0), &Action::new(3.0, 0.0));
@@ -597,8 +597,8 @@ fn adaptive_simpson(
 /// about 1e-12 m while the heading swept by `v0 kappa0 dt` stays below ~10 rad.
 ///
 /// ```
-/// use ssm::vehicle::motion::closed_form_step;
-/// use ssm::vehicle::{Action, VehicleState};
+/// use ssm::models::vehicle::motion::closed_form_step;
+/// use ssm::models::vehicle::{Action, VehicleState};
 /// // Without pinch or acceleration the cubic term vanishes: a circular arc.
 /// let (k, v, dt) = (0.1, 10.0, 1.0 / 3.0);
 /// let s = closed_form_step(dt, &VehicleState::new(0.0, 0.0, 0.0, v, k), &Action::new(0.0, 0.0));

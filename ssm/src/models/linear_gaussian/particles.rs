@@ -9,9 +9,9 @@ use rand::rngs::SmallRng;
 use rand::Rng;
 use rand_distr::StandardNormal;
 
-use crate::estimators::{Block, DifferentiableModel};
-use crate::lgssm::{Lgssm, ThetaVars};
-use crate::model::{NoiseDims, ParticleModel};
+use crate::models::linear_gaussian::kalman::{Lgssm, ThetaVars};
+use crate::models::{Block, DifferentiableModel};
+use crate::models::{NoiseDims, ParticleModel};
 
 /// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
 pub const THETA_PARAM: &str = "theta";

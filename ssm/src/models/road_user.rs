@@ -9,14 +9,14 @@ use rand::Rng;
 use rand_distr::StandardNormal;
 
 use crate::data::{Dataset, Pose};
-use crate::estimators::{block_rows, Block, DifferentiableModel};
-use crate::model::{NoiseDims, ParticleModel};
-use crate::observation::{ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
-use crate::vehicle::motion::MotionModel;
-use crate::vehicle::policy::{ActionGaussians, GaussianPolicy};
-use crate::vehicle::state::{
+use crate::models::observation::{ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
+use crate::models::vehicle::motion::MotionModel;
+use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
+use crate::models::vehicle::state::{
     ActionVars, ActionsMut, ActionsRef, StateVars, StatesMut, StatesRef, ACTION_DIM, STATE_DIM,
 };
+use crate::models::{block_rows, Block, DifferentiableModel};
+use crate::models::{NoiseDims, ParticleModel};
 
 /// Index of the heading among the state components `(x, y, yaw, v, kappa)`.
 pub const YAW: usize = 2;

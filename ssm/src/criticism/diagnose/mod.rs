@@ -37,28 +37,37 @@
 //!
 //! Every training run writes its logs and checkpoints under the output
 //! directory, and a finished or interrupted run is resumed rather than redone.
+//!
+//! This file holds the settings, the reports and the pipeline (split, fit, check,
+//! choose); `heldout.rs` the held-out evaluation and the paired comparison of
+//! two models, `replicated.rs` the replicated (posterior predictive) checks.
+//! The paths the checks draw come from [`crate::filter::paths`].
+
+mod heldout;
+mod replicated;
+
+use heldout::{differences, likelihoods, top_two_share, EvalLikelihoods};
+pub use heldout::{paired_gain, sign_flip_p};
+use replicated::{posterior_predictive_checks, ModelChecks};
 
 use std::path::Path;
 
 use autodiff::nn::ParamStore;
-use rand::rngs::{SmallRng, StdRng};
+use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::checks::{calibrate, checks_for, holm, statistics, CheckResult};
-use super::extensions::{state_at, ExtendedSsm, ExtensibleObservation, Extension};
-use super::{ObjectObservations, ObjectSample};
-use crate::data::{Action, Dataset, ObservationKind, State};
+use super::checks::{calibrate, checks_for, holm, CheckResult};
+use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
-use crate::filter::{run_filter, stream_seed, FilterConfig, Observer, StepView, Tempering};
-use crate::model::ParticleModel;
+use crate::filter::{stream_seed, FilterConfig, Tempering};
+use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
+use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::road_user::VehicleSsm;
+use crate::models::vehicle::NeuralPolicy;
 use crate::objective::{ObjectiveConfig, SceneObjective};
-use crate::params::{AnyPolicy, ModelVisitor, Models};
-use crate::stats::{log_sum_exp, sd};
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
-use crate::vehicle::NeuralPolicy;
-use crate::vehicle_ssm::VehicleSsm;
 
 /// The outcome when no extension qualifies but some check fails at the
 /// family-wise level: the model is wrong in a way the catalogue does not cover.
@@ -90,7 +99,7 @@ pub struct DiagnoseConfig {
     /// Adam learning rate of the base fit.
     pub lr: f64,
     /// Adam learning rate of the extensions' parameters (their stored values are
-    /// scaled, see [`super::extensions`]).
+    /// scaled, see [`crate::models::extended`]).
     pub candidate_lr: f64,
     /// Global gradient-norm clipping.
     pub clip: Option<f64>,
@@ -618,67 +627,6 @@ fn run(
     })
 }
 
-/// `a_i - b_i`.
-fn differences(a: &[f64], b: &[f64]) -> Vec<f64> {
-    a.iter().zip(b).map(|(x, y)| x - y).collect()
-}
-
-/// The share of `sum(d)` carried by its two largest entries (NaN unless the sum is positive).
-fn top_two_share(d: &[f64]) -> f64 {
-    let total: f64 = d.iter().sum();
-    if total <= 0.0 {
-        return f64::NAN;
-    }
-    let mut sorted = d.to_vec();
-    sorted.sort_by(|a, b| b.total_cmp(a));
-    sorted.iter().take(2).sum::<f64>() / total
-}
-
-/// One-sided sign-flip permutation p-value of `sum(d) > 0`, objects exchangeable
-/// under the null of a gain distributed symmetrically about zero:
-/// `(1 + #{flips with sum >= observed}) / (1 + permutations)`, the flips drawn
-/// from a seeded stream (exact enumeration when `2^n <= permutations`).
-pub fn sign_flip_p(d: &[f64], permutations: usize, seed: u64) -> f64 {
-    let observed: f64 = d.iter().sum();
-    if d.is_empty() || !observed.is_finite() {
-        return 1.0;
-    }
-    // A relative tolerance so that a flip reproducing the observed sum counts
-    // despite rounding.
-    let tol = 1e-12 * d.iter().map(|x| x.abs()).sum::<f64>();
-    let n = d.len();
-    if n < 63 && (1usize << n) <= permutations {
-        let total = 1usize << n;
-        let at_least = (0..total)
-            .filter(|mask| {
-                let s: f64 = d.iter().enumerate().map(|(i, x)| if mask >> i & 1 == 1 { -x } else { *x }).sum();
-                s >= observed - tol
-            })
-            .count();
-        return at_least as f64 / total as f64;
-    }
-    let mut rng = SmallRng::seed_from_u64(seed);
-    let at_least = (0..permutations)
-        .filter(|_| {
-            let s: f64 = d.iter().map(|x| if rng.random::<bool>() { -x } else { *x }).sum();
-            s >= observed - tol
-        })
-        .count();
-    (1 + at_least) as f64 / (1 + permutations) as f64
-}
-
-/// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
-/// and its normal-approximation standard error, objects independent.
-pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
-    let d = differences(a, b);
-    let n = d.len() as f64;
-    let units = units.max(1) as f64;
-    if d.len() < 2 {
-        return (d.iter().sum::<f64>() / units, f64::INFINITY);
-    }
-    (d.iter().sum::<f64>() / units, n.sqrt() * sd(d.iter().copied()) / units)
-}
-
 /// Training runs end at this fraction of the initial learning rate.
 const FINAL_LR_FRACTION: f64 = 0.1;
 
@@ -739,28 +687,6 @@ fn fit(
     let outcome = train(&mut objective, initial, &train_config, dir, resume, &mut on_event)
         .map_err(|e| format!("training the {model} model in {}: {e}", dir.display()))?;
     Ok(Fitted { params: outcome.params, skipped: outcome.skipped_steps, seconds: outcome.seconds })
-}
-
-/// What one model's checks measured on the check part.
-struct ModelChecks {
-    /// `measured[k][c]`: statistic `c` of draw `k` on the measured data.
-    measured: Vec<Vec<f64>>,
-    /// `replicated[k][c]`: the same on replicated data.
-    replicated: Vec<Vec<f64>>,
-}
-
-impl ModelChecks {
-    fn draws_of(&self, c: usize) -> Vec<(f64, f64)> {
-        self.measured.iter().zip(&self.replicated).map(|(m, r)| (m[c], r[c])).collect()
-    }
-}
-
-/// One model's log-likelihoods on the evaluation part.
-struct EvalLikelihoods {
-    /// Per object: the log of the mean of the runs' likelihood estimates.
-    object_ll: Vec<f64>,
-    /// Observed units (points, detections).
-    units: usize,
 }
 
 /// Checks `params` (with `extension`) on `data` (see [`posterior_predictive_checks`]).
@@ -833,185 +759,14 @@ impl ModelVisitor for OnModel<'_> {
     }
 }
 
-fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) -> Result<EvalLikelihoods, String> {
-    let mut per_object: Vec<Vec<f64>> = Vec::new();
-    let mut units = 0;
-    for r in 0..config.eval_runs {
-        let run = run_filter(model, &config.eval_filter(r), |_| ());
-        if r == 0 {
-            per_object = vec![Vec::with_capacity(config.eval_runs); run.objects.len()];
-            units = run.observed_units();
-        }
-        per_object.iter_mut().zip(&run.objects).for_each(|(l, o)| l.push(o.log_likelihood));
-    }
-    let object_ll: Vec<f64> = per_object.iter().map(|l| log_sum_exp(l) - (l.len() as f64).ln()).collect();
-    if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
-        return Err(format!("the log-likelihood of evaluated object {bad} is not finite"));
-    }
-    Ok(EvalLikelihoods { object_ll, units })
-}
-
-/// Filters every object of `model`'s data once with the tempered filter, draws
-/// `config.draws` paths per object from its smoother (the filter's genealogy),
-/// and evaluates the checks' statistics on measured and replicated data per draw.
-fn posterior_predictive_checks<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
-    model: &ExtendedSsm<'_, '_, P, O>,
-    config: &DiagnoseConfig,
-) -> ModelChecks {
-    let (draws, seed) = (config.draws, config.seed);
-    let steps = ParticleModel::num_steps(model);
-    let run = run_filter(model, &config.eval_filter(0), |object| {
-        PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object))
-    });
-    let data = model.data();
-    let mut measured = Vec::with_capacity(draws);
-    let mut replicated = Vec::with_capacity(draws);
-    for k in 0..draws {
-        let mut rng = SmallRng::seed_from_u64(stream_seed(seed ^ 0x7e71, k));
-        let real: Vec<ObjectSample> = run
-            .observers
-            .iter()
-            .enumerate()
-            .map(|(o, rec)| {
-                let (states, actions) = &rec.paths[k];
-                ObjectSample {
-                    object: o,
-                    states: states.clone(),
-                    actions: actions.clone(),
-                    observations: measured_observations::<O>(data, o),
-                    accel_innovations: innovations(model, states, actions),
-                }
-            })
-            .collect();
-        let rep: Vec<ObjectSample> = real.iter().map(|s| replicate(model, s, &mut rng)).collect();
-        measured.push(statistics(data, &real));
-        replicated.push(statistics(data, &rep));
-    }
-    ModelChecks { measured, replicated }
-}
-
-/// The dataset's observations of `object`.
-fn measured_observations<O: ExtensibleObservation>(data: &Dataset, object: usize) -> ObjectObservations {
-    O::to_observations((0..data.steps()).map(|t| O::items(data, object, t).to_vec()).collect())
-}
-
-/// A replicate of `sample` from `model`: actions drawn from the policy at the
-/// path's states, observations drawn at the path's states — except at `t = 0`,
-/// where the state is drawn from the object's prior (the `initial_lag` check
-/// compares the smoother's initial states with the prior's) and the observation
-/// at that state.
-fn replicate<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
-    model: &ExtendedSsm<'_, '_, P, O>,
-    sample: &ObjectSample,
-    rng: &mut SmallRng,
-) -> ObjectSample {
-    let actions: Vec<Action> =
-        sample.states[..sample.states.len() - 1].iter().map(|s| model.sample_action(s, rng)).collect();
-    let mut states = sample.states.clone();
-    states[0] = model.sample_initial_state(sample.object, rng);
-    let mut items = Vec::new();
-    let mut per_step: Vec<Vec<O::Item>> = Vec::with_capacity(states.len());
-    for (t, s) in states.iter().enumerate() {
-        items.clear();
-        model.sample_observation(sample.object, t, s, rng, &mut items);
-        per_step.push(items.clone());
-    }
-    let accel_innovations = innovations(model, &sample.states, &actions);
-    ObjectSample {
-        object: sample.object,
-        states,
-        actions,
-        observations: O::to_observations(per_step),
-        accel_innovations,
-    }
-}
-
-/// The standardised acceleration innovations of a path's actions.
-fn innovations<P: crate::vehicle::GaussianPolicy, O: ExtensibleObservation>(
-    model: &ExtendedSsm<'_, '_, P, O>,
-    states: &[State],
-    actions: &[Action],
-) -> Vec<f64> {
-    states.iter().zip(actions).map(|(s, a)| model.accel_innovation_of(s, a)).collect()
-}
-
-/// Records one object's filter steps and, at the last, draws paths from the
-/// genealogy with the final weights (the particle approximation of the smoother).
-struct PathRecorder {
-    steps: usize,
-    draws: usize,
-    seed: u64,
-    states: Vec<Vec<f32>>,
-    actions: Vec<Vec<f32>>,
-    parents: Vec<Vec<usize>>,
-    /// The drawn paths: states `x_0..x_T` and actions `a_1..a_T`.
-    paths: Vec<(Vec<State>, Vec<Action>)>,
-}
-
-impl PathRecorder {
-    fn new(steps: usize, draws: usize, seed: u64) -> Self {
-        PathRecorder {
-            steps,
-            draws,
-            seed,
-            states: Vec::with_capacity(steps),
-            actions: Vec::with_capacity(steps),
-            parents: Vec::with_capacity(steps),
-            paths: Vec::new(),
-        }
-    }
-}
-
-impl Observer for PathRecorder {
-    fn step(&mut self, view: &StepView<'_>) {
-        if let Some(parent) = &view.revised_parent {
-            let t = view.t;
-            self.states[t - 1] = parent.states.to_vec();
-            self.actions[t - 1] = parent.actions.to_vec();
-            self.parents[t - 1] = parent.parents.to_vec();
-        }
-        self.states.push(view.states.to_vec());
-        self.actions.push(view.actions.to_vec());
-        self.parents.push(view.parents.to_vec());
-        if view.t + 1 < self.steps {
-            return;
-        }
-        let n = view.n;
-        let weights: Vec<f64> = view.log_weights.iter().map(|l| l.exp()).collect();
-        let total: f64 = weights.iter().sum();
-        let mut rng = SmallRng::seed_from_u64(self.seed);
-        for _ in 0..self.draws {
-            let mut u = rng.random::<f64>() * total;
-            let mut i = n - 1;
-            for (j, w) in weights.iter().enumerate() {
-                if u < *w {
-                    i = j;
-                    break;
-                }
-                u -= w;
-            }
-            let mut states = vec![State::default(); self.steps];
-            let mut actions = vec![Action::default(); self.steps - 1];
-            for t in (0..self.steps).rev() {
-                states[t] = state_at(&self.states[t], n, i);
-                if t > 0 {
-                    let a = &self.actions[t];
-                    actions[t - 1] = Action { accel: a[i] as f64, pinch: a[n + i] as f64 };
-                    i = self.parents[t][i];
-                }
-            }
-            self.paths.push((states, actions));
-        }
-        // The genealogy is no longer needed: free it.
-        self.states = Vec::new();
-        self.actions = Vec::new();
-        self.parents = Vec::new();
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use rand::rngs::SmallRng;
+
     use super::*;
+    use crate::filter::paths::PathRecorder;
+    use crate::filter::run_filter;
+    use crate::models::ParticleModel;
 
     /// The sign-flip p-value: exact enumeration for few objects, uniform-ish
     /// under a symmetric null, small for a clear shift, and not fooled by one
@@ -1086,9 +841,14 @@ mod tests {
                     for (states, actions) in &rec.paths {
                         for t in 1..states.len() {
                             let (s, a) = (&states[t - 1], &actions[t - 1]);
-                            let from =
-                                crate::vehicle::VehicleState { x: s.x, y: s.y, yaw: s.yaw, v: s.v, kappa: s.kappa };
-                            let action = crate::vehicle::Action { accel: a.accel, pinch: a.pinch };
+                            let from = crate::models::vehicle::VehicleState {
+                                x: s.x,
+                                y: s.y,
+                                yaw: s.yaw,
+                                v: s.v,
+                                kappa: s.kappa,
+                            };
+                            let action = crate::models::vehicle::Action { accel: a.accel, pinch: a.pinch };
                             let next = motion.step(&from, &action);
                             let to = &states[t];
                             worst =

@@ -12,9 +12,9 @@
 //!   [`step_seed`]`(config.seed, k)`, so the whole run is a function of the config
 //!   and a resumed run repeats exactly what an uninterrupted one would have done.
 //! * **Non-finite estimates never reach the parameters.** A gradient holding NaN or
-//!   an infinity, a non-finite log-likelihood, or an `estimate` error whose message
-//!   starts with [`NON_FINITE`] skips the step (counted, marked in the log); any
-//!   other error aborts training with the step named.
+//!   an infinity, a non-finite log-likelihood, or an [`EstimateError::NonFinite`]
+//!   from `estimate` skips the step (counted, marked in the log); any other error
+//!   aborts training with the step named.
 //! * **Clipping.** With `clip` set the global norm of the score is clipped before
 //!   the update; the log records the norm before clipping.
 //! * **Files in `out_dir`.** [`TRAIN_LOG`] (one row per step, header
@@ -28,10 +28,14 @@
 //!   rows written after it and carries on. Starting afresh in a directory that holds
 //!   a run is refused rather than overwriting it.
 //!
+//! The loop lives here; its settings ([`TrainConfig`], `config.rs`), its errors
+//! (`error.rs`), its seeds and batch orders (`seeds.rs`) and its files
+//! ([`Checkpoint`] and the CSV logs, `checkpoint.rs`) each have their own file.
+//!
 //! ```
 //! use autodiff::nn::ParamStore;
 //! use autodiff::Tensor;
-//! use ssm::training::{train, BatchEstimate, Objective, TrainConfig};
+//! use ssm::training::{train, BatchEstimate, EstimateError, Objective, TrainConfig};
 //!
 //! /// Log-likelihood -(x - 3)^2 on every batch: its maximiser is x = 3.
 //! struct Quadratic;
@@ -39,7 +43,7 @@
 //!     fn batches(&self) -> usize {
 //!         2
 //!     }
-//!     fn estimate(&mut self, p: &ParamStore<f64>, _batch: usize, _seed: u64) -> Result<BatchEstimate, String> {
+//!     fn estimate(&mut self, p: &ParamStore<f64>, _: usize, _: u64) -> Result<BatchEstimate, EstimateError> {
 //!         let x = p.values()[0].item();
 //!         Ok(BatchEstimate {
 //!             log_likelihood: -(x - 3.0) * (x - 3.0),
@@ -65,15 +69,23 @@
 //! assert!(train(&mut Quadratic, ParamStore::new(), &config, dir.path(), false, &mut |_| {}).is_err());
 //! ```
 
-use std::fmt;
-use std::fs::{File, OpenOptions};
-use std::path::{Path, PathBuf};
+mod checkpoint;
+mod config;
+mod error;
+mod seeds;
+
+pub use checkpoint::Checkpoint;
+use checkpoint::{num, truncate_log, CsvLog};
+pub use config::TrainConfig;
+pub use error::{non_finite, EstimateError, TrainError};
+pub use seeds::{epoch_order, eval_seed, step_seed};
+
+use std::path::Path;
 use std::time::Instant;
 
-use autodiff::nn::{read_versioned, write_versioned, ParamError, ParamStore};
+use autodiff::nn::ParamStore;
 use autodiff::optim::{clip_global_norm, global_norm, Adam, StepError};
 use autodiff::Tensor;
-use serde::{Deserialize, Serialize};
 
 /// The per-step log, one row per step.
 pub const TRAIN_LOG: &str = "train.csv";
@@ -105,28 +117,6 @@ pub const TRAIN_LOG_HEADER: [&str; 11] = [
     "collapsed_steps",
     "seconds",
 ];
-/// An [`Objective::estimate`] error whose message starts with this is a non-finite
-/// estimate: the step is skipped, not fatal. [`non_finite`] builds such a message.
-pub const NON_FINITE: &str = "non-finite";
-
-/// An error message that [`train`] reads as "the estimate is not finite" (the step is
-/// skipped): [`NON_FINITE`], then `detail`.
-///
-/// ```
-/// let m = ssm::training::non_finite("log-weights all -inf at t = 7");
-/// assert!(ssm::training::is_non_finite(&m));
-/// assert!(!ssm::training::is_non_finite("data file missing"));
-/// ```
-pub fn non_finite(detail: impl fmt::Display) -> String {
-    format!("{NON_FINITE} estimate: {detail}")
-}
-
-/// Whether an estimate error message says the estimate is not finite (starts with
-/// [`NON_FINITE`]).
-pub fn is_non_finite(message: &str) -> bool {
-    message.starts_with(NON_FINITE)
-}
-
 /// What one gradient estimate returned for one batch (a scene).
 #[derive(Clone, Debug, PartialEq)]
 pub struct BatchEstimate {
@@ -150,120 +140,13 @@ pub trait Objective {
 
     /// The log-likelihood and score estimate of batch `batch` (`0..batches()`) at
     /// `params`; all randomness must come from `seed`, so that a resumed run repeats
-    /// an uninterrupted one. An error starting with [`NON_FINITE`] skips the step;
-    /// any other error aborts training.
-    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, String>;
+    /// an uninterrupted one. [`EstimateError::NonFinite`] skips the step; any other
+    /// error aborts training.
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError>;
 
     /// Test metrics, e.g. `[("test_mll", -1.5)]`; the names are the columns of
     /// [`EVAL_LOG`] and must be the same, in the same order, on every call.
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String>;
-}
-
-/// Settings of [`train`]. A resumed run must use the same settings.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct TrainConfig {
-    /// Adam learning rate (default 0.01).
-    pub lr: f64,
-    /// If set, the learning rate falls linearly from `lr` at the first step to
-    /// this at the last (default none: constant), so the final parameters are
-    /// not a noisy snapshot of a still-moving run.
-    pub final_lr: Option<f64>,
-    /// Global gradient-norm clipping, if any (default none; SPEC §6 uses 0.5 on
-    /// measured data).
-    pub clip: Option<f64>,
-    /// Passes over the batches (default 100, the paper's A/B setting).
-    pub epochs: usize,
-    /// Evaluate every this many steps; 0 evaluates only at the start and the end
-    /// (default 0).
-    pub eval_every: usize,
-    /// Checkpoint every this many steps; 0 only at the start and the end (default 10).
-    pub checkpoint_every: usize,
-    /// Seed of the per-step seeds and the batch order (default 0).
-    pub seed: u64,
-    /// Visit the batches in a fresh random order each epoch (seeded from
-    /// `(seed, epoch)`) rather than `0..batches` (default true).
-    pub shuffle: bool,
-}
-
-impl Default for TrainConfig {
-    fn default() -> Self {
-        TrainConfig {
-            lr: 0.01,
-            final_lr: None,
-            clip: None,
-            epochs: 100,
-            eval_every: 0,
-            checkpoint_every: 10,
-            seed: 0,
-            shuffle: true,
-        }
-    }
-}
-
-impl TrainConfig {
-    /// The settings in which `self` differs from `other`, as `name: self vs other`.
-    pub fn differences(&self, other: &TrainConfig) -> Vec<String> {
-        let mut out = Vec::new();
-        let mut cmp = |name: &str, a: String, b: String| {
-            if a != b {
-                out.push(format!("{name}: {a} vs {b}"));
-            }
-        };
-        // `{:?}` of a float is its shortest round-trip text: distinct values print
-        // differently.
-        cmp("lr", format!("{:?}", self.lr), format!("{:?}", other.lr));
-        cmp("final_lr", format!("{:?}", self.final_lr), format!("{:?}", other.final_lr));
-        cmp("clip", format!("{:?}", self.clip), format!("{:?}", other.clip));
-        cmp("epochs", self.epochs.to_string(), other.epochs.to_string());
-        cmp("eval_every", self.eval_every.to_string(), other.eval_every.to_string());
-        cmp("checkpoint_every", self.checkpoint_every.to_string(), other.checkpoint_every.to_string());
-        cmp("seed", self.seed.to_string(), other.seed.to_string());
-        cmp("shuffle", self.shuffle.to_string(), other.shuffle.to_string());
-        out
-    }
-
-    fn validate(&self) -> Result<(), TrainError> {
-        if !(self.lr.is_finite() && self.lr > 0.0) {
-            return Err(TrainError::Config(format!("learning rate must be positive and finite, got {}", self.lr)));
-        }
-        if let Some(end) = self.final_lr {
-            if !(end.is_finite() && end > 0.0) {
-                return Err(TrainError::Config(format!("final learning rate must be positive and finite, got {end}")));
-            }
-        }
-        if let Some(c) = self.clip {
-            if !(c.is_finite() && c > 0.0) {
-                return Err(TrainError::Config(format!("clip must be positive and finite, got {c}")));
-            }
-        }
-        Ok(())
-    }
-
-    /// The learning rate of step `step` (from 1) of `total`.
-    pub fn lr_at(&self, step: usize, total: usize) -> f64 {
-        match self.final_lr {
-            Some(end) if total > 1 => {
-                let f = (step.saturating_sub(1) as f64 / (total - 1) as f64).min(1.0);
-                self.lr + (end - self.lr) * f
-            }
-            _ => self.lr,
-        }
-    }
-
-    fn eval_due(&self, step: usize, total: usize) -> bool {
-        step == 0 || step == total || every(step, self.eval_every)
-    }
-
-    fn checkpoint_due(&self, step: usize, total: usize) -> bool {
-        step == 0 || step == total || every(step, self.checkpoint_every)
-    }
-}
-
-/// Whether `step` is a positive multiple of `period` (never, for period 0).
-#[allow(clippy::manual_is_multiple_of)] // `is_multiple_of` needs Rust 1.87; the workspace supports 1.82.
-fn every(step: usize, period: usize) -> bool {
-    period > 0 && step % period == 0
 }
 
 /// Progress of [`train`], for a progress bar or a console log.
@@ -317,307 +200,6 @@ pub struct TrainOutcome {
     /// Wall-clock seconds of the run, summed over sessions (work redone after a
     /// resume counts once).
     pub seconds: f64,
-}
-
-/// The resumable state of a run, as stored in [`CHECKPOINT_FILE`] (format version
-/// [`CHECKPOINT_VERSION`] in the file header).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Checkpoint {
-    /// Steps taken.
-    pub step: usize,
-    /// The parameters after `step` steps.
-    pub params: ParamStore<f64>,
-    /// The optimiser's state.
-    pub adam: Adam,
-    /// Steps skipped so far.
-    pub skipped_steps: usize,
-    /// The run's settings (a resume must use the same).
-    pub config: TrainConfig,
-    /// The objective's batches per epoch (a resume must see the same).
-    pub batches: usize,
-    /// The objective's metric names, the columns of [`EVAL_LOG`] after `step`.
-    pub eval_names: Vec<String>,
-    /// The latest evaluation: its step and values.
-    pub last_eval: (usize, Vec<f64>),
-    /// Wall-clock seconds of the run so far.
-    pub seconds: f64,
-}
-
-impl Checkpoint {
-    /// Reads a checkpoint; a missing file is [`TrainError::NoCheckpoint`], an
-    /// unreadable or damaged one [`TrainError::Checkpoint`].
-    pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
-        read_versioned(path, CHECKPOINT_VERSION).map_err(|source| match source {
-            ParamError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
-                TrainError::NoCheckpoint { path: path.to_path_buf() }
-            }
-            source => TrainError::Checkpoint { path: path.to_path_buf(), source },
-        })
-    }
-
-    /// Writes the checkpoint atomically (temporary file, then rename).
-    pub fn save(&self, path: &Path) -> Result<(), TrainError> {
-        write_versioned(path, CHECKPOINT_VERSION, self)
-            .map_err(|source| TrainError::Checkpoint { path: path.to_path_buf(), source })
-    }
-}
-
-/// Why training failed.
-#[derive(Debug)]
-pub enum TrainError {
-    /// The settings or the objective cannot be trained.
-    Config(String),
-    /// `out_dir` already holds a run and `resume` was not asked for.
-    Exists {
-        /// The file found.
-        path: PathBuf,
-    },
-    /// `resume` was asked for but there is no checkpoint.
-    NoCheckpoint {
-        /// The checkpoint expected.
-        path: PathBuf,
-    },
-    /// A checkpoint or parameter file could not be read or written, or is damaged.
-    Checkpoint {
-        /// The file.
-        path: PathBuf,
-        /// What went wrong.
-        source: ParamError,
-    },
-    /// The checkpoint was written with other settings.
-    ConfigChanged {
-        /// The checkpoint.
-        path: PathBuf,
-        /// Each difference, `name: checkpoint vs now`.
-        differences: Vec<String>,
-    },
-    /// The checkpoint does not fit this objective or parameter store.
-    Incompatible {
-        /// The checkpoint.
-        path: PathBuf,
-        /// What differs.
-        reason: String,
-    },
-    /// A log file could not be read, written or understood.
-    Log {
-        /// The file.
-        path: PathBuf,
-        /// What went wrong.
-        reason: String,
-    },
-    /// A file or directory operation failed.
-    Io {
-        /// The file or directory.
-        path: PathBuf,
-        /// The underlying error.
-        source: std::io::Error,
-    },
-    /// [`Objective::estimate`] failed (other than by a non-finite estimate), or
-    /// returned gradients that do not match the parameters.
-    Estimate {
-        /// The step (from 1).
-        step: usize,
-        /// The batch.
-        batch: usize,
-        /// The objective's message.
-        message: String,
-    },
-    /// [`Objective::evaluate`] failed or changed its metric names.
-    Evaluate {
-        /// Steps taken when it was called.
-        step: usize,
-        /// What went wrong.
-        message: String,
-    },
-}
-
-impl fmt::Display for TrainError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            TrainError::Config(m) => write!(f, "training settings: {m}"),
-            TrainError::Exists { path } => write!(
-                f,
-                "{} exists: the directory already holds a training run; pass --resume to continue it, \
-                 or choose another output directory (or delete it)",
-                path.display()
-            ),
-            TrainError::NoCheckpoint { path } => {
-                write!(f, "{}: no checkpoint to resume from (start without --resume)", path.display())
-            }
-            TrainError::Checkpoint { path, source } => {
-                write!(f, "checkpoint {}: {source}", path.display())
-            }
-            TrainError::ConfigChanged { path, differences } => write!(
-                f,
-                "{}: cannot resume with different settings (checkpoint vs now): {}",
-                path.display(),
-                differences.join("; ")
-            ),
-            TrainError::Incompatible { path, reason } => {
-                write!(f, "{}: cannot resume: {reason}", path.display())
-            }
-            TrainError::Log { path, reason } => write!(f, "log {}: {reason}", path.display()),
-            TrainError::Io { path, source } => write!(f, "{}: {source}", path.display()),
-            TrainError::Estimate { step, batch, message } => {
-                write!(f, "step {step} (batch {batch}): gradient estimate failed: {message}")
-            }
-            TrainError::Evaluate { step, message } => write!(f, "evaluation after step {step} failed: {message}"),
-        }
-    }
-}
-
-impl std::error::Error for TrainError {
-    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-        match self {
-            TrainError::Checkpoint { source, .. } => Some(source),
-            TrainError::Io { source, .. } => Some(source),
-            _ => None,
-        }
-    }
-}
-
-/// SplitMix64's output function: a bijective 64-bit mixer.
-fn splitmix64(x: u64) -> u64 {
-    let mut z = x.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
-/// Stream tags, so the step seeds, evaluation seeds and batch orders of one run
-/// are unrelated.
-const STEP_STREAM: u64 = 0x5354_4550; // "STEP"
-const EVAL_STREAM: u64 = 0x4556_414c; // "EVAL"
-const ORDER_STREAM: u64 = 0x4f52_4452; // "ORDR"
-
-fn derive_seed(seed: u64, stream: u64, index: u64) -> u64 {
-    splitmix64(splitmix64(seed ^ splitmix64(stream)) ^ index)
-}
-
-/// The seed [`train`] passes to [`Objective::estimate`] at step `step` (from 1): a
-/// fixed function of the run's seed and the step.
-///
-/// ```
-/// use ssm::training::step_seed;
-/// assert_eq!(step_seed(7, 3), step_seed(7, 3));
-/// assert_ne!(step_seed(7, 3), step_seed(7, 4));
-/// assert_ne!(step_seed(7, 3), step_seed(8, 3));
-/// ```
-pub fn step_seed(seed: u64, step: usize) -> u64 {
-    derive_seed(seed, STEP_STREAM, step as u64)
-}
-
-/// The seed [`train`] passes to [`Objective::evaluate`] after `step` steps.
-pub fn eval_seed(seed: u64, step: usize) -> u64 {
-    derive_seed(seed, EVAL_STREAM, step as u64)
-}
-
-/// The order in which epoch `epoch` visits batches `0..batches`: a permutation
-/// drawn from `(seed, epoch)` (Fisher–Yates on a SplitMix64 stream, independent of
-/// the `rand` crate's version), or `0..batches` without shuffling.
-///
-/// ```
-/// use ssm::training::epoch_order;
-/// let mut o = epoch_order(1, 0, 10, true);
-/// assert_ne!(o, epoch_order(1, 1, 10, true));
-/// o.sort();
-/// assert_eq!(o, (0..10).collect::<Vec<_>>());
-/// assert_eq!(epoch_order(1, 0, 3, false), vec![0, 1, 2]);
-/// ```
-pub fn epoch_order(seed: u64, epoch: usize, batches: usize, shuffle: bool) -> Vec<usize> {
-    let mut order: Vec<usize> = (0..batches).collect();
-    if shuffle {
-        let mut state = derive_seed(seed, ORDER_STREAM, epoch as u64);
-        for i in (1..batches).rev() {
-            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            // Multiply-shift: uniform on 0..=i up to a bias below (i + 1) / 2^64.
-            let j = ((splitmix64(state) as u128 * (i as u128 + 1)) >> 64) as usize;
-            order.swap(i, j);
-        }
-    }
-    order
-}
-
-/// A CSV log appended and flushed row by row.
-struct CsvLog {
-    path: PathBuf,
-    writer: csv::Writer<File>,
-}
-
-impl CsvLog {
-    /// Creates `path` (which must not exist) holding `header`.
-    fn create(path: &Path, header: &[String]) -> Result<Self, TrainError> {
-        let file = File::create_new(path).map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
-        let mut log = CsvLog { path: path.to_path_buf(), writer: csv::WriterBuilder::new().from_writer(file) };
-        log.row(header)?;
-        Ok(log)
-    }
-
-    /// Opens `path` for appending.
-    fn append(path: &Path) -> Result<Self, TrainError> {
-        let file = OpenOptions::new()
-            .append(true)
-            .open(path)
-            .map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
-        Ok(CsvLog { path: path.to_path_buf(), writer: csv::WriterBuilder::new().from_writer(file) })
-    }
-
-    fn row(&mut self, fields: &[String]) -> Result<(), TrainError> {
-        let path = &self.path;
-        let err = |e: &dyn fmt::Display| TrainError::Log { path: path.clone(), reason: format!("cannot write: {e}") };
-        self.writer.write_record(fields).map_err(|e| err(&e))?;
-        self.writer.flush().map_err(|e| err(&e))
-    }
-}
-
-/// Rewrites the log at `path` keeping its header (which must be `header`) and the
-/// complete rows with `step <= last_step`; a missing or empty log is created with
-/// the header alone. Then opens it for appending.
-fn truncate_log(path: &Path, header: &[String], last_step: usize) -> Result<CsvLog, TrainError> {
-    let log_err = |reason: String| TrainError::Log { path: path.to_path_buf(), reason };
-    let io_err = |source| TrainError::Io { path: path.to_path_buf(), source };
-    let bytes = match std::fs::read(path) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-        Err(e) => return Err(io_err(e)),
-    };
-    let mut reader = csv::ReaderBuilder::new().has_headers(false).flexible(true).from_reader(bytes.as_slice());
-    let mut kept = Vec::new();
-    let mut records = reader.byte_records();
-    if let Some(head) = records.next() {
-        let head = head.map_err(|e| log_err(e.to_string()))?;
-        if !head.iter().eq(header.iter().map(|h| h.as_bytes())) {
-            let found: Vec<String> = head.iter().map(|f| String::from_utf8_lossy(f).into_owned()).collect();
-            return Err(log_err(format!("header {found:?} is not the expected {header:?}")));
-        }
-        for record in records {
-            // A row cut short by a crash has too few fields or a damaged step; any
-            // row after the checkpoint is dropped anyway.
-            let record = record.map_err(|e| log_err(e.to_string()))?;
-            let step = record.get(0).and_then(|f| std::str::from_utf8(f).ok()).and_then(|s| s.parse::<usize>().ok());
-            if record.len() == header.len() && step.is_some_and(|s| s <= last_step) {
-                kept.push(record);
-            }
-        }
-    }
-    let tmp = path.with_extension("csv.tmp");
-    {
-        let file = File::create(&tmp).map_err(|source| TrainError::Io { path: tmp.clone(), source })?;
-        let mut w = csv::WriterBuilder::new().from_writer(file);
-        let werr = |e: &dyn fmt::Display| TrainError::Log { path: tmp.clone(), reason: format!("cannot write: {e}") };
-        w.write_record(header).map_err(|e| werr(&e))?;
-        for r in &kept {
-            w.write_byte_record(r).map_err(|e| werr(&e))?;
-        }
-        w.flush().map_err(|e| werr(&e))?;
-    }
-    std::fs::rename(&tmp, path).map_err(io_err)?;
-    CsvLog::append(path)
-}
-
-/// Shortest round-trip text of a float (`NaN`, `inf` and `-inf` included).
-fn num(x: f64) -> String {
-    format!("{x}")
 }
 
 /// Per-unit log-likelihood, NaN without units.
@@ -700,8 +282,8 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                     }
                     (est.log_likelihood, est.observed_units, est.collapsed_steps, norm, clipped, skipped)
                 }
-                Err(message) if is_non_finite(&message) => (f64::NAN, 0, 0, f64::NAN, false, true),
-                Err(message) => return Err(estimate_err(message)),
+                Err(EstimateError::NonFinite(_)) => (f64::NAN, 0, 0, f64::NAN, false, true),
+                Err(EstimateError::Failed(message)) => return Err(estimate_err(message)),
             };
         if skipped {
             self.skipped += 1;

@@ -44,7 +44,7 @@ pub const MIN_SD_PINCH: f64 = 1e-4;
 ///
 /// ```
 /// use rand::SeedableRng;
-/// use ssm::vehicle::{ActionGaussians, GaussianPolicy, NeuralPolicy};
+/// use ssm::models::vehicle::{ActionGaussians, GaussianPolicy, NeuralPolicy};
 /// let policy = NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(0));
 /// assert_eq!(policy.num_parameters(), 1317);
 /// let mut g = ActionGaussians::default();

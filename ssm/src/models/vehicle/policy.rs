@@ -420,7 +420,7 @@ pub trait GaussianPolicy: Send + Sync {
     fn parameters(&self) -> Vec<Tensor<f64>>;
 
     /// A name per parameter tensor, under the `policy.` prefix of
-    /// [`crate::params`].
+    /// [`crate::models::params`].
     fn parameter_names(&self) -> Vec<String>;
 
     /// Replaces the parameters; the count and shapes must match
@@ -506,6 +506,10 @@ pub trait GaussianPolicy: Send + Sync {
     }
 }
 
+/// The hand-crafted policy's one parameter in a store: `[log sd accel, log sd
+/// pinch]` (see [`crate::models::params`]).
+pub const HAND_CRAFTED_PARAM: &str = "policy.log_sd";
+
 /// The hand-crafted policy of the synthetic data (SPEC §3): independent Gaussian
 /// accel and pinch with
 ///
@@ -518,7 +522,7 @@ pub trait GaussianPolicy: Send + Sync {
 /// (true `ln 0.5`) and of pinch (true `ln 0.02`).
 ///
 /// ```
-/// use ssm::vehicle::{ActionGaussians, GaussianPolicy, HandCraftedPolicy};
+/// use ssm::models::vehicle::{ActionGaussians, GaussianPolicy, HandCraftedPolicy};
 /// let p = HandCraftedPolicy::truth();
 /// let mut g = ActionGaussians::default();
 /// p.gaussians(&[8.0f64], &[0.1], &mut g);
@@ -597,7 +601,7 @@ impl GaussianPolicy for HandCraftedPolicy {
     }
 
     fn parameter_names(&self) -> Vec<String> {
-        vec![crate::params::HAND_CRAFTED_PARAM.to_string()]
+        vec![HAND_CRAFTED_PARAM.to_string()]
     }
 
     fn set_parameters(&mut self, params: &[Tensor<f64>]) -> Result<(), PolicyError> {

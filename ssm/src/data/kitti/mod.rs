@@ -56,6 +56,18 @@
 //!   ±[`KittiOptions::max_curvature`]). Actions are the differences of
 //!   consecutive window states: `accel = (v_t - v_{t-1}) / dt`,
 //!   `pinch = (kappa_t - kappa_{t-1}) / dt` — noisy, derived quantities.
+//!
+//! This file holds the options, the reports and the import of a sequence;
+//! `files.rs` reads the text files, `frames.rs` the ego poses and calibration,
+//! `tracks.rs` associates and differentiates the labelled tracks.
+
+mod files;
+mod frames;
+mod tracks;
+
+use files::{read_detections, read_labels, read_seq_file};
+use frames::{cam2_offset, read_poses};
+use tracks::{associate, speed_curvature};
 
 use super::error::{DataError, Place, Problem};
 use super::{Action, BoxDetection, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
@@ -76,31 +88,6 @@ pub const KITTI_SCENE_ID_BASE: i64 = 10_000;
 
 /// Largest `steps * stride` accepted (KITTI sequences have at most ~1100 frames).
 const MAX_WINDOW_FRAMES: usize = 1_000_000;
-
-/// Columns of a `label_02` file (space-separated).
-const LABEL_COLUMNS: [&str; 17] = [
-    "frame",
-    "track_id",
-    "type",
-    "truncated",
-    "occluded",
-    "alpha",
-    "x1",
-    "y1",
-    "x2",
-    "y2",
-    "h",
-    "w",
-    "l",
-    "x",
-    "y",
-    "z",
-    "rot_y",
-];
-
-/// Columns of a PointRCNN detection file (comma-separated).
-const DET_COLUMNS: [&str; 15] =
-    ["frame", "type", "x1", "y1", "x2", "y2", "score", "h", "w", "l", "x", "y", "z", "rot_y", "alpha"];
 
 /// Options of [`import_kitti`]. `Default` gives the documented defaults.
 #[derive(Clone, Debug, PartialEq)]
@@ -404,343 +391,6 @@ impl Split {
     }
 }
 
-/// A text file of a sequence, with its name as shown in errors.
-struct SeqFile {
-    name: String,
-    text: String,
-}
-
-fn read_seq_file(root: &Path, folder: &str, seq: u32) -> Result<SeqFile, DataError> {
-    let name = format!("{folder}/{seq:04}.txt");
-    let path = root.join(&name);
-    let text = fs::read_to_string(&path).map_err(|e| {
-        if e.kind() == std::io::ErrorKind::NotFound {
-            DataError::MissingFile { path: path.clone() }
-        } else {
-            DataError::io(&path, e)
-        }
-    })?;
-    Ok(SeqFile { name, text })
-}
-
-impl SeqFile {
-    /// Non-blank lines split into fields, with 1-based line numbers; checks the
-    /// field count.
-    fn rows<'a>(
-        &'a self,
-        columns: &'a [&'a str],
-        sep: Option<char>,
-    ) -> impl Iterator<Item = Result<Fields<'a>, DataError>> + 'a {
-        self.text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(move |(i, l)| {
-            let fields: Vec<&str> = match sep {
-                Some(c) => l.split(c).map(str::trim).collect(),
-                None => l.split_whitespace().collect(),
-            };
-            let f = Fields { file: &self.name, line: i + 1, columns, fields };
-            if f.fields.len() != columns.len() {
-                let col = columns
-                    .get(f.fields.len())
-                    .map(|c| c.to_string())
-                    .unwrap_or_else(|| format!("(extra field {})", columns.len() + 1));
-                return Err(DataError::invalid(
-                    &self.name,
-                    Place::Line(i + 1),
-                    col,
-                    Problem::FieldCount { expected: columns.len(), found: f.fields.len() },
-                ));
-            }
-            Ok(f)
-        })
-    }
-}
-
-/// The fields of one line of a KITTI file.
-struct Fields<'a> {
-    file: &'a str,
-    line: usize,
-    columns: &'a [&'a str],
-    fields: Vec<&'a str>,
-}
-
-impl Fields<'_> {
-    fn error(&self, i: usize, problem: Problem) -> DataError {
-        DataError::invalid(self.file, Place::Line(self.line), self.columns[i], problem)
-    }
-
-    fn num(&self, i: usize) -> Result<f64, DataError> {
-        let text = self.fields[i];
-        let v: f64 =
-            text.parse().map_err(|_| self.error(i, Problem::Malformed { text: text.into(), expected: "a number" }))?;
-        if v.is_finite() {
-            Ok(v)
-        } else {
-            Err(self.error(i, Problem::NonFinite { text: text.into() }))
-        }
-    }
-
-    fn int(&self, i: usize) -> Result<i64, DataError> {
-        let text = self.fields[i];
-        text.parse().map_err(|_| self.error(i, Problem::Malformed { text: text.into(), expected: "an integer" }))
-    }
-
-    /// A frame index in `0..frames`.
-    fn frame(&self, i: usize, frames: usize) -> Result<usize, DataError> {
-        let f = self.int(i)?;
-        if f >= 0 && (f as u64) < frames as u64 {
-            Ok(f as usize)
-        } else {
-            Err(self.error(i, Problem::StepOutOfRange { t: f, lo: 0, hi: frames }))
-        }
-    }
-
-    /// A positive size.
-    fn size(&self, i: usize) -> Result<f64, DataError> {
-        let v = self.num(i)?;
-        if v > 0.0 {
-            Ok(v)
-        } else {
-            Err(self.error(i, Problem::NonPositive { value: v }))
-        }
-    }
-}
-
-/// A camera-to-world transform: `p_world = R (p + c) + t`.
-#[derive(Clone, Copy, Debug)]
-struct CamToWorld {
-    r: [[f64; 3]; 3],
-    t: [f64; 3],
-}
-
-impl CamToWorld {
-    fn point(&self, p: [f64; 3]) -> [f64; 3] {
-        let mut out = self.t;
-        for (i, o) in out.iter_mut().enumerate() {
-            *o += self.r[i][0] * p[0] + self.r[i][1] * p[1] + self.r[i][2] * p[2];
-        }
-        out
-    }
-
-    fn dir(&self, d: [f64; 3]) -> [f64; 3] {
-        let mut out = [0.0; 3];
-        for (i, o) in out.iter_mut().enumerate() {
-            *o = self.r[i][0] * d[0] + self.r[i][1] * d[1] + self.r[i][2] * d[2];
-        }
-        out
-    }
-
-    /// Bird's-eye world pose of a camera-frame point and `rot_y` heading.
-    fn bev(&self, p_ref: [f64; 3], offset: [f64; 3], rot_y: f64) -> Pose {
-        let p = self.point([p_ref[0] + offset[0], p_ref[1] + offset[1], p_ref[2] + offset[2]]);
-        let d = self.dir([rot_y.cos(), 0.0, -rot_y.sin()]);
-        Pose { x: p[2], y: -p[0], yaw: (-d[0]).atan2(d[2]) }
-    }
-
-    /// Bird's-eye world pose of the reference camera (position, optical axis).
-    fn camera(&self, offset: [f64; 3]) -> Pose {
-        let p = self.point(offset);
-        let d = self.dir([0.0, 0.0, 1.0]);
-        Pose { x: p[2], y: -p[0], yaw: (-d[0]).atan2(d[2]) }
-    }
-}
-
-/// The reference camera's origin in the cam2 frame, from `P2 = K [I | c]`.
-fn cam2_offset(file: &SeqFile) -> Result<[f64; 3], DataError> {
-    for (i, line) in file.text.lines().enumerate() {
-        if let Some(rest) = line.trim_start().strip_prefix("P2:") {
-            let v: Vec<&str> = rest.split_whitespace().collect();
-            let bad = |problem| DataError::invalid(&file.name, Place::Line(i + 1), "P2", problem);
-            if v.len() != 12 {
-                return Err(bad(Problem::FieldCount { expected: 12, found: v.len() }));
-            }
-            let mut p = [0.0; 12];
-            for (x, t) in p.iter_mut().zip(&v) {
-                *x = t
-                    .parse()
-                    .ok()
-                    .filter(|x: &f64| x.is_finite())
-                    .ok_or_else(|| bad(Problem::Malformed { text: t.to_string(), expected: "a finite number" }))?;
-            }
-            let (fx, cx, fy, cy) = (p[0], p[2], p[5], p[6]);
-            if fx.abs() < 1e-9 || fy.abs() < 1e-9 {
-                return Err(bad(Problem::Other("zero focal length".into())));
-            }
-            let cz = p[11];
-            return Ok([(p[3] - cx * cz) / fx, (p[7] - cy * cz) / fy, cz]);
-        }
-    }
-    Err(DataError::invalid(&file.name, Place::Line(1), "P2", Problem::Other("no `P2:` line".into())))
-}
-
-/// The ego poses, one per frame.
-fn read_poses(file: &SeqFile) -> Result<Vec<CamToWorld>, DataError> {
-    const COLS: [&str; 12] = ["r00", "r01", "r02", "t0", "r10", "r11", "r12", "t1", "r20", "r21", "r22", "t2"];
-    let mut poses = Vec::new();
-    for row in file.rows(&COLS, None) {
-        let row = row?;
-        let mut m = [0.0; 12];
-        for (i, x) in m.iter_mut().enumerate() {
-            *x = row.num(i)?;
-        }
-        poses.push(CamToWorld {
-            r: [[m[0], m[1], m[2]], [m[4], m[5], m[6]], [m[8], m[9], m[10]]],
-            t: [m[3], m[7], m[11]],
-        });
-    }
-    Ok(poses)
-}
-
-/// A labelled (non-DontCare) object in one frame.
-struct Label {
-    line: usize,
-    frame: usize,
-    track: i64,
-    car: bool,
-    length: f64,
-    width: f64,
-    p: [f64; 3],
-    rot_y: f64,
-}
-
-/// A detection in one frame.
-struct Det {
-    frame: usize,
-    score: f64,
-    length: f64,
-    width: f64,
-    p: [f64; 3],
-    rot_y: f64,
-}
-
-fn read_labels(file: &SeqFile, frames: usize) -> Result<Vec<Label>, DataError> {
-    let mut out = Vec::new();
-    for row in file.rows(&LABEL_COLUMNS, None) {
-        let row = row?;
-        let frame = row.frame(0, frames)?;
-        let track = row.int(1)?;
-        // Every numeric field is checked, even where unused; DontCare rows
-        // carry placeholder sizes (-1000) and are then skipped.
-        for i in 3..LABEL_COLUMNS.len() {
-            if i == 3 || i == 4 {
-                row.int(i)?;
-            } else {
-                row.num(i)?;
-            }
-        }
-        let kind = row.fields[2];
-        if kind == "DontCare" {
-            continue;
-        }
-        out.push(Label {
-            line: row.line,
-            frame,
-            track,
-            car: kind == "Car",
-            width: row.size(11)?,
-            length: row.size(12)?,
-            p: [row.num(13)?, row.num(14)?, row.num(15)?],
-            rot_y: row.num(16)?,
-        });
-    }
-    Ok(out)
-}
-
-fn read_detections(file: &SeqFile, frames: usize, min_score: f64) -> Result<Vec<Det>, DataError> {
-    let mut out = Vec::new();
-    for row in file.rows(&DET_COLUMNS, Some(',')) {
-        let row = row?;
-        let frame = row.frame(0, frames)?;
-        row.int(1)?;
-        for i in 2..DET_COLUMNS.len() {
-            row.num(i)?;
-        }
-        let score = row.num(6)?;
-        let det = Det {
-            frame,
-            score,
-            width: row.size(8)?,
-            length: row.size(9)?,
-            p: [row.num(10)?, row.num(11)?, row.num(12)?],
-            rot_y: row.num(13)?,
-        };
-        if score >= min_score {
-            out.push(det);
-        }
-    }
-    Ok(out)
-}
-
-/// Greedy one-to-one association per frame by increasing bird's-eye distance
-/// within the gate. Returns, per label, the index of its detection, and per
-/// detection whether it was matched.
-fn associate(labels: &[Label], dets: &[Det], gate: f64) -> (Vec<Option<usize>>, Vec<bool>) {
-    let mut by_frame: BTreeMap<usize, (Vec<usize>, Vec<usize>)> = BTreeMap::new();
-    for (i, l) in labels.iter().enumerate() {
-        by_frame.entry(l.frame).or_default().0.push(i);
-    }
-    for (j, d) in dets.iter().enumerate() {
-        by_frame.entry(d.frame).or_default().1.push(j);
-    }
-    let mut label_det = vec![None; labels.len()];
-    let mut det_used = vec![false; dets.len()];
-    let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
-    for (ls, ds) in by_frame.values() {
-        pairs.clear();
-        for &i in ls {
-            for &j in ds {
-                let (a, b) = (labels[i].p, dets[j].p);
-                let dist = (a[0] - b[0]).hypot(a[2] - b[2]);
-                if dist <= gate {
-                    pairs.push((dist, i, j));
-                }
-            }
-        }
-        pairs.sort_by(|x, y| x.0.total_cmp(&y.0).then(x.1.cmp(&y.1)).then(x.2.cmp(&y.2)));
-        for &(_, i, j) in &pairs {
-            if label_det[i].is_none() && !det_used[j] {
-                label_det[i] = Some(j);
-                det_used[j] = true;
-            }
-        }
-    }
-    (label_det, det_used)
-}
-
-/// Unwraps a sequence of angles so consecutive differences lie in [-pi, pi].
-fn unwrap_angles(a: &mut [f64]) {
-    use std::f64::consts::{PI, TAU};
-    for i in 1..a.len() {
-        let d = (a[i] - a[i - 1] + PI).rem_euclid(TAU) - PI;
-        a[i] = a[i - 1] + d;
-    }
-}
-
-/// Speed and curvature along one contiguous labelled run (10 Hz frames) by
-/// central differences (see the module docs).
-fn speed_curvature(poses: &[Pose], o: &KittiOptions) -> Vec<(f64, f64)> {
-    let n = poses.len();
-    let mut yaw: Vec<f64> = poses.iter().map(|p| p.yaw).collect();
-    unwrap_angles(&mut yaw);
-    (0..n)
-        .map(|i| {
-            let i0 = i.saturating_sub(o.diff_half_width);
-            let i1 = (i + o.diff_half_width).min(n - 1);
-            if i1 == i0 {
-                return (0.0, 0.0);
-            }
-            let time = (i1 - i0) as f64 * KITTI_FRAME_DT;
-            let (dx, dy) = (poses[i1].x - poses[i0].x, poses[i1].y - poses[i0].y);
-            let v = (dx * poses[i].yaw.cos() + dy * poses[i].yaw.sin()) / time;
-            let yaw_rate = (yaw[i1] - yaw[i0]) / time;
-            let kappa = if v.abs() >= o.min_speed_for_curvature {
-                (yaw_rate / v).clamp(-o.max_curvature, o.max_curvature)
-            } else {
-                0.0
-            };
-            (v, kappa)
-        })
-        .collect()
-}
-
 fn import_sequence(root: &Path, seq: u32, o: &KittiOptions, split: &mut Split) -> Result<(), DataError> {
     let pose_file = read_seq_file(root, "ego_pose_orbslam3", seq)?;
     let poses = read_poses(&pose_file)?;
@@ -903,6 +553,8 @@ fn import_sequence(root: &Path, seq: u32, o: &KittiOptions, split: &mut Split) -
 
 #[cfg(test)]
 mod tests {
+    use super::frames::CamToWorld;
+    use super::tracks::unwrap_angles;
     use super::*;
 
     #[test]

@@ -1,0 +1,101 @@
+//! Held-out evaluation: each model's per-object log-likelihoods on the
+//! evaluation part, and the paired comparison of two models' (the gain per unit,
+//! its standard error, the sign-flip permutation p-value, how much of the gain
+//! two objects carry).
+
+use rand::rngs::SmallRng;
+use rand::{Rng, SeedableRng};
+
+use super::DiagnoseConfig;
+use crate::filter::run_filter;
+use crate::models::ParticleModel;
+use crate::stats::{log_sum_exp, sd};
+
+/// One model's log-likelihoods on the evaluation part.
+pub(super) struct EvalLikelihoods {
+    /// Per object: the log of the mean of the runs' likelihood estimates.
+    pub(super) object_ll: Vec<f64>,
+    /// Observed units (points, detections).
+    pub(super) units: usize,
+}
+
+/// The log-likelihoods of `model` on its data: each object's likelihood
+/// estimates of [`DiagnoseConfig::eval_runs`] filter runs, averaged.
+pub(super) fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) -> Result<EvalLikelihoods, String> {
+    let mut per_object: Vec<Vec<f64>> = Vec::new();
+    let mut units = 0;
+    for r in 0..config.eval_runs {
+        let run = run_filter(model, &config.eval_filter(r), |_| ());
+        if r == 0 {
+            per_object = vec![Vec::with_capacity(config.eval_runs); run.objects.len()];
+            units = run.observed_units();
+        }
+        per_object.iter_mut().zip(&run.objects).for_each(|(l, o)| l.push(o.log_likelihood));
+    }
+    let object_ll: Vec<f64> = per_object.iter().map(|l| log_sum_exp(l) - (l.len() as f64).ln()).collect();
+    if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
+        return Err(format!("the log-likelihood of evaluated object {bad} is not finite"));
+    }
+    Ok(EvalLikelihoods { object_ll, units })
+}
+
+/// `a_i - b_i`.
+pub(super) fn differences(a: &[f64], b: &[f64]) -> Vec<f64> {
+    a.iter().zip(b).map(|(x, y)| x - y).collect()
+}
+
+/// The share of `sum(d)` carried by its two largest entries (NaN unless the sum is positive).
+pub(super) fn top_two_share(d: &[f64]) -> f64 {
+    let total: f64 = d.iter().sum();
+    if total <= 0.0 {
+        return f64::NAN;
+    }
+    let mut sorted = d.to_vec();
+    sorted.sort_by(|a, b| b.total_cmp(a));
+    sorted.iter().take(2).sum::<f64>() / total
+}
+
+/// One-sided sign-flip permutation p-value of `sum(d) > 0`, objects exchangeable
+/// under the null of a gain distributed symmetrically about zero:
+/// `(1 + #{flips with sum >= observed}) / (1 + permutations)`, the flips drawn
+/// from a seeded stream (exact enumeration when `2^n <= permutations`).
+pub fn sign_flip_p(d: &[f64], permutations: usize, seed: u64) -> f64 {
+    let observed: f64 = d.iter().sum();
+    if d.is_empty() || !observed.is_finite() {
+        return 1.0;
+    }
+    // A relative tolerance so that a flip reproducing the observed sum counts
+    // despite rounding.
+    let tol = 1e-12 * d.iter().map(|x| x.abs()).sum::<f64>();
+    let n = d.len();
+    if n < 63 && (1usize << n) <= permutations {
+        let total = 1usize << n;
+        let at_least = (0..total)
+            .filter(|mask| {
+                let s: f64 = d.iter().enumerate().map(|(i, x)| if mask >> i & 1 == 1 { -x } else { *x }).sum();
+                s >= observed - tol
+            })
+            .count();
+        return at_least as f64 / total as f64;
+    }
+    let mut rng = SmallRng::seed_from_u64(seed);
+    let at_least = (0..permutations)
+        .filter(|_| {
+            let s: f64 = d.iter().map(|x| if rng.random::<bool>() { -x } else { *x }).sum();
+            s >= observed - tol
+        })
+        .count();
+    (1 + at_least) as f64 / (1 + permutations) as f64
+}
+
+/// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
+/// and its normal-approximation standard error, objects independent.
+pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
+    let d = differences(a, b);
+    let n = d.len() as f64;
+    let units = units.max(1) as f64;
+    if d.len() < 2 {
+        return (d.iter().sum::<f64>() / units, f64::INFINITY);
+    }
+    (d.iter().sum::<f64>() / units, n.sqrt() * sd(d.iter().copied()) / units)
+}

@@ -1,0 +1,25 @@
+//! The models floor: every model the filter and the estimators run, and nothing
+//! that runs them. Above it come the filter, the estimators, training and
+//! criticism; below it only the data.
+//!
+//! * [`traits`]: [`ParticleModel`] (what the filter needs) and
+//!   [`DifferentiableModel`] with [`Block`] (what the score estimators need).
+//! * [`vehicle`]: the vehicle's state, exact motion model and policies.
+//! * [`observation`]: the point and box observation models and their networks.
+//! * [`road_user`]: [`road_user::VehicleSsm`], the road-user state-space model of
+//!   a dataset (vehicle, policy and observation model together).
+//! * [`extended`]: [`extended::ExtendedSsm`], the road-user model with at most one
+//!   catalogue extension, and the defensive proposal.
+//! * [`linear_gaussian`]: the linear-Gaussian model with its exact Kalman
+//!   likelihood and score, and as a particle model.
+//! * [`params`]: the parameter-file convention ([`params::Models`]).
+
+pub mod extended;
+pub mod linear_gaussian;
+pub mod observation;
+pub mod params;
+pub mod road_user;
+pub mod traits;
+pub mod vehicle;
+
+pub use traits::{block_rows, Block, DifferentiableModel, NoiseDims, ParticleModel};

@@ -1,0 +1,137 @@
+//! The files of a run: the resumable [`Checkpoint`] and the CSV logs, appended
+//! and flushed row by row and cut back to a checkpoint on resume.
+
+use std::fmt;
+use std::fs::{File, OpenOptions};
+use std::path::{Path, PathBuf};
+
+use autodiff::nn::{read_versioned, write_versioned, ParamError, ParamStore};
+use autodiff::optim::Adam;
+use serde::{Deserialize, Serialize};
+
+use super::{TrainConfig, TrainError, CHECKPOINT_VERSION};
+
+/// The resumable state of a run, as stored in [`CHECKPOINT_FILE`](super::CHECKPOINT_FILE) (format version
+/// [`CHECKPOINT_VERSION`] in the file header).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Checkpoint {
+    /// Steps taken.
+    pub step: usize,
+    /// The parameters after `step` steps.
+    pub params: ParamStore<f64>,
+    /// The optimiser's state.
+    pub adam: Adam,
+    /// Steps skipped so far.
+    pub skipped_steps: usize,
+    /// The run's settings (a resume must use the same).
+    pub config: TrainConfig,
+    /// The objective's batches per epoch (a resume must see the same).
+    pub batches: usize,
+    /// The objective's metric names, the columns of [`EVAL_LOG`](super::EVAL_LOG) after `step`.
+    pub eval_names: Vec<String>,
+    /// The latest evaluation: its step and values.
+    pub last_eval: (usize, Vec<f64>),
+    /// Wall-clock seconds of the run so far.
+    pub seconds: f64,
+}
+
+impl Checkpoint {
+    /// Reads a checkpoint; a missing file is [`TrainError::NoCheckpoint`], an
+    /// unreadable or damaged one [`TrainError::Checkpoint`].
+    pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
+        read_versioned(path, CHECKPOINT_VERSION).map_err(|source| match source {
+            ParamError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+                TrainError::NoCheckpoint { path: path.to_path_buf() }
+            }
+            source => TrainError::Checkpoint { path: path.to_path_buf(), source },
+        })
+    }
+
+    /// Writes the checkpoint atomically (temporary file, then rename).
+    pub fn save(&self, path: &Path) -> Result<(), TrainError> {
+        write_versioned(path, CHECKPOINT_VERSION, self)
+            .map_err(|source| TrainError::Checkpoint { path: path.to_path_buf(), source })
+    }
+}
+
+/// A CSV log appended and flushed row by row.
+pub(super) struct CsvLog {
+    path: PathBuf,
+    writer: csv::Writer<File>,
+}
+
+impl CsvLog {
+    /// Creates `path` (which must not exist) holding `header`.
+    pub(super) fn create(path: &Path, header: &[String]) -> Result<Self, TrainError> {
+        let file = File::create_new(path).map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
+        let mut log = CsvLog { path: path.to_path_buf(), writer: csv::WriterBuilder::new().from_writer(file) };
+        log.row(header)?;
+        Ok(log)
+    }
+
+    /// Opens `path` for appending.
+    pub(super) fn append(path: &Path) -> Result<Self, TrainError> {
+        let file = OpenOptions::new()
+            .append(true)
+            .open(path)
+            .map_err(|source| TrainError::Io { path: path.to_path_buf(), source })?;
+        Ok(CsvLog { path: path.to_path_buf(), writer: csv::WriterBuilder::new().from_writer(file) })
+    }
+
+    pub(super) fn row(&mut self, fields: &[String]) -> Result<(), TrainError> {
+        let path = &self.path;
+        let err = |e: &dyn fmt::Display| TrainError::Log { path: path.clone(), reason: format!("cannot write: {e}") };
+        self.writer.write_record(fields).map_err(|e| err(&e))?;
+        self.writer.flush().map_err(|e| err(&e))
+    }
+}
+
+/// Rewrites the log at `path` keeping its header (which must be `header`) and the
+/// complete rows with `step <= last_step`; a missing or empty log is created with
+/// the header alone. Then opens it for appending.
+pub(super) fn truncate_log(path: &Path, header: &[String], last_step: usize) -> Result<CsvLog, TrainError> {
+    let log_err = |reason: String| TrainError::Log { path: path.to_path_buf(), reason };
+    let io_err = |source| TrainError::Io { path: path.to_path_buf(), source };
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
+        Err(e) => return Err(io_err(e)),
+    };
+    let mut reader = csv::ReaderBuilder::new().has_headers(false).flexible(true).from_reader(bytes.as_slice());
+    let mut kept = Vec::new();
+    let mut records = reader.byte_records();
+    if let Some(head) = records.next() {
+        let head = head.map_err(|e| log_err(e.to_string()))?;
+        if !head.iter().eq(header.iter().map(|h| h.as_bytes())) {
+            let found: Vec<String> = head.iter().map(|f| String::from_utf8_lossy(f).into_owned()).collect();
+            return Err(log_err(format!("header {found:?} is not the expected {header:?}")));
+        }
+        for record in records {
+            // A row cut short by a crash has too few fields or a damaged step; any
+            // row after the checkpoint is dropped anyway.
+            let record = record.map_err(|e| log_err(e.to_string()))?;
+            let step = record.get(0).and_then(|f| std::str::from_utf8(f).ok()).and_then(|s| s.parse::<usize>().ok());
+            if record.len() == header.len() && step.is_some_and(|s| s <= last_step) {
+                kept.push(record);
+            }
+        }
+    }
+    let tmp = path.with_extension("csv.tmp");
+    {
+        let file = File::create(&tmp).map_err(|source| TrainError::Io { path: tmp.clone(), source })?;
+        let mut w = csv::WriterBuilder::new().from_writer(file);
+        let werr = |e: &dyn fmt::Display| TrainError::Log { path: tmp.clone(), reason: format!("cannot write: {e}") };
+        w.write_record(header).map_err(|e| werr(&e))?;
+        for r in &kept {
+            w.write_byte_record(r).map_err(|e| werr(&e))?;
+        }
+        w.flush().map_err(|e| werr(&e))?;
+    }
+    std::fs::rename(&tmp, path).map_err(io_err)?;
+    CsvLog::append(path)
+}
+
+/// Shortest round-trip text of a float (`NaN`, `inf` and `-inf` included).
+pub(super) fn num(x: f64) -> String {
+    format!("{x}")
+}
