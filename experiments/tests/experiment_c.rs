@@ -24,18 +24,20 @@ fn temp(name: &str) -> PathBuf {
 }
 
 /// The KITTI folder, resolved from the workspace root as the `import-kitti`
-/// default is from the working directory.
+/// default is from the working directory; where it is absent, a note that the
+/// calling test is skipped.
 fn kitti() -> Option<PathBuf> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..").join("../shared/data/kitti-tracking");
-    root.join("label_02").is_dir().then_some(root)
+    let present = root.join("label_02").is_dir();
+    if !present {
+        eprintln!("skipped: the KITTI data (../shared/data/kitti-tracking from the workspace root) is not present");
+    }
+    present.then_some(root)
 }
 
 #[test]
 fn quick_experiment_c_writes_the_table_and_reruns_identically() {
-    let Some(kitti) = kitti() else {
-        eprintln!("skipped: the KITTI data (../shared/data/kitti-tracking from the workspace root) is not present");
-        return;
-    };
+    let Some(kitti) = kitti() else { return };
     let out = temp("quick");
     let args = ["experiment-c", "--quick", "--kitti", s(&kitti), "--out", s(&out)];
     let clock = std::time::Instant::now();
@@ -112,10 +114,7 @@ fn an_unknown_method_is_refused_before_any_work() {
 
 #[test]
 fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
-    let Some(kitti) = kitti() else {
-        eprintln!("skipped: the KITTI data (../shared/data/kitti-tracking from the workspace root) is not present");
-        return;
-    };
+    let Some(kitti) = kitti() else { return };
     let out = temp("stride");
     let base = ["experiment-c", "--quick", "--kitti", s(&kitti), "--out", s(&out), "--methods", "pf-sefi"];
     ok(&sefi(&[&base[..], &["--stride", "3", "--steps", "12"]].concat()));

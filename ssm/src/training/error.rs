@@ -18,21 +18,14 @@ pub enum EstimateError {
     Failed(String),
 }
 
-impl EstimateError {
-    /// Whether the step is skipped rather than fatal.
-    pub fn is_non_finite(&self) -> bool {
-        matches!(self, EstimateError::NonFinite(_))
-    }
-}
-
 /// A non-finite estimate error (the step is skipped): `detail` says what was not
 /// finite and where.
 ///
 /// ```
 /// let e = ssm::training::non_finite("log-weights all -inf at t = 7");
-/// assert!(e.is_non_finite());
+/// assert!(matches!(e, ssm::training::EstimateError::NonFinite(_)));
 /// assert_eq!(e.to_string(), "non-finite estimate: log-weights all -inf at t = 7");
-/// assert!(!ssm::training::EstimateError::from("data file missing").is_non_finite());
+/// assert!(matches!(ssm::training::EstimateError::from("data file missing"), ssm::training::EstimateError::Failed(_)));
 /// ```
 pub fn non_finite(detail: impl fmt::Display) -> EstimateError {
     EstimateError::NonFinite(detail.to_string())
