@@ -52,7 +52,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
-use ssm::filter::{run_filter, FilterConfig};
+use ssm::filter::run_filter;
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::ParticleModel;

@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod models;
 pub mod objective;
 pub mod seed;
+pub mod setting;
 pub mod stats;
 pub mod supervised;
 pub mod synthetic;

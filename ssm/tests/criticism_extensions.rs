@@ -17,7 +17,7 @@ use ssm::models::extended::{
 use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::NeuralPolicy;
-use ssm::models::ParticleModel;
+use ssm::models::{Batch, Drawn, ParticleModel};
 use ssm::models::{Block, DifferentiableModel};
 
 /// A small dataset of `kind` (2 scenes of 2 objects, 5 steps).
@@ -91,7 +91,7 @@ impl ModelVisitor for Check {
         for (r, b) in blocks.iter().enumerate() {
             let x: Vec<f32> = now[r].iter().map(|&v| v as f32).collect();
             let mut out = [0.0f32];
-            assert!(model.observation_loglik(b.object, b.t, 1, &x, &mut out, &mut scratch));
+            assert!(model.observation_loglik(Batch { object: b.object, t: b.t, n: 1 }, &x, &mut out, &mut scratch));
             let want = tape_values.data()[r];
             assert!(
                 (out[0] as f64 - want).abs() < 2e-3 * want.abs().max(1.0),
@@ -255,7 +255,8 @@ impl ModelVisitor for Defensive {
             let (mut next, mut actions, mut log_w) = (vec![0.0f32; 5 * n], vec![0.0f32; 2 * n], vec![0.0f32; n]);
             let mut scratch = model.new_scratch();
             let mut rng = SmallRng::seed_from_u64(5);
-            model.propagate(0, 1, n, &prev, &mut next, &mut actions, &mut rng, &mut scratch);
+            let to = Drawn { next: &mut next, actions: &mut actions };
+            model.propagate(Batch { object: 0, t: 1, n }, &prev, to, &mut rng, &mut scratch);
             assert!(model.proposal_log_weights(n, &mut log_w, &mut scratch));
             let mut plain_scratch = plain.new_scratch();
             assert!(!plain.proposal_log_weights(n, &mut log_w.clone(), &mut plain_scratch), "no proposal, no weights");
@@ -323,7 +324,7 @@ fn extensions_apply_to_their_kinds_and_describe_themselves() {
     assert_eq!(Extension::for_kind(ObservationKind::Points).len(), 4);
     assert_eq!(Extension::for_kind(ObservationKind::Boxes).len(), 3);
     assert_eq!(Extension::from_id("latency"), Ok(Extension::Latency));
-    assert!(Extension::from_id("wobble").unwrap_err().contains("heading_flip"));
+    assert!(Extension::from_id("wobble").unwrap_err().to_string().contains("heading_flip"));
     let delay = Extension::Latency.describe(&[0.12]).unwrap();
     assert!(delay.starts_with("observations lag the state by 0.12"), "{delay}");
     assert!(Extension::Latency.is_material(&[0.12]).unwrap());

@@ -16,7 +16,7 @@ use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, Scor
 use ssm::filter::{filter_object, run_filter, FilterConfig, ObjectSummary, Observer, Resampling, StepView};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
-use ssm::models::ParticleModel;
+use ssm::models::{Batch, Drawn, ParticleModel};
 use ssm::models::{Block, DifferentiableModel};
 
 // ---------------------------------------------------------------------------
@@ -444,33 +444,15 @@ impl ParticleModel for Edited {
     fn sample_prior(&self, object: usize, n: usize, rng: &mut rand::rngs::SmallRng, states: &mut [f32]) {
         self.inner.sample_prior(object, n, rng, states)
     }
-    fn propagate(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        prev: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        rng: &mut rand::rngs::SmallRng,
-        scratch: &mut (),
-    ) {
-        self.inner.propagate(object, t, n, prev, next, actions, rng, scratch)
+    fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut rand::rngs::SmallRng, scratch: &mut ()) {
+        self.inner.propagate(at, prev, to, rng, scratch)
     }
-    fn observation_loglik(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        states: &[f32],
-        out: &mut [f32],
-        scratch: &mut (),
-    ) -> bool {
-        if self.missing.contains(&(object, t)) {
+    fn observation_loglik(&self, at: Batch, states: &[f32], out: &mut [f32], scratch: &mut ()) -> bool {
+        if self.missing.contains(&(at.object, at.t)) {
             return false;
         }
-        let observed = self.inner.observation_loglik(object, t, n, states, out, scratch);
-        if let Some(c) = self.gate(object, t) {
+        let observed = self.inner.observation_loglik(at, states, out, scratch);
+        if let Some(c) = self.gate(at.object, at.t) {
             for (o, &x) in out.iter_mut().zip(states) {
                 if x as f64 > c {
                     *o = f32::NEG_INFINITY;

@@ -8,7 +8,7 @@ use rand::SeedableRng;
 use ssm::filter::{run_filter, FilterConfig, LagView, Moments, Observer, Resampling};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
-use ssm::models::ParticleModel;
+use ssm::models::{Batch, Drawn, ParticleModel};
 
 fn model() -> Lgssm {
     Lgssm::stationary(LgssmTheta::new(0.9, 0.5, 0.7)).unwrap()
@@ -175,22 +175,12 @@ impl ParticleModel for Collapsing {
     fn sample_prior(&self, o: usize, n: usize, rng: &mut SmallRng, s: &mut [f32]) {
         self.0.sample_prior(o, n, rng, s)
     }
-    fn propagate(
-        &self,
-        o: usize,
-        t: usize,
-        n: usize,
-        p: &[f32],
-        x: &mut [f32],
-        a: &mut [f32],
-        r: &mut SmallRng,
-        _: &mut (),
-    ) {
-        self.0.propagate(o, t, n, p, x, a, r, &mut ())
+    fn propagate(&self, at: Batch, p: &[f32], to: Drawn<'_>, r: &mut SmallRng, _: &mut ()) {
+        self.0.propagate(at, p, to, r, &mut ())
     }
-    fn observation_loglik(&self, o: usize, t: usize, n: usize, s: &[f32], out: &mut [f32], _: &mut ()) -> bool {
-        self.0.observation_loglik(o, t, n, s, out, &mut ());
-        if t == 3 {
+    fn observation_loglik(&self, at: Batch, s: &[f32], out: &mut [f32], _: &mut ()) -> bool {
+        self.0.observation_loglik(at, s, out, &mut ());
+        if at.t == 3 {
             out.iter_mut().enumerate().for_each(|(i, v)| *v = if i % 2 == 0 { f32::NEG_INFINITY } else { f32::NAN });
         }
         true

@@ -32,6 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::filter::{FilterConfig, Resampling, Tempering};
 use crate::models::DifferentiableModel;
+use crate::setting::SettingError;
 
 pub use replay::{ThroughFilter, ThroughFilterKind};
 pub use sefi::PfSefi;
@@ -167,21 +168,17 @@ impl Estimator {
 
     /// Parses a name as written by [`ScoreEstimator::name`]: `pf-sefi`, `pf`,
     /// `dpf-sgr`, `dpf-sgr-stopped`, `pfnet`; `lag` and `alpha` fill in the settings.
-    pub fn parse(name: &str, lag: usize, alpha: f64) -> Result<Self, String> {
+    pub fn parse(name: &str, lag: usize, alpha: f64) -> Result<Self, SettingError> {
         match name {
             "pf-sefi" | "sefi" => Ok(Self::pf_sefi(lag)),
             "pf" => Ok(Self::pf()),
             "dpf-sgr" | "dpf" => Ok(Self::dpf_sgr()),
             "dpf-sgr-stopped" => Ok(Self::dpf_sgr_stopped()),
             "pfnet" => {
-                if !(alpha > 0.0 && alpha <= 1.0) {
-                    return Err(format!("pfnet: alpha must be in (0, 1], got {alpha}"));
-                }
+                SettingError::check(alpha > 0.0 && alpha <= 1.0, "pfnet.alpha", alpha, "in (0, 1]")?;
                 Ok(Self::pfnet(alpha))
             }
-            other => {
-                Err(format!("unknown estimator `{other}` (expected pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet)"))
-            }
+            other => Err(SettingError::new("estimator", other, "pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet")),
         }
     }
 }

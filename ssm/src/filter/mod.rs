@@ -39,7 +39,7 @@ pub use resample::{effective_sample_size, Resampling};
 pub use tempering::Tempering;
 use tempering::{reweight, ParentStep, StepParticles, Temperer};
 
-use crate::models::ParticleModel;
+use crate::models::{Batch, Drawn, ParticleModel};
 use crate::seed::splitmix64;
 
 /// Settings of a particle-filter run.
@@ -365,7 +365,10 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
         let clock = Instant::now();
         if t == 0 {
             match &mut temperer {
-                Some(tm) => tm.draw(model, object, 0, n, &[], &mut ring.states[slot], &mut [], &mut rng, scratch),
+                Some(tm) => {
+                    let to = Drawn { next: &mut ring.states[slot], actions: &mut [] };
+                    tm.draw(model, Batch { object, t: 0, n }, &[], to, &mut rng, scratch)
+                }
                 None => model.sample_prior(object, n, &mut rng, &mut ring.states[slot]),
             }
             times.propagate += clock.elapsed();
@@ -413,11 +416,12 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             if let Some(tm) = &mut temperer {
                 let [mut states, mut actions] = ring.take(slot);
                 let parent_states = &ring.states[prev];
-                tm.draw(model, object, t, n, parent_states, &mut states[..], &mut actions[..], &mut rng, scratch);
+                let to = Drawn { next: &mut states[..], actions: &mut actions[..] };
+                tm.draw(model, Batch { object, t, n }, parent_states, to, &mut rng, scratch);
                 ring.put(slot, [states, actions]);
             } else {
-                let (states, actions) = (&mut ring.states[slot], &mut ring.actions[slot]);
-                model.propagate(object, t, n, &gathered, states, actions, &mut rng, scratch);
+                let to = Drawn { next: &mut ring.states[slot], actions: &mut ring.actions[slot] };
+                model.propagate(Batch { object, t, n }, &gathered, to, &mut rng, scratch);
             }
             if temperer.is_none() && model.proposal_log_weights(n, &mut loglik, scratch) {
                 // Drawn from a proposal: weight by transition over proposal. The
@@ -446,7 +450,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     grandparents,
                 });
                 let particles = StepParticles { states: &mut states, actions: &mut actions, parent };
-                let w = tm.weigh(model, object, t, n, particles, &mut log_w, config.resampling, &mut rng, scratch);
+                let w = tm.weigh(model, Batch { object, t, n }, particles, &mut log_w, config.resampling, &mut rng, scratch);
                 ring.put(slot, [states, actions]);
                 if t > 0 {
                     ring.put(parent_slot, [p_states, p_actions]);
@@ -459,7 +463,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 (w.observed, w.increment)
             }
             None => {
-                let observed = model.observation_loglik(object, t, n, &ring.states[slot], &mut loglik, scratch);
+                let observed = model.observation_loglik(Batch { object, t, n }, &ring.states[slot], &mut loglik, scratch);
                 let mut increment = None;
                 if observed {
                     summary.likelihood_evaluations += 1;

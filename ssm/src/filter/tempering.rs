@@ -39,7 +39,8 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::resample::Resampling;
-use crate::models::{NoiseDims, ParticleModel};
+use crate::models::{Batch, Drawn, NoiseDims, ParticleModel};
+use crate::setting::SettingError;
 
 /// Settings of the tempered filter (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,15 +63,11 @@ impl Default for Tempering {
 }
 
 impl Tempering {
-    /// Checks the settings; the message names the bad one.
-    pub fn validate(&self) -> Result<(), String> {
-        if !(self.ess_fraction > 0.0 && self.ess_fraction < 1.0) {
-            return Err(format!("tempering: ess_fraction must be in (0, 1), got {}", self.ess_fraction));
-        }
-        if self.max_stages == 0 {
-            return Err("tempering: max_stages must be at least 1".into());
-        }
-        Ok(())
+    /// Checks the settings; the error names the bad one.
+    pub fn validate(&self) -> Result<(), SettingError> {
+        let f = self.ess_fraction;
+        SettingError::check(f > 0.0 && f < 1.0, "tempering.ess_fraction", f, "in (0, 1)")?;
+        SettingError::check(self.max_stages > 0, "tempering.max_stages", self.max_stages, "at least 1")
     }
 }
 
@@ -230,23 +227,19 @@ impl Temperer {
 
     /// Draws `x_t` for `n` particles through the model's noise (the prior at
     /// `t = 0`, else the transition from `parent_states`) and keeps the noise.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn draw<M: ParticleModel>(
         &mut self,
         model: &M,
-        object: usize,
-        t: usize,
-        n: usize,
+        at: Batch,
         parent_states: &[f32],
-        states: &mut [f32],
-        actions: &mut [f32],
+        to: Drawn<'_>,
         rng: &mut SmallRng,
         scratch: &mut M::Scratch,
     ) {
-        let dim = self.noise_dim(t);
+        let dim = self.noise_dim(at.t);
         self.noise.clear();
-        self.noise.extend((0..dim * n).map(|_| rng.sample::<f32, _>(StandardNormal)));
-        map_noise(model, object, t, n, parent_states, &self.noise, states, actions, scratch);
+        self.noise.extend((0..dim * at.n).map(|_| rng.sample::<f32, _>(StandardNormal)));
+        map_noise(model, at, parent_states, &self.noise, to, scratch);
     }
 
     /// Weights the particles of step `t` by `y_t` (if there is one) through
@@ -258,19 +251,18 @@ impl Temperer {
     pub(super) fn weigh<M: ParticleModel>(
         &mut self,
         model: &M,
-        object: usize,
-        t: usize,
-        n: usize,
+        at: Batch,
         particles: StepParticles<'_>,
         log_w: &mut [f64],
         resampling: Resampling,
         rng: &mut SmallRng,
         scratch: &mut M::Scratch,
     ) -> Weighing {
+        let Batch { t, n, .. } = at;
         let mut out = Weighing { evaluations: 1, ..Weighing::default() };
         let StepParticles { states, actions, mut parent } = particles;
         self.current.loglik.resize(n, 0.0);
-        out.observed = model.observation_loglik(object, t, n, states, &mut self.current.loglik, scratch);
+        out.observed = model.observation_loglik(at, states, &mut self.current.loglik, scratch);
         self.loglik.clear();
         if !out.observed {
             self.loglik.resize(n, 0.0);
@@ -332,14 +324,14 @@ impl Temperer {
             for _ in 0..self.config.moves {
                 let parent_states = parent.as_ref().map_or(&[][..], |p| &p.states[..]);
                 let accepted =
-                    self.sweep(model, object, t, n, beta, step_current, states, actions, parent_states, rng, scratch);
+                    self.sweep(model, at, beta, step_current, Drawn { next: states, actions }, parent_states, rng, scratch);
                 out.evaluations += 1;
                 out.proposed += n;
                 out.accepted += accepted;
                 step_current = adapt(step_current, accepted, n);
                 if let Some(p) = &mut parent {
                     let (accepted, evaluations) =
-                        self.lookback(model, object, t, n, beta, step_lookback, states, actions, p, rng, scratch);
+                        self.lookback(model, at, beta, step_lookback, Drawn { next: states, actions }, p, rng, scratch);
                     out.evaluations += evaluations;
                     out.proposed += n;
                     out.accepted += accepted;
@@ -385,17 +377,16 @@ impl Temperer {
     fn sweep<M: ParticleModel>(
         &mut self,
         model: &M,
-        object: usize,
-        t: usize,
-        n: usize,
+        at: Batch,
         beta: f64,
         step: f64,
-        states: &mut [f32],
-        actions: &mut [f32],
+        particles: Drawn<'_>,
         parent_states: &[f32],
         rng: &mut SmallRng,
         scratch: &mut M::Scratch,
     ) -> usize {
+        let Batch { t, n, .. } = at;
+        let Drawn { next: states, actions } = particles;
         let dim = self.noise_dim(t);
         let prop = &mut self.current;
         prop.resize(dim * n, states.len(), actions.len(), n);
@@ -406,8 +397,9 @@ impl Temperer {
                 *p = z + scale * rng.sample::<f32, _>(StandardNormal);
             }
         }
-        map_noise(model, object, t, n, parent_states, &prop.noise, &mut prop.states, &mut prop.actions, scratch);
-        model.observation_loglik(object, t, n, &prop.states, &mut prop.loglik, scratch);
+        let to = Drawn { next: &mut prop.states, actions: &mut prop.actions };
+        map_noise(model, at, parent_states, &prop.noise, to, scratch);
+        model.observation_loglik(at, &prop.states, &mut prop.loglik, scratch);
         let mut accepted = 0;
         for i in 0..n {
             let Some(l_new) = finite(prop.loglik[i]) else { continue };
@@ -434,17 +426,17 @@ impl Temperer {
     fn lookback<M: ParticleModel>(
         &mut self,
         model: &M,
-        object: usize,
-        t: usize,
-        n: usize,
+        at: Batch,
         beta: f64,
         step: f64,
-        states: &mut [f32],
-        actions: &mut [f32],
+        particles: Drawn<'_>,
         parent: &mut ParentStep<'_>,
         rng: &mut SmallRng,
         scratch: &mut M::Scratch,
     ) -> (usize, usize) {
+        let Batch { t, n, .. } = at;
+        let Drawn { next: states, actions } = particles;
+        let before = Batch { t: t - 1, ..at };
         let (dp, dc) = (self.noise_dim(t - 1), self.noise_dim(t));
         let dim = dp + dc;
         // The joint noise, particle-major, and the Cholesky factor of its covariance.
@@ -471,16 +463,16 @@ impl Temperer {
             }
         }
         let grand = if t >= 2 { &self.grand[..] } else { &[][..] };
-        map_noise(model, object, t - 1, n, grand, &prev.noise, &mut prev.states, &mut prev.actions, scratch);
+        map_noise(model, before, grand, &prev.noise, Drawn { next: &mut prev.states, actions: &mut prev.actions }, scratch);
         let mut evaluations = 1;
         if self.prev_observed {
-            model.observation_loglik(object, t - 1, n, &prev.states, &mut prev.loglik, scratch);
+            model.observation_loglik(before, &prev.states, &mut prev.loglik, scratch);
             evaluations += 1;
         } else {
             prev.loglik.iter_mut().for_each(|l| *l = 0.0);
         }
-        map_noise(model, object, t, n, &prev.states, &cur.noise, &mut cur.states, &mut cur.actions, scratch);
-        model.observation_loglik(object, t, n, &cur.states, &mut cur.loglik, scratch);
+        map_noise(model, at, &prev.states, &cur.noise, Drawn { next: &mut cur.states, actions: &mut cur.actions }, scratch);
+        model.observation_loglik(at, &cur.states, &mut cur.loglik, scratch);
         let mut accepted = 0;
         for i in 0..n {
             let (Some(lp), Some(lc)) = (finite(prev.loglik[i]), finite(cur.loglik[i])) else { continue };
@@ -578,22 +570,11 @@ fn cloud_factor(x: &[f64], dim: usize, factor: &mut Vec<f64>) {
 }
 
 /// The model's noise-driven draw: the prior at `t = 0`, else the transition.
-#[allow(clippy::too_many_arguments)]
-fn map_noise<M: ParticleModel>(
-    model: &M,
-    object: usize,
-    t: usize,
-    n: usize,
-    parent_states: &[f32],
-    noise: &[f32],
-    states: &mut [f32],
-    actions: &mut [f32],
-    scratch: &mut M::Scratch,
-) {
-    if t == 0 {
-        model.prior_from_noise(object, n, noise, states);
+fn map_noise<M: ParticleModel>(model: &M, at: Batch, parent: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut M::Scratch) {
+    if at.t == 0 {
+        model.prior_from_noise(at.object, at.n, z, to.next);
     } else {
-        model.propagate_from_noise(object, t, n, parent_states, noise, states, actions, scratch);
+        model.propagate_from_noise(at, parent, z, to, scratch);
     }
 }
 

@@ -41,10 +41,11 @@ use crate::models::observation::points::Clutter;
 use crate::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
-use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
+use crate::models::road_user::{states_ref, VehicleScratch, VehicleSsm, YAW};
 use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
-use crate::models::vehicle::state::{ActionVars, ActionsMut, ActionsRef, STATE_DIM};
-use crate::models::{Block, DifferentiableModel, NoiseDims, ParticleModel};
+use crate::models::vehicle::state::{ActionVars, ActionsMut, STATE_DIM};
+use crate::models::{Batch, Block, DifferentiableModel, Drawn, ModelError, NoiseDims, ParticleModel};
+use crate::setting::SettingError;
 use crate::stats::{log_sum_exp, normal_cdf};
 
 /// One object's observations, per step `t = 0..T`, of either kind.
@@ -137,10 +138,10 @@ impl Extension {
     }
 
     /// The extension with catalogue id `id`.
-    pub fn from_id(id: &str) -> Result<Extension, String> {
+    pub fn from_id(id: &str) -> Result<Extension, SettingError> {
         Extension::ALL.into_iter().find(|e| e.id() == id).ok_or_else(|| {
             let known: Vec<&str> = Extension::ALL.iter().map(|e| e.id()).collect();
-            format!("unknown model extension `{id}` (known: {})", known.join(", "))
+            SettingError::new("extension", id, format!("a model extension: {}", known.join(", ")))
         })
     }
 
@@ -213,10 +214,10 @@ impl Extension {
 
     /// The natural values of stored parameters `raw`: `(name, value, unit)`.
     /// Fails if `raw` has the wrong length or is not finite.
-    pub fn natural(self, raw: &[f64]) -> Result<Vec<(&'static str, f64, &'static str)>, String> {
-        let want = self.initial().numel();
-        if raw.len() != want || !raw.iter().all(|x| x.is_finite()) {
-            return Err(format!("parameter `{}` needs {want} finite values, got {raw:?}", self.param_name()));
+    pub fn natural(self, raw: &[f64]) -> Result<Vec<(&'static str, f64, &'static str)>, ModelError> {
+        let expected = self.initial().numel();
+        if raw.len() != expected || !raw.iter().all(|x| x.is_finite()) {
+            return Err(ModelError::ExtensionValues { param: self.param_name(), expected, got: raw.to_vec() });
         }
         let fraction = |r: f64| (LOGIT_SCALE * r).sigmoid();
         let positive = |r: f64| (LOG_SCALE * r).exp();
@@ -238,7 +239,7 @@ impl Extension {
     /// start) with, for heavy tails, an sd ratio of at least 2, or an extent off by
     /// at least 3%. An extension that stayed at its start cannot be a cause,
     /// whatever the held-out comparison says (two fits differ a little anyway).
-    pub fn is_material(self, raw: &[f64]) -> Result<bool, String> {
+    pub fn is_material(self, raw: &[f64]) -> Result<bool, ModelError> {
         let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
         Ok(match self {
             Extension::Latency => v[0] >= 0.03,
@@ -249,7 +250,7 @@ impl Extension {
     }
 
     /// One sentence in physical units, e.g. "observations lag the state by 0.12 s".
-    pub fn describe(self, raw: &[f64]) -> Result<String, String> {
+    pub fn describe(self, raw: &[f64]) -> Result<String, ModelError> {
         let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
         Ok(match self {
             Extension::Latency => format!("observations lag the state by {:.3} s", v[0]),
@@ -483,14 +484,10 @@ pub struct DefensiveProposal {
 
 impl DefensiveProposal {
     /// Checks the fraction and the widening.
-    pub fn validate(&self) -> Result<(), String> {
-        if !(self.fraction > 0.0 && self.fraction < 1.0 && self.widening >= 1.0 && self.widening.is_finite()) {
-            return Err(format!(
-                "defensive proposal: fraction must be in (0, 1) and widening at least 1, got {} and {}",
-                self.fraction, self.widening
-            ));
-        }
-        Ok(())
+    pub fn validate(&self) -> Result<(), SettingError> {
+        let (f, w) = (self.fraction, self.widening);
+        SettingError::check(f > 0.0 && f < 1.0, "defensive_proposal.fraction", f, "in (0, 1)")?;
+        SettingError::check(w >= 1.0 && w.is_finite(), "defensive_proposal.widening", w, "a finite number of at least 1")
     }
 }
 
@@ -515,12 +512,12 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// `base` extended by `extension` with stored parameter values `raw` (the
     /// tensor `ext.<id>` of a store); `None` is the base model itself. Fails if the
     /// extension does not apply to the data's kind or `raw` is malformed.
-    pub fn new(base: &'m VehicleSsm<'a, P, O>, extension: Option<Extension>, raw: &[f64]) -> Result<Self, String> {
+    pub fn new(base: &'m VehicleSsm<'a, P, O>, extension: Option<Extension>, raw: &[f64]) -> Result<Self, ModelError> {
         let active = match extension {
             None => Active::None,
             Some(ext) => {
                 if !ext.applies_to(O::KIND) {
-                    return Err(format!("the `{}` extension does not apply to {:?} data", ext.id(), O::KIND));
+                    return Err(ModelError::ExtensionNotApplicable { extension: ext, kind: O::KIND });
                 }
                 let v: Vec<f64> = ext.natural(raw)?.iter().map(|p| p.1).collect();
                 match ext {
@@ -545,7 +542,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         base: &'m VehicleSsm<'a, P, O>,
         extension: Option<Extension>,
         store: &ParamStore<f64>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, ModelError> {
         let raw = match extension {
             None => Vec::new(),
             Some(ext) => match store.id(&ext.param_name()) {
@@ -559,7 +556,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// The same model, filtered with a defensive proposal for the actions (see
     /// [`DefensiveProposal`]) or, with `None`, with the transition: the filter's
     /// estimates are for the same model either way. Fails on a bad proposal.
-    pub fn with_proposal(self, proposal: Option<DefensiveProposal>) -> Result<Self, String> {
+    pub fn with_proposal(self, proposal: Option<DefensiveProposal>) -> Result<Self, ModelError> {
         if let Some(p) = &proposal {
             p.validate()?;
         }
@@ -764,23 +761,14 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         self.base.prior_from_noise(object, n, noise, states)
     }
 
-    fn propagate_from_noise(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        prev: &[f32],
-        noise: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        scratch: &mut Self::Scratch,
-    ) {
+    fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
         let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
-            return self.base.propagate_from_noise(object, t, n, prev, noise, next, actions, &mut scratch.base);
+            return self.base.propagate_from_noise(at, prev, z, to, &mut scratch.base);
         };
+        let n = at.n;
         let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
         let (narrow, wide) = (core as f32, (ratio * core) as f32);
-        let (z_accel, rest) = noise.split_at(n);
+        let (z_accel, rest) = z.split_at(n);
         let (z_pinch, z_pick) = rest.split_at(n);
         let eps = &mut scratch.accel_eps;
         eps.clear();
@@ -788,45 +776,30 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             let scale = if normal_cdf(pick as f64) < fraction { wide } else { narrow };
             scale * z
         }));
-        self.base.propagate_with_innovations(n, prev, eps, &z_pinch[..n], next, actions, &mut scratch.base);
+        self.base.propagate_with_innovations(n, prev, [eps, &z_pinch[..n]], to, &mut scratch.base);
     }
 
-    fn propagate(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        prev: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        rng: &mut SmallRng,
-        scratch: &mut Self::Scratch,
-    ) {
+    fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut Self::Scratch) {
         if !matches!(self.active, Active::HeavyTailedAccel { .. }) && self.defensive.is_none() {
-            return self.base.propagate(object, t, n, prev, next, actions, rng, &mut scratch.base);
+            return self.base.propagate(at, prev, to, rng, &mut scratch.base);
         }
-        let from = states_ref(prev, n);
-        let g = &mut scratch.base.gaussians;
-        g.resize(n);
-        self.base.policy().gaussians(from.v, from.kappa, g);
-        let (accel, pinch) = actions.split_at_mut(n);
         let innovations = &mut scratch.innovations;
         innovations.clear();
         let wide = self.defensive.map_or((0.0, 1.0), |d| (d.fraction, d.widening));
-        g.sample_with(rng, ActionsMut { accel, pinch: &mut pinch[..n] }, |rng| {
-            let z = if wide.0 > 0.0 && rng.random::<f64>() < wide.0 {
-                let mut normal = || wide.1 * rng.sample::<f64, _>(StandardNormal);
-                [normal(), normal()]
-            } else {
-                [self.accel_innovation(rng), rng.sample(StandardNormal)]
-            };
-            if wide.0 > 0.0 {
-                innovations.push(z); // for the proposal's weights
-            }
-            z
+        self.base.propagate_by(at.n, prev, to, &mut scratch.base.gaussians, |g, actions| {
+            g.sample_with(rng, actions, |rng| {
+                let z = if wide.0 > 0.0 && rng.random::<f64>() < wide.0 {
+                    let mut normal = || wide.1 * rng.sample::<f64, _>(StandardNormal);
+                    [normal(), normal()]
+                } else {
+                    [self.accel_innovation(rng), rng.sample(StandardNormal)]
+                };
+                if wide.0 > 0.0 {
+                    innovations.push(z); // for the proposal's weights
+                }
+                z
+            })
         });
-        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
-        self.base.motion().propagate(from, acts, states_mut(next, n));
     }
 
     fn proposal_log_weights(&self, n: usize, out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
@@ -842,15 +815,8 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         true
     }
 
-    fn observation_loglik(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        states: &[f32],
-        out: &mut [f32],
-        scratch: &mut Self::Scratch,
-    ) -> bool {
+    fn observation_loglik(&self, at: Batch, states: &[f32], out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
+        let Batch { object, t, n } = at;
         let items = O::items(self.data(), object, t);
         if items.is_empty() {
             return false;

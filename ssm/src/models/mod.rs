@@ -13,7 +13,9 @@
 //! * [`linear_gaussian`]: the linear-Gaussian model with its exact Kalman
 //!   likelihood and score, and as a particle model.
 //! * [`params`]: the parameter-file convention ([`params::Models`]).
+//! * [`error`]: [`ModelError`], why a model could not be built.
 
+pub mod error;
 pub mod extended;
 pub mod linear_gaussian;
 pub mod observation;
@@ -22,4 +24,5 @@ pub mod road_user;
 pub mod traits;
 pub mod vehicle;
 
-pub use traits::{block_rows, Block, DifferentiableModel, NoiseDims, ParticleModel};
+pub use error::ModelError;
+pub use traits::{block_rows, Batch, Block, DifferentiableModel, Drawn, NoiseDims, ParticleModel};

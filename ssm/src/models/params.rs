@@ -45,6 +45,7 @@ use crate::data::{Dataset, ObservationKind};
 use crate::models::extended::ExtensibleObservation;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::models::road_user::VehicleSsm;
+use crate::models::ModelError;
 use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 
@@ -314,7 +315,7 @@ impl Models {
     /// Builds the [`VehicleSsm`] of `data` under these models and hands it to
     /// `visitor` (which is generic over the observation model). Fails if the
     /// dataset's kind is not the one the observation model reads.
-    pub fn visit<V: ModelVisitor>(&self, data: &Dataset, visitor: V) -> Result<V::Output, String> {
+    pub fn visit<V: ModelVisitor>(&self, data: &Dataset, visitor: V) -> Result<V::Output, ModelError> {
         let (p, params) = (&self.policy, &self.observation_params);
         match &self.observation {
             AnyObservation::Points(o) => Ok(visitor.visit(&VehicleSsm::new(data, p, o, params)?)),

@@ -16,7 +16,7 @@ use crate::models::vehicle::state::{
     ActionVars, ActionsMut, ActionsRef, StateVars, StatesMut, StatesRef, ACTION_DIM, STATE_DIM,
 };
 use crate::models::{block_rows, Block, DifferentiableModel};
-use crate::models::{NoiseDims, ParticleModel};
+use crate::models::{Batch, Drawn, ModelError, NoiseDims, ParticleModel};
 
 /// Index of the heading among the state components `(x, y, yaw, v, kappa)`.
 pub const YAW: usize = 2;
@@ -74,11 +74,11 @@ impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
         policy: &'a P,
         observation: &'a O,
         observation_params: &ParamStore<f64>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, ModelError> {
         if data.kind() != O::KIND {
-            return Err(format!("the dataset holds {:?} observations; the model reads {:?}", data.kind(), O::KIND));
+            return Err(ModelError::KindMismatch { data: data.kind(), model: O::KIND });
         }
-        let motion = MotionModel::new(data.dt(), Default::default()).map_err(|e| e.to_string())?;
+        let motion = MotionModel::new(data.dt(), Default::default())?;
         Ok(VehicleSsm {
             data,
             motion,
@@ -162,26 +162,37 @@ impl<'a, P: GaussianPolicy, O: ObservationModel> VehicleSsm<'a, P, O> {
 impl<P: GaussianPolicy, O: ObservationModel> VehicleSsm<'_, P, O> {
     /// `x_t` from `x_{t-1}` (`prev`) by the actions `a = mu + L eps` of the policy
     /// at `prev`, with given standardised innovations `eps` (the acceleration's may
-    /// come from a heavier-tailed law): writes `next` and `actions`.
-    #[allow(clippy::too_many_arguments)]
+    /// come from a heavier-tailed law): writes `to`.
     pub(crate) fn propagate_with_innovations(
         &self,
         n: usize,
         prev: &[f32],
-        eps_accel: &[f32],
-        eps_pinch: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
+        [eps_accel, eps_pinch]: [&[f32]; 2],
+        to: Drawn<'_>,
         scratch: &mut VehicleScratch,
     ) {
+        self.propagate_by(n, prev, to, &mut scratch.gaussians, |g, actions| g.actions_from_noise(eps_accel, eps_pinch, actions));
+    }
+
+    /// `x_t` from `x_{t-1}` (`prev`) for `n` particles by actions that `draw`
+    /// writes from the policy's Gaussians at `prev` (kept in `gaussians`); writes
+    /// `to`. The one place
+    /// the transition puts the policy and the motion model together.
+    pub(crate) fn propagate_by(
+        &self,
+        n: usize,
+        prev: &[f32],
+        to: Drawn<'_>,
+        gaussians: &mut ActionGaussians<f32>,
+        draw: impl FnOnce(&ActionGaussians<f32>, ActionsMut<'_, f32>),
+    ) {
         let from = states_ref(prev, n);
-        let g = &mut scratch.gaussians;
-        g.resize(n);
-        self.policy.gaussians(from.v, from.kappa, g);
-        let (accel, pinch) = actions.split_at_mut(n);
-        g.actions_from_noise(eps_accel, eps_pinch, ActionsMut { accel, pinch: &mut pinch[..n] });
-        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
-        self.motion.propagate(from, acts, states_mut(next, n));
+        gaussians.resize(n);
+        self.policy.gaussians(from.v, from.kappa, gaussians);
+        let (accel, pinch) = to.actions.split_at_mut(n);
+        draw(gaussians, ActionsMut { accel, pinch: &mut pinch[..n] });
+        let acts = ActionsRef { accel: &to.actions[..n], pinch: &to.actions[n..2 * n] };
+        self.motion.propagate(from, acts, states_mut(to.next, n));
     }
 }
 
@@ -234,25 +245,8 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
         }
     }
 
-    fn propagate(
-        &self,
-        _object: usize,
-        _t: usize,
-        n: usize,
-        prev: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        rng: &mut SmallRng,
-        scratch: &mut VehicleScratch,
-    ) {
-        let from = states_ref(prev, n);
-        let g = &mut scratch.gaussians;
-        g.resize(n);
-        self.policy.gaussians(from.v, from.kappa, g);
-        let (accel, pinch) = actions.split_at_mut(n);
-        g.sample(rng, ActionsMut { accel, pinch: &mut pinch[..n] });
-        let acts = ActionsRef { accel: &actions[..n], pinch: &actions[n..2 * n] };
-        self.motion.propagate(from, acts, states_mut(next, n));
+    fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut VehicleScratch) {
+        self.propagate_by(at.n, prev, to, &mut scratch.gaussians, |g, actions| g.sample(rng, actions));
     }
 
     /// `x_0 = mu_0 + sd_0 z` per component; the action `a = mu + L z` of the policy.
@@ -271,35 +265,18 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
         }
     }
 
-    fn propagate_from_noise(
-        &self,
-        _object: usize,
-        _t: usize,
-        n: usize,
-        prev: &[f32],
-        noise: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        scratch: &mut VehicleScratch,
-    ) {
-        self.propagate_with_innovations(n, prev, &noise[..n], &noise[n..2 * n], next, actions, scratch);
+    fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut VehicleScratch) {
+        let n = at.n;
+        self.propagate_with_innovations(n, prev, [&z[..n], &z[n..2 * n]], to, scratch);
     }
 
-    fn observation_loglik(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        states: &[f32],
-        out: &mut [f32],
-        scratch: &mut VehicleScratch,
-    ) -> bool {
-        let items = O::items(self.data, object, t);
+    fn observation_loglik(&self, at: Batch, states: &[f32], out: &mut [f32], scratch: &mut VehicleScratch) -> bool {
+        let items = O::items(self.data, at.object, at.t);
         if items.is_empty() {
             return false;
         }
-        let ctx = self.context(object, t);
-        let poses = PosesRef::from_dim_major(states, n);
+        let ctx = self.context(at.object, at.t);
+        let poses = PosesRef::from_dim_major(states, at.n);
         self.observation.log_likelihood(&self.observation_params, &ctx, poses, items, &mut scratch.observation, out);
         true
     }

@@ -22,6 +22,34 @@ pub struct NoiseDims {
     pub transition: usize,
 }
 
+/// The `n` particles of `object` at step `t` that one [`ParticleModel`] call is
+/// about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Batch {
+    /// The object.
+    pub object: usize,
+    /// The step.
+    pub t: usize,
+    /// Number of particles.
+    pub n: usize,
+}
+
+/// Where a transition writes, both dimension-major: the states it reaches, `next`
+/// (`state_dim * n`), and what it drew, `actions` (`action_dim * n`).
+pub struct Drawn<'a> {
+    /// The states `x_t`.
+    pub next: &'a mut [f32],
+    /// The actions (or process noise) that took `x_{t-1}` to `x_t`.
+    pub actions: &'a mut [f32],
+}
+
+impl Drawn<'_> {
+    /// The same buffers, borrowed again (to hand on to another model and keep).
+    pub fn reborrow(&mut self) -> Drawn<'_> {
+        Drawn { next: self.next, actions: self.actions }
+    }
+}
+
 /// A batch of objects whose states a particle filter can track.
 pub trait ParticleModel: Sync {
     /// Per-thread working memory (buffers, a non-recording tape), created once per
@@ -52,20 +80,8 @@ pub trait ParticleModel: Sync {
     /// Draws `n` particles of `x_0` for `object` into `states` (`state_dim * n`).
     fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]);
 
-    /// Draws `x_t` given `x_{t-1}` for `n` particles: writes `next` (`state_dim * n`)
-    /// and what was drawn into `actions` (`action_dim * n`).
-    #[allow(clippy::too_many_arguments)]
-    fn propagate(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        prev: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        rng: &mut SmallRng,
-        scratch: &mut Self::Scratch,
-    );
+    /// Draws `x_t` given `x_{t-1}` (`prev`) for the `n` particles of `at`, into `to`.
+    fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut Self::Scratch);
 
     /// For a model whose [`ParticleModel::propagate`] draws from a proposal `q`
     /// other than its transition `f` (to reach what the transition rarely does):
@@ -96,37 +112,19 @@ pub trait ParticleModel: Sync {
         unimplemented!("prior_from_noise: this model has no noise-driven form (noise_dims is None)")
     }
 
-    /// `x_t = m_t(x_{t-1}, z)` for `n` particles from standard-normal `noise`
-    /// (`noise_dims().transition * n`, dimension-major): writes `next` and `actions`
-    /// as [`ParticleModel::propagate`] does, with the same law (the transition,
-    /// never a proposal).
-    #[allow(clippy::too_many_arguments)]
-    fn propagate_from_noise(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        prev: &[f32],
-        noise: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        scratch: &mut Self::Scratch,
-    ) {
-        let _ = (object, t, n, prev, noise, next, actions, scratch);
+    /// `x_t = m_t(x_{t-1}, z)` for the `n` particles of `at` from standard-normal
+    /// noise `z` (`noise_dims().transition * n`, dimension-major): writes `to` as
+    /// [`ParticleModel::propagate`] does, with the same law (the transition, never a
+    /// proposal).
+    fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
+        let _ = (at, prev, z, to, scratch);
         unimplemented!("propagate_from_noise: this model has no noise-driven form (noise_dims is None)")
     }
 
-    /// Writes `log g(y_t | x_t^i)` for `n` particles into `out` and returns `true`, or
-    /// returns `false` (leaving `out` alone) when there is no observation at `t`.
-    fn observation_loglik(
-        &self,
-        object: usize,
-        t: usize,
-        n: usize,
-        states: &[f32],
-        out: &mut [f32],
-        scratch: &mut Self::Scratch,
-    ) -> bool;
+    /// Writes `log g(y_t | x_t^i)` for the `n` particles of `at` into `out` and
+    /// returns `true`, or returns `false` (leaving `out` alone) when there is no
+    /// observation at `t`.
+    fn observation_loglik(&self, at: Batch, states: &[f32], out: &mut [f32], scratch: &mut Self::Scratch) -> bool;
 
     /// How many observed units (points, detections, scalars) `y_t` holds: the
     /// normaliser of per-point metrics.

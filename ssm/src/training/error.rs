@@ -7,6 +7,8 @@ use std::path::PathBuf;
 
 use autodiff::nn::ParamError;
 
+use crate::models::ModelError;
+
 /// Why [`Objective::estimate`](super::Objective::estimate) returned no estimate. [`train`](super::train) skips the step on
 /// [`EstimateError::NonFinite`] and stops on [`EstimateError::Failed`].
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -45,6 +47,12 @@ impl std::error::Error for EstimateError {}
 impl From<String> for EstimateError {
     fn from(message: String) -> Self {
         EstimateError::Failed(message)
+    }
+}
+
+impl From<ModelError> for EstimateError {
+    fn from(e: ModelError) -> Self {
+        EstimateError::Failed(e.to_string())
     }
 }
 

@@ -67,6 +67,7 @@ use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::NeuralPolicy;
 use crate::objective::{ObjectiveConfig, SceneObjective};
+use crate::setting::SettingError;
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
 
 /// The outcome when no extension qualifies but some check fails at the
@@ -190,33 +191,26 @@ impl DiagnoseConfig {
     }
 
     /// Checks every setting.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), SettingError> {
         let (f, c) = (self.fit_fraction, self.check_fraction);
-        if !(f > 0.0 && c > 0.0 && f + c < 1.0) {
-            return Err(format!(
-                "the fit ({f}) and check ({c}) fractions must be positive and leave objects to evaluate the gain"
-            ));
-        }
-        if self.particles == 0 || self.eval_particles == 0 || self.eval_runs == 0 || self.draws < 3 {
-            return Err("particles and evaluation particles must be positive, evaluation runs at least 1 and draws \
-                        at least 3"
-                .into());
-        }
-        if !(self.alpha > 0.0 && self.alpha < 1.0 && self.plausible_p > 0.0 && self.plausible_p <= 1.0) {
-            return Err(format!("alpha {} and plausible_p {} must be in (0, 1]", self.alpha, self.plausible_p));
-        }
-        if !(self.cause_level > 0.0 && self.cause_level < 1.0) || self.permutations < 99 {
-            return Err(format!(
-                "cause_level {} must be in (0, 1) and permutations ({}) at least 99",
-                self.cause_level, self.permutations
-            ));
-        }
-        if !(self.min_gain.is_finite() && self.min_gain >= 0.0) {
-            return Err(format!("min_gain must be a non-negative number of nats per unit, got {}", self.min_gain));
-        }
+        let fraction = |x: f64| x > 0.0 && x < 1.0;
+        SettingError::check(fraction(f), "fit_fraction", f, "in (0, 1)")?;
+        SettingError::check(fraction(c), "check_fraction", c, "in (0, 1)")?;
+        SettingError::check(f + c < 1.0, "fit_fraction + check_fraction", f + c, "below 1, to leave objects to evaluate the gain")?;
+        SettingError::check(self.particles > 0, "particles", self.particles, "at least 1")?;
+        SettingError::check(self.eval_particles > 0, "eval_particles", self.eval_particles, "at least 1")?;
+        SettingError::check(self.eval_runs > 0, "eval_runs", self.eval_runs, "at least 1")?;
+        SettingError::check(self.draws >= 3, "draws", self.draws, "at least 3")?;
+        SettingError::check(fraction(self.alpha), "alpha", self.alpha, "in (0, 1)")?;
+        let p = self.plausible_p;
+        SettingError::check(p > 0.0 && p <= 1.0, "plausible_p", p, "in (0, 1]")?;
+        SettingError::check(fraction(self.cause_level), "cause_level", self.cause_level, "in (0, 1)")?;
+        SettingError::check(self.permutations >= 99, "permutations", self.permutations, "at least 99")?;
+        let g = self.min_gain;
+        SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
         self.tempering.validate()?;
-        if !(self.lr > 0.0 && self.candidate_lr > 0.0 && self.lr.is_finite() && self.candidate_lr.is_finite()) {
-            return Err(format!("learning rates must be positive, got {} and {}", self.lr, self.candidate_lr));
+        for (setting, lr) in [("lr", self.lr), ("candidate_lr", self.candidate_lr)] {
+            SettingError::check(lr > 0.0 && lr.is_finite(), setting, lr, "positive and finite")?;
         }
         Ok(())
     }

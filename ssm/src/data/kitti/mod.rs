@@ -65,8 +65,8 @@ mod files;
 mod frames;
 mod tracks;
 
-use files::{read_detections, read_labels, read_seq_file};
-use frames::{cam2_offset, read_poses};
+use files::{read_detections, read_labels, read_seq_file, Det, Label};
+use frames::{cam2_offset, read_poses, CamToWorld};
 use tracks::{associate, speed_curvature};
 
 use super::error::{DataError, Place, Problem};
@@ -378,6 +378,8 @@ fn list_sequences(dir: &Path) -> Result<Vec<u32>, DataError> {
 struct Split {
     builder: DatasetBuilder,
     report: KittiSplitReport,
+    /// The scenes added so far.
+    scenes: HashSet<i64>,
 }
 
 impl Split {
@@ -387,173 +389,205 @@ impl Split {
         if actions {
             builder.with_actions();
         }
-        Split { builder, report: KittiSplitReport::default() }
+        Split { builder, report: KittiSplitReport::default(), scenes: HashSet::new() }
     }
 }
 
+/// A Car track: its id and its size (from its first label).
+struct Track {
+    id: i64,
+    length: f64,
+    width: f64,
+}
+
+/// One KITTI sequence read and associated: what its windows are cut from.
+struct Sequence {
+    seq: u32,
+    poses: Vec<CamToWorld>,
+    /// The reference camera's origin in the cam2 frame.
+    offset: [f64; 3],
+    labels: Vec<Label>,
+    dets: Vec<Det>,
+    /// The detection associated with each label, if any.
+    label_det: Vec<Option<usize>>,
+}
+
 fn import_sequence(root: &Path, seq: u32, o: &KittiOptions, split: &mut Split) -> Result<(), DataError> {
-    let pose_file = read_seq_file(root, "ego_pose_orbslam3", seq)?;
-    let poses = read_poses(&pose_file)?;
-    let frames = poses.len();
-    let offset = cam2_offset(&read_seq_file(root, "calib", seq)?)?;
-    let labels = read_labels(&read_seq_file(root, "label_02", seq)?, frames)?;
-    let dets = read_detections(&read_seq_file(root, "det_pointrcnn/Car", seq)?, frames, o.min_score)?;
-
-    let (label_det, det_used) = associate(&labels, &dets, o.gate);
-    let r = &mut split.report;
-    r.sequences.push(seq);
-    r.frames += frames;
-    r.detections += dets.len();
-    for (i, l) in labels.iter().enumerate() {
-        if let Some(j) = label_det[i] {
-            debug_assert!(det_used[j]);
-            if l.car {
-                r.associated_car += 1;
-            } else {
-                r.associated_other += 1;
-            }
-        }
-    }
-    r.unassociated += det_used.iter().filter(|u| !**u).count();
-
-    // Car tracks: label indices sorted by frame.
-    let mut tracks: BTreeMap<i64, Vec<usize>> = BTreeMap::new();
-    for (i, l) in labels.iter().enumerate() {
-        if l.car {
-            tracks.entry(l.track).or_default().push(i);
-        }
-    }
-    let steps = o.steps;
-    let span = (steps - 1) * o.stride;
-    let dt = KITTI_FRAME_DT * o.stride as f64;
-    let av_pose = |f: usize| poses[f].camera(offset);
-    let mut scene_seen: HashSet<usize> = HashSet::new();
-    for (&track, idx) in &mut tracks {
-        idx.sort_by_key(|&i| labels[i].frame);
-        if let Some(w) = idx.windows(2).find(|w| labels[w[0]].frame == labels[w[1]].frame) {
-            let (a, b) = (&labels[w[0]], &labels[w[1]]);
-            let (first, second) = if a.line < b.line { (a, b) } else { (b, a) };
-            return Err(DataError::invalid(
-                format!("label_02/{seq:04}.txt"),
-                Place::Line(second.line),
-                "track_id",
-                Problem::Duplicate {
-                    key: format!("frame {}, track {track}", second.frame),
-                    first: Place::Line(first.line),
-                },
-            ));
-        }
+    let sequence = Sequence::read(root, seq, o, &mut split.report)?;
+    for (track, idx) in sequence.car_tracks()? {
+        let r = &mut split.report;
         r.car_tracks += 1;
         r.car_label_steps += idx.len();
-        r.car_label_steps_detected += idx.iter().filter(|&&i| label_det[i].is_some()).count();
-        let first = &labels[idx[0]];
-        let (length, width) = (first.length, first.width);
+        r.car_label_steps_detected += idx.iter().filter(|&&i| sequence.label_det[i].is_some()).count();
+        let first = &sequence.labels[idx[0]];
+        let track = Track { id: track, length: first.length, width: first.width };
         let mut windows = 0;
-        // Contiguous runs of labelled frames.
-        let mut start = 0;
-        while start < idx.len() {
-            let mut end = start;
-            while end + 1 < idx.len() && labels[idx[end + 1]].frame == labels[idx[end]].frame + 1 {
-                end += 1;
-            }
-            let run = &idx[start..=end];
-            let world: Vec<Pose> = run
-                .iter()
-                .map(|&i| {
-                    let l = &labels[i];
-                    poses[l.frame].bev(l.p, offset, l.rot_y)
-                })
-                .collect();
-            let vk = speed_curvature(&world, o);
-            let run_first = labels[run[0]].frame;
-            let run_last = labels[run[run.len() - 1]].frame;
-            let mut k = 0; // index into run of the earliest allowed start
-            while run_first + k + span <= run_last {
-                // First detected frame at or after k that leaves room for a window.
-                let Some(k0) = (k..=(run_last - run_first - span))
-                    .find(|&k0| label_det[run[k0]].is_some() && (run_first + k0) % o.align == 0)
-                else {
-                    break;
-                };
-                let f0 = run_first + k0;
-                let scene = KITTI_SCENE_ID_BASE * i64::from(seq) + f0 as i64;
-                if scene_seen.insert(f0) {
-                    let av: Vec<Pose> = (0..steps).map(|s| av_pose(f0 + s * o.stride)).collect();
-                    split.builder.scene(scene, &av);
-                    r.scenes += 1;
-                }
-                let first_det = &dets[label_det[run[k0]].expect("start is detected")];
-                let d0 = poses[f0].bev(first_det.p, offset, first_det.rot_y);
-                split.builder.object(Object {
-                    scene,
-                    id: track,
-                    length,
-                    width,
-                    prior: Prior {
-                        mean: State { x: d0.x, y: d0.y, yaw: d0.yaw, v: o.prior_v, kappa: 0.0 },
-                        sd: State {
-                            x: o.prior_sd_position,
-                            y: o.prior_sd_position,
-                            yaw: o.prior_sd_yaw,
-                            v: o.prior_sd_v,
-                            kappa: o.prior_sd_kappa,
-                        },
-                    },
-                });
-                let mut prev: Option<State> = None;
-                for s in 0..steps {
-                    let kk = k0 + s * o.stride;
-                    let frame = run_first + kk;
-                    let p = world[kk];
-                    let state = State { x: p.x, y: p.y, yaw: p.yaw, v: vk[kk].0, kappa: vk[kk].1 };
-                    split.builder.state(scene, track, s, state);
-                    if let (true, Some(prev)) = (o.actions, prev) {
-                        split.builder.action(
-                            scene,
-                            track,
-                            s,
-                            Action { accel: (state.v - prev.v) / dt, pinch: (state.kappa - prev.kappa) / dt },
-                        );
-                    }
-                    prev = Some(state);
-                    if let Some(j) = label_det[run[kk]] {
-                        let d = &dets[j];
-                        let b = poses[frame].bev(d.p, offset, d.rot_y);
-                        split.builder.detection(
-                            scene,
-                            track,
-                            s,
-                            BoxDetection {
-                                x: b.x,
-                                y: b.y,
-                                yaw: b.yaw,
-                                length: d.length,
-                                width: d.width,
-                                score: d.score,
-                            },
-                        );
-                        r.boxes += 1;
-                    }
-                }
-                windows += 1;
-                r.objects += 1;
-                r.steps += steps;
-                k = k0 + span + o.stride;
-            }
-            start = end + 1;
+        // The runs of consecutive labelled frames.
+        for run in idx.chunk_by(|&a, &b| sequence.labels[b].frame == sequence.labels[a].frame + 1) {
+            windows += sequence.cut_windows(&track, run, o, split);
         }
         if windows > 0 {
-            r.tracks_used += 1;
+            split.report.tracks_used += 1;
         } else {
-            r.tracks_dropped += 1;
+            split.report.tracks_dropped += 1;
         }
     }
     Ok(())
 }
 
+impl Sequence {
+    /// Reads sequence `seq`'s files, associates its detections with its labels
+    /// and counts both in `r`.
+    fn read(root: &Path, seq: u32, o: &KittiOptions, r: &mut KittiSplitReport) -> Result<Self, DataError> {
+        let pose_file = read_seq_file(root, "ego_pose_orbslam3", seq)?;
+        let poses = read_poses(&pose_file)?;
+        let frames = poses.len();
+        let offset = cam2_offset(&read_seq_file(root, "calib", seq)?)?;
+        let labels = read_labels(&read_seq_file(root, "label_02", seq)?, frames)?;
+        let dets = read_detections(&read_seq_file(root, "det_pointrcnn/Car", seq)?, frames, o.min_score)?;
+
+        let (label_det, det_used) = associate(&labels, &dets, o.gate);
+        r.sequences.push(seq);
+        r.frames += frames;
+        r.detections += dets.len();
+        for (i, l) in labels.iter().enumerate() {
+            if let Some(j) = label_det[i] {
+                debug_assert!(det_used[j]);
+                if l.car {
+                    r.associated_car += 1;
+                } else {
+                    r.associated_other += 1;
+                }
+            }
+        }
+        r.unassociated += det_used.iter().filter(|u| !**u).count();
+        Ok(Sequence { seq, poses, offset, labels, dets, label_det })
+    }
+
+    /// The Car tracks by id, each its label indices sorted by frame; fails on a
+    /// track labelled twice in one frame.
+    fn car_tracks(&self) -> Result<BTreeMap<i64, Vec<usize>>, DataError> {
+        let labels = &self.labels;
+        let mut tracks: BTreeMap<i64, Vec<usize>> = BTreeMap::new();
+        for (i, l) in labels.iter().enumerate() {
+            if l.car {
+                tracks.entry(l.track).or_default().push(i);
+            }
+        }
+        for (&track, idx) in &mut tracks {
+            idx.sort_by_key(|&i| labels[i].frame);
+            if let Some(w) = idx.windows(2).find(|w| labels[w[0]].frame == labels[w[1]].frame) {
+                let (a, b) = (&labels[w[0]], &labels[w[1]]);
+                let (first, second) = if a.line < b.line { (a, b) } else { (b, a) };
+                return Err(DataError::invalid(
+                    format!("label_02/{:04}.txt", self.seq),
+                    Place::Line(second.line),
+                    "track_id",
+                    Problem::Duplicate {
+                        key: format!("frame {}, track {track}", second.frame),
+                        first: Place::Line(first.line),
+                    },
+                ));
+            }
+        }
+        Ok(tracks)
+    }
+
+    /// Cuts one run of `track` into windows of `o.steps` steps, each starting at
+    /// a detected frame, into `split`'s dataset; returns how many.
+    fn cut_windows(&self, track: &Track, run: &[usize], o: &KittiOptions, split: &mut Split) -> usize {
+        let (labels, poses, offset) = (&self.labels, &self.poses, self.offset);
+        let span = (o.steps - 1) * o.stride;
+        let world: Vec<Pose> = run
+            .iter()
+            .map(|&i| {
+                let l = &labels[i];
+                poses[l.frame].bev(l.p, offset, l.rot_y)
+            })
+            .collect();
+        let vk = speed_curvature(&world, o);
+        let run_first = labels[run[0]].frame;
+        let run_last = labels[run[run.len() - 1]].frame;
+        let mut windows = 0;
+        let mut k = 0; // index into run of the earliest allowed start
+        while run_first + k + span <= run_last {
+            // First detected frame at or after k that leaves room for a window.
+            let Some(k0) = (k..=(run_last - run_first - span))
+                .find(|&k0| self.label_det[run[k0]].is_some() && (run_first + k0) % o.align == 0)
+            else {
+                break;
+            };
+            let track_states: Vec<State> = (0..o.steps)
+                .map(|s| {
+                    let kk = k0 + s * o.stride;
+                    let p = world[kk];
+                    State { x: p.x, y: p.y, yaw: p.yaw, v: vk[kk].0, kappa: vk[kk].1 }
+                })
+                .collect();
+            self.add_window(track, run, k0, &track_states, o, split);
+            windows += 1;
+            k = k0 + span + o.stride;
+        }
+        windows
+    }
+
+    /// Adds the window of `track` starting at index `k0` of `run` (a detected
+    /// frame) with ground-truth `states`: its scene (if new), the object with
+    /// its prior from the first detection, the states, the actions (if asked)
+    /// and the detections.
+    fn add_window(&self, track: &Track, run: &[usize], k0: usize, states: &[State], o: &KittiOptions, split: &mut Split) {
+        let (poses, offset, dets) = (&self.poses, self.offset, &self.dets);
+        let r = &mut split.report;
+        let run_first = self.labels[run[0]].frame;
+        let f0 = run_first + k0;
+        let scene = KITTI_SCENE_ID_BASE * i64::from(self.seq) + f0 as i64;
+        if split.scenes.insert(scene) {
+            let av: Vec<Pose> = (0..o.steps).map(|s| poses[f0 + s * o.stride].camera(offset)).collect();
+            split.builder.scene(scene, &av);
+            r.scenes += 1;
+        }
+        let first_det = &dets[self.label_det[run[k0]].expect("start is detected")];
+        let d0 = poses[f0].bev(first_det.p, offset, first_det.rot_y);
+        split.builder.object(Object {
+            scene,
+            id: track.id,
+            length: track.length,
+            width: track.width,
+            prior: Prior {
+                mean: State { x: d0.x, y: d0.y, yaw: d0.yaw, v: o.prior_v, kappa: 0.0 },
+                sd: State {
+                    x: o.prior_sd_position,
+                    y: o.prior_sd_position,
+                    yaw: o.prior_sd_yaw,
+                    v: o.prior_sd_v,
+                    kappa: o.prior_sd_kappa,
+                },
+            },
+        });
+        let dt = KITTI_FRAME_DT * o.stride as f64;
+        for (s, &state) in states.iter().enumerate() {
+            split.builder.state(scene, track.id, s, state);
+            if let (true, Some(prev)) = (o.actions, s.checked_sub(1).map(|p| states[p])) {
+                let action = Action { accel: (state.v - prev.v) / dt, pinch: (state.kappa - prev.kappa) / dt };
+                split.builder.action(scene, track.id, s, action);
+            }
+            let kk = k0 + s * o.stride;
+            if let Some(j) = self.label_det[run[kk]] {
+                let d = &dets[j];
+                let b = poses[run_first + kk].bev(d.p, offset, d.rot_y);
+                let detection =
+                    BoxDetection { x: b.x, y: b.y, yaw: b.yaw, length: d.length, width: d.width, score: d.score };
+                split.builder.detection(scene, track.id, s, detection);
+                r.boxes += 1;
+            }
+        }
+        r.objects += 1;
+        r.steps += o.steps;
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use super::frames::CamToWorld;
     use super::tracks::unwrap_angles;
     use super::*;
 

@@ -11,7 +11,7 @@ use rand_distr::StandardNormal;
 
 use crate::models::linear_gaussian::kalman::{Lgssm, ThetaVars};
 use crate::models::{Block, DifferentiableModel};
-use crate::models::{NoiseDims, ParticleModel};
+use crate::models::{Batch, Drawn, ModelError, NoiseDims, ParticleModel};
 
 /// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
 pub const THETA_PARAM: &str = "theta";
@@ -26,10 +26,10 @@ pub struct LgssmBatch {
 
 impl LgssmBatch {
     /// A batch of sequences, which must all have the same (non-zero) length.
-    pub fn new(model: Lgssm, sequences: Vec<Vec<f64>>) -> Result<Self, String> {
+    pub fn new(model: Lgssm, sequences: Vec<Vec<f64>>) -> Result<Self, ModelError> {
         let len = sequences.first().map(|s| s.len()).unwrap_or(0);
         if len == 0 || sequences.iter().any(|s| s.len() != len) {
-            return Err("LgssmBatch: sequences must be non-empty and of equal length".into());
+            return Err(ModelError::UnequalSequences);
         }
         Ok(LgssmBatch { model, sequences })
     }
@@ -71,22 +71,12 @@ impl ParticleModel for LgssmBatch {
         self.model.sample_prior(rng, states);
     }
 
-    fn propagate(
-        &self,
-        _object: usize,
-        _t: usize,
-        _n: usize,
-        prev: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        rng: &mut SmallRng,
-        _scratch: &mut (),
-    ) {
-        for e in actions.iter_mut() {
+    fn propagate(&self, _at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, _scratch: &mut ()) {
+        for e in to.actions.iter_mut() {
             *e = rng.sample::<f32, _>(StandardNormal);
         }
-        next.copy_from_slice(prev);
-        self.model.propagate_with_noise(actions, next);
+        to.next.copy_from_slice(prev);
+        self.model.propagate_with_noise(to.actions, to.next);
     }
 
     /// `x_0 = m_0 + sqrt(P_0) z` and `x_t = phi x_{t-1} + s_v z`.
@@ -98,32 +88,14 @@ impl ParticleModel for LgssmBatch {
         self.model.prior_from_noise(noise, states);
     }
 
-    fn propagate_from_noise(
-        &self,
-        _object: usize,
-        _t: usize,
-        _n: usize,
-        prev: &[f32],
-        noise: &[f32],
-        next: &mut [f32],
-        actions: &mut [f32],
-        _scratch: &mut (),
-    ) {
-        actions.copy_from_slice(noise);
-        next.copy_from_slice(prev);
-        self.model.propagate_with_noise(noise, next);
+    fn propagate_from_noise(&self, _at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, _scratch: &mut ()) {
+        to.actions.copy_from_slice(z);
+        to.next.copy_from_slice(prev);
+        self.model.propagate_with_noise(z, to.next);
     }
 
-    fn observation_loglik(
-        &self,
-        object: usize,
-        t: usize,
-        _n: usize,
-        states: &[f32],
-        out: &mut [f32],
-        _scratch: &mut (),
-    ) -> bool {
-        self.model.obs_log_density(self.sequences[object][t], states, out);
+    fn observation_loglik(&self, at: Batch, states: &[f32], out: &mut [f32], _scratch: &mut ()) -> bool {
+        self.model.obs_log_density(self.sequences[at.object][at.t], states, out);
         true
     }
 
