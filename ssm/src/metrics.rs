@@ -122,23 +122,32 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
     }
     let (mut sum, mut count) = (0.0, 0usize);
     let mut per_item = Vec::new();
-    for (object, obj) in data.objects().iter().enumerate() {
-        let scene = &data.scenes()[data.object_scene(object)];
-        for t in 0..data.steps() {
-            let Some(s) = truth.get(object, t) else { continue };
-            let items = O::items(data, object, t);
-            if items.is_empty() {
-                continue;
-            }
-            per_item.clear();
-            per_item.resize(items.len(), 0.0);
-            let ctx = ObsContext::of_object(scene.av[t], obj);
-            model.log_density_items(params, &ctx, Pose { x: s.x, y: s.y, yaw: s.yaw }, items, &mut per_item);
-            sum += per_item.iter().sum::<f64>();
-            count += items.len();
-        }
+    for (ctx, pose, items) in labelled_steps::<O>(data, truth) {
+        per_item.clear();
+        per_item.resize(items.len(), 0.0);
+        model.log_density_items(params, &ctx, pose, items, &mut per_item);
+        sum += per_item.iter().sum::<f64>();
+        count += items.len();
     }
     MeanOver::new(sum, count)
+}
+
+/// Every object-step of `data` with a true state (from `truth`) and observations
+/// (of `O`'s kind), object by object and step by step: the observation context,
+/// the true pose and the observed items.
+pub fn labelled_steps<'d, O: ObservationModel<Item: 'd>>(
+    data: &'d Dataset,
+    truth: &'d StepTable<State>,
+) -> impl Iterator<Item = (ObsContext, Pose, &'d [O::Item])> + 'd {
+    data.objects().iter().enumerate().flat_map(move |(object, obj)| {
+        let scene = &data.scenes()[data.object_scene(object)];
+        (0..data.steps()).filter_map(move |t| {
+            let s = truth.get(object, t)?;
+            let items = O::items(data, object, t);
+            (!items.is_empty())
+                .then(|| (ObsContext::of_object(scene.av[t], obj), Pose { x: s.x, y: s.y, yaw: s.yaw }, items))
+        })
+    })
 }
 
 /// APTLL: the mean `log pi(true a_t | true x_{t-1})` over the steps `t >= 1` with a

@@ -43,8 +43,9 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use serde::Serialize;
 
-use crate::data::{Dataset, ObservationKind, Pose};
-use crate::models::observation::{fit_network, Example, FitConfig, ObsContext, ObservationModel};
+use crate::data::{Dataset, ObservationKind};
+use crate::models::observation::{fit_network, Example, FitConfig, ObservationModel};
+use crate::metrics::labelled_steps;
 use crate::models::params::{AnyObservation, Models, OBS_PREFIX};
 
 /// Why a supervised fit cannot run.
@@ -136,23 +137,7 @@ pub fn labelled_examples<O: ObservationModel>(data: &Dataset) -> Result<Vec<Exam
         return Err(SupervisedError::Kind { data: data.kind(), model: O::KIND });
     }
     let truth = data.states().ok_or(SupervisedError::NoStates)?;
-    let mut out = Vec::new();
-    for (object, obj) in data.objects().iter().enumerate() {
-        let scene = &data.scenes()[data.object_scene(object)];
-        for t in 0..data.steps() {
-            let Some(s) = truth.get(object, t) else { continue };
-            let items = O::items(data, object, t);
-            if items.is_empty() {
-                continue;
-            }
-            out.push(Example {
-                ctx: ObsContext::of_object(scene.av[t], obj),
-                pose: Pose { x: s.x, y: s.y, yaw: s.yaw },
-                items: items.to_vec(),
-            });
-        }
-    }
-    Ok(out)
+    Ok(labelled_steps::<O>(data, truth).map(|(ctx, pose, items)| Example { ctx, pose, items: items.to_vec() }).collect())
 }
 
 /// Fits `model`'s parameters in `params` (from their current values) to the

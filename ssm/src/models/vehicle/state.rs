@@ -82,20 +82,21 @@ pub struct StatesRef<'a, F> {
     pub kappa: &'a [F],
 }
 
+/// The length the five components share; panics, naming `what`, if they differ.
+#[track_caller]
+fn common_len(what: &str, [x, y, yaw, v, kappa]: [usize; 5]) -> usize {
+    assert!(
+        [y, yaw, v, kappa].iter().all(|&m| m == x),
+        "{what}: component lengths differ (x {x}, y {y}, yaw {yaw}, v {v}, kappa {kappa})"
+    );
+    x
+}
+
 impl<F: Float> StatesRef<'_, F> {
     /// Number of states; panics if the slices differ in length.
     #[track_caller]
     pub fn len(&self) -> usize {
-        let n = self.x.len();
-        assert!(
-            [self.y.len(), self.yaw.len(), self.v.len(), self.kappa.len()].iter().all(|&m| m == n),
-            "StatesRef: component lengths differ (x {n}, y {}, yaw {}, v {}, kappa {})",
-            self.y.len(),
-            self.yaw.len(),
-            self.v.len(),
-            self.kappa.len()
-        );
-        n
+        common_len("StatesRef", [self.x.len(), self.y.len(), self.yaw.len(), self.v.len(), self.kappa.len()])
     }
 
     /// Whether there are no states.
@@ -128,16 +129,7 @@ impl<F: Float> StatesMut<'_, F> {
     /// Number of states; panics if the slices differ in length.
     #[track_caller]
     pub fn len(&self) -> usize {
-        let n = self.x.len();
-        assert!(
-            [self.y.len(), self.yaw.len(), self.v.len(), self.kappa.len()].iter().all(|&m| m == n),
-            "StatesMut: component lengths differ (x {n}, y {}, yaw {}, v {}, kappa {})",
-            self.y.len(),
-            self.yaw.len(),
-            self.v.len(),
-            self.kappa.len()
-        );
-        n
+        common_len("StatesMut", [self.x.len(), self.y.len(), self.yaw.len(), self.v.len(), self.kappa.len()])
     }
 
     /// Whether there are no states.
