@@ -84,25 +84,20 @@ impl DiagnoseArgs {
         let mut c = if self.quick { DiagnoseConfig::quick() } else { DiagnoseConfig::default() };
         c.seed = self.seed;
         c.fit_all = self.fit_all;
-        let set = |target: &mut usize, v: Option<usize>| {
+        fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;
             }
-        };
+        }
         set(&mut c.base_steps, self.base_steps);
         set(&mut c.candidate_steps, self.candidate_steps);
         set(&mut c.particles, self.particles);
         set(&mut c.eval_particles, self.eval_particles);
         set(&mut c.eval_runs, self.eval_runs);
         c.train_tempered = !self.bootstrap_training;
-        let set_f = |target: &mut f64, v: Option<f64>| {
-            if let Some(v) = v {
-                *target = v;
-            }
-        };
-        set_f(&mut c.min_gain, self.min_gain);
-        set_f(&mut c.fit_fraction, self.fit_fraction);
-        set_f(&mut c.check_fraction, self.check_fraction);
+        set(&mut c.min_gain, self.min_gain);
+        set(&mut c.fit_fraction, self.fit_fraction);
+        set(&mut c.check_fraction, self.check_fraction);
         set(&mut c.draws, self.draws);
         set(&mut c.scenes_per_step, self.scenes_per_step);
         if let Some(lr) = self.lr {

@@ -70,7 +70,7 @@ use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
-use crate::table::{csv_row, header, metric_cells, CSV_HEADER};
+use crate::table::{csv_row, header, metric_cells, TableArgs, CSV_HEADER};
 use crate::train::{self, read_eval_curve, TrainArgs};
 
 /// Arguments of `sefi experiment-c`.
@@ -82,28 +82,13 @@ pub struct ExperimentCArgs {
     /// Output directory.
     #[arg(long, default_value = "out/experiment-c")]
     pub out: PathBuf,
-    /// Tiny sizes (a few scenes, few particles, 2 epochs): for tests.
-    #[arg(long, conflicts_with = "paper")]
-    pub quick: bool,
-    /// The paper's settings (4096 particles, L = 15, 100 epochs).
-    #[arg(long)]
-    pub paper: bool,
-    /// Methods to train (comma-separated): the estimators on the bootstrap filter
-    /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
-    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
-    pub methods: Vec<String>,
-    /// The evaluation's filter (the same for every method) and the tempered filter's settings.
+    /// Scale (`--quick`: a few scenes, few particles, 2 epochs; `--paper`: 4096
+    /// particles, L = 15, 100 epochs), methods and filters.
     #[command(flatten)]
-    pub filter: FilterArgs,
-    /// Override the scale's training particles per object.
-    #[arg(long)]
-    pub particles: Option<usize>,
+    pub table: TableArgs,
     /// Override the scale's evaluation particles per object.
     #[arg(long)]
     pub eval_particles: Option<usize>,
-    /// Override the scale's epochs.
-    #[arg(long)]
-    pub epochs: Option<usize>,
     /// Override the scale's scenes per training step.
     #[arg(long)]
     pub scenes_per_step: Option<usize>,
@@ -172,7 +157,7 @@ impl Scale {
             supervised_steps: 3000,
             supervised_batch: 128,
         };
-        let mut s = if args.quick {
+        let mut s = if args.table.quick {
             Scale {
                 name: "quick",
                 particles: 32,
@@ -187,7 +172,7 @@ impl Scale {
                 supervised_batch: 32,
                 ..base
             }
-        } else if args.paper {
+        } else if args.table.paper {
             Scale {
                 name: "paper",
                 particles: 4096,
@@ -202,13 +187,13 @@ impl Scale {
         } else {
             base
         };
-        if let Some(n) = args.particles {
+        if let Some(n) = args.table.particles {
             s.particles = n;
         }
         if let Some(n) = args.eval_particles {
             s.eval_particles = n;
         }
-        if let Some(n) = args.epochs {
+        if let Some(n) = args.table.epochs {
             s.epochs = n;
         }
         if let Some(n) = args.scenes_per_step {
@@ -342,7 +327,7 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     scale.check()?;
-    for m in &args.methods {
+    for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
     ensure_dir(&args.out)?;
@@ -373,7 +358,7 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
         particles: scale.eval_particles,
         lag: scale.lag,
         seed: eval_seed,
-        tempering: args.filter.tempering()?,
+        tempering: args.table.filter.tempering()?,
         ..FilterConfig::default()
     };
     let evaluate = |models: &Models| metric_runs(&val, models, &eval_filter, scale.eval_runs);
@@ -395,15 +380,15 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
     }];
 
     let mut learned: Vec<(String, Models)> = Vec::new();
-    for method in &args.methods {
+    for method in &args.table.methods {
         let dir = args.out.join("runs").join(method);
         let (estimator, filter) = method_settings(method);
         let train_args = TrainArgs {
             policy: "neural".into(),
             estimator: estimator.to_string(),
             lag: scale.lag,
-            filter: FilterArgs { filter, ..args.filter.clone() },
-            eval_filter: args.filter.filter,
+            filter: FilterArgs { filter, ..args.table.filter.clone() },
+            eval_filter: args.table.filter.filter,
             alpha: scale.alpha,
             particles: scale.particles,
             eval_particles: scale.eval_particles,

@@ -34,7 +34,7 @@ use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
-use crate::table::{csv_row, header, metric_cells, summary_cell, CSV_HEADER};
+use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER};
 use crate::train::{self, read_eval_curve, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
@@ -48,29 +48,12 @@ pub struct ReproduceArgs {
     /// `out/reproduce-<exp>`).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Tiny sizes: the whole pipeline in a few minutes.
-    #[arg(long, conflicts_with = "paper")]
-    pub quick: bool,
-    /// The paper's settings (1024 / 4096 particles, 100 epochs).
-    #[arg(long)]
-    pub paper: bool,
+    /// Scale (`--paper`: 1024 / 4096 particles, 100 epochs), methods and filters.
+    #[command(flatten)]
+    pub table: TableArgs,
     /// Seeds per method (default: 2 quick, 3 otherwise).
     #[arg(long)]
     pub seeds: Option<usize>,
-    /// Override the scale's training epochs.
-    #[arg(long)]
-    pub epochs: Option<usize>,
-    /// Override the scale's training particles.
-    #[arg(long)]
-    pub particles: Option<usize>,
-    /// Methods to train (comma-separated): the estimators on the bootstrap filter
-    /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
-    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
-    pub methods: Vec<String>,
-    /// The evaluation's filter (the same for every method and TRUE) and the
-    /// tempered filter's settings.
-    #[command(flatten)]
-    pub filter: FilterArgs,
     /// Train nothing: rebuild the table, curves and plots from the finished runs.
     #[arg(long)]
     pub table_only: bool,
@@ -91,7 +74,7 @@ struct Scale {
 
 impl Scale {
     fn of(args: &ReproduceArgs) -> Scale {
-        let mut s = if args.quick {
+        let mut s = if args.table.quick {
             Scale {
                 name: "quick",
                 particles: 64,
@@ -102,7 +85,7 @@ impl Scale {
                 lag: 8,
                 alpha: 0.8,
             }
-        } else if args.paper {
+        } else if args.table.paper {
             Scale {
                 name: "paper",
                 particles: 1024,
@@ -128,10 +111,10 @@ impl Scale {
         if let Some(k) = args.seeds {
             s.seeds = k.max(1);
         }
-        if let Some(e) = args.epochs {
+        if let Some(e) = args.table.epochs {
             s.epochs = e.max(1);
         }
-        if let Some(n) = args.particles {
+        if let Some(n) = args.table.particles {
             s.particles = n.max(1);
         }
         s
@@ -181,7 +164,7 @@ fn median_curve(curves: &[Vec<(f64, f64)>]) -> Vec<(f64, f64)> {
 fn out_dir(args: &ReproduceArgs) -> PathBuf {
     args.out.clone().unwrap_or_else(|| {
         let exp = args.exp.to_uppercase();
-        if args.paper {
+        if args.table.paper {
             PathBuf::from(format!("results/reproduce-{exp}-paper"))
         } else {
             PathBuf::from(format!("out/reproduce-{exp}"))
@@ -218,7 +201,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     let out = out_dir(args);
-    for m in &args.methods {
+    for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
     let eval_filter = |seed: u64| -> Result<FilterConfig, String> {
@@ -226,7 +209,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             particles: scale.eval_particles,
             lag: scale.lag,
             seed,
-            tempering: args.filter.tempering()?,
+            tempering: args.table.filter.tempering()?,
             ..FilterConfig::default()
         })
     };
@@ -241,7 +224,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             exp: args.exp.clone(),
             out: data_dir.clone(),
             seed: 0,
-            quick: args.quick,
+            quick: args.table.quick,
             hidden: None,
             boxes: false,
             scenes: 0,
@@ -274,6 +257,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
         seconds: clock.elapsed().as_secs_f64(),
     };
     let mut results: Vec<MethodResult> = args
+        .table
         .methods
         .iter()
         .map(|m| MethodResult {
@@ -290,7 +274,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     // table with all methods exists early and grows.
     let steps_per_run = scale.epochs * train_data.scenes().len();
     for seed in 0..scale.seeds as u64 {
-        for (method, result) in args.methods.iter().zip(results.iter_mut()) {
+        for (method, result) in args.table.methods.iter().zip(results.iter_mut()) {
             let dir = out.join("runs").join(format!("{method}-seed{seed}"));
             let finished = dir.join(FINAL_METRICS);
             if args.table_only && !finished.is_file() {
@@ -304,8 +288,8 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
                 let train_args = TrainArgs {
                     estimator: estimator.to_string(),
                     lag: scale.lag,
-                    filter: FilterArgs { filter, ..args.filter.clone() },
-                    eval_filter: args.filter.filter,
+                    filter: FilterArgs { filter, ..args.table.filter.clone() },
+                    eval_filter: args.table.filter.filter,
                     alpha: scale.alpha,
                     particles: scale.particles,
                     eval_particles: scale.eval_particles,
@@ -394,21 +378,18 @@ fn write_outputs(
     write_atomic(&out.join("table.md"), md.as_bytes())?;
     write_atomic(&out.join("table.csv"), csv.as_bytes())?;
 
-    let mut series: Vec<Series> = results
+    let series: Vec<Series> = results
         .iter()
         .filter(|r| !r.curves.is_empty())
         .map(|r| Series { name: r.method.clone(), points: median_curve(&r.curves) })
         .collect();
-    if let Some(true_mll) = results[0].runs.iter().filter_map(|m| m.mll).reduce(f64::max) {
-        let last = series.iter().flat_map(|s| s.points.last()).map(|p| p.0).fold(1.0, f64::max);
-        series.push(Series { name: "TRUE".into(), points: vec![(0.0, true_mll), (last, true_mll)] });
-    }
-    line_chart(
+    let true_mll = results[0].runs.iter().filter_map(|m| m.mll).reduce(f64::max);
+    training_chart(
         &out.join("curves.svg"),
         &format!("Experiment {}: test MLL during training (median over seeds)", args.exp.to_uppercase()),
-        "training step",
         "test MLL (nats/point)",
-        &series,
+        series,
+        true_mll.map(|y| ("TRUE", y)),
     )?;
 
     // The learned sds relative to the truth (1 is the truth).
@@ -425,14 +406,12 @@ fn write_outputs(
         }
     }
     if !sd_series.is_empty() {
-        let last = sd_series.iter().flat_map(|s| s.points.last()).map(|p| p.0).fold(1.0, f64::max);
-        sd_series.push(Series { name: "truth".into(), points: vec![(0.0, 1.0), (last, 1.0)] });
-        line_chart(
+        training_chart(
             &out.join("sds.svg"),
             &format!("Experiment {}: learned policy sds / true sds (median over seeds)", args.exp.to_uppercase()),
-            "training step",
             "learned sd / true sd",
-            &sd_series,
+            sd_series,
+            Some(("truth", 1.0)),
         )?;
     }
 
@@ -452,6 +431,22 @@ fn write_outputs(
     println!("{md}");
     println!("wrote {} (table.csv, table.md, curves.svg, sds.svg, reproduce.json)", display(out));
     Ok(())
+}
+
+/// A chart of curves against the training step, with a horizontal reference
+/// line `(name, y)` (TRUE's metric, the truth) across their steps.
+fn training_chart(
+    path: &Path,
+    title: &str,
+    y_label: &str,
+    mut series: Vec<Series>,
+    reference: Option<(&str, f64)>,
+) -> Result<(), String> {
+    if let Some((name, y)) = reference {
+        let last = series.iter().flat_map(|s| s.points.last()).map(|p| p.0).fold(1.0, f64::max);
+        series.push(Series { name: name.into(), points: vec![(0.0, y), (last, y)] });
+    }
+    line_chart(path, title, "training step", y_label, &series)
 }
 
 fn display(p: &Path) -> String {

@@ -1,9 +1,38 @@
-//! Result tables shared by `reproduce` and `experiment-c`: the SPEC §5 metrics of
+//! What `reproduce` and `experiment-c` share: their command-line scale, methods
+//! and filters ([`TableArgs`]) and their result tables, the SPEC §5 metrics of
 //! each method as median [IQR] over runs, in Markdown and as CSV rows.
 
 use std::fmt::Write as _;
 
 use ssm::metrics::{summarise_runs, Metrics, Summary};
+
+use crate::calibrate::FilterArgs;
+
+/// The settings of a Table 1 run (`reproduce`, `experiment-c`): its scale, the
+/// methods it trains and the filters.
+#[derive(clap::Args, Clone, Debug)]
+pub struct TableArgs {
+    /// Tiny sizes: the whole pipeline in a few minutes (for tests).
+    #[arg(long, conflicts_with = "paper")]
+    pub quick: bool,
+    /// The paper's settings for this experiment (particles, lag, 100 epochs; README).
+    #[arg(long)]
+    pub paper: bool,
+    /// Methods to train (comma-separated): the estimators on the bootstrap filter
+    /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
+    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
+    pub methods: Vec<String>,
+    /// The evaluation's filter (the same for every method and TRUE) and the
+    /// tempered filter's settings.
+    #[command(flatten)]
+    pub filter: FilterArgs,
+    /// Override the scale's training particles per object.
+    #[arg(long)]
+    pub particles: Option<usize>,
+    /// Override the scale's training epochs.
+    #[arg(long)]
+    pub epochs: Option<usize>,
+}
 
 /// The metrics of the tables, in order, with their Markdown headers.
 pub const METRIC_COLUMNS: [(&str, &str); 7] = [
