@@ -80,42 +80,28 @@ pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], si
             }
         }
         Op::Softmax(x, axis) => {
-            let x = *x;
-            if sink.wants(x) {
-                let dims = axis_split(val(x).shape(), *axis, "softmax");
-                let mut gx = sink.alloc(g.len());
-                // gx = y (g - <g, y>)
-                kernels::map_lanes(par, &[node.value.data(), g], &mut gx, dims, |l, o| {
-                    let (y, g) = (l[0], l[1]);
-                    let s: f64 = y.iter().zip(g).map(|(&y, &g)| (y * g).to_f64()).sum();
-                    let s = F::from_f64(s);
-                    for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
-                        *o = y * (g - s);
-                    }
-                });
-                sink.add(x, gx);
-            }
+            // gx = y (g - <g, y>)
+            lane_backward(*x, *axis, "softmax", &nodes[id], g, sink, |y, g, o| {
+                let s: f64 = y.iter().zip(g).map(|(&y, &g)| (y * g).to_f64()).sum();
+                let s = F::from_f64(s);
+                for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
+                    *o = y * (g - s);
+                }
+            });
         }
         Op::LogSoftmax(x, axis) => {
-            let x = *x;
-            if sink.wants(x) {
-                let dims = axis_split(val(x).shape(), *axis, "log_softmax");
-                let mut gx = sink.alloc(g.len());
-                // gx = g - softmax(x) * sum(g); zero for a lane that is all -inf.
-                kernels::map_lanes(par, &[node.value.data(), g], &mut gx, dims, |l, o| {
-                    let (y, g) = (l[0], l[1]);
-                    let (m, _) = lane_max_logsum(y);
-                    if m == F::NEG_INFINITY {
-                        o.iter_mut().for_each(|v| *v = F::ZERO);
-                        return;
-                    }
-                    let s = F::from_f64(g.iter().map(|v| v.to_f64()).sum());
-                    for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
-                        *o = g - y.exp() * s;
-                    }
-                });
-                sink.add(x, gx);
-            }
+            // gx = g - softmax(x) * sum(g); zero for a lane that is all -inf.
+            lane_backward(*x, *axis, "log_softmax", &nodes[id], g, sink, |y, g, o| {
+                let (m, _) = lane_max_logsum(y);
+                if m == F::NEG_INFINITY {
+                    o.iter_mut().for_each(|v| *v = F::ZERO);
+                    return;
+                }
+                let s = F::from_f64(g.iter().map(|v| v.to_f64()).sum());
+                for ((o, &y), &g) in o.iter_mut().zip(y).zip(g) {
+                    *o = g - y.exp() * s;
+                }
+            });
         }
         Op::Gather(x, axis, idx) => {
             let x = *x;
@@ -219,6 +205,26 @@ pub(crate) fn backward_node<F: Float>(nodes: &[Node<F>], id: NodeId, g: &[F], si
                 }
             }
         }
+    }
+}
+
+/// The VJP of an op on lanes along `axis` of its input `x` (the softmaxes), whose
+/// rule needs only the lanes of the output `node` and of its cotangent `g`:
+/// `rule(y, g, gx)` writes a lane of the input's gradient.
+fn lane_backward<F: Float>(
+    x: NodeId,
+    axis: usize,
+    name: &str,
+    node: &Node<F>,
+    g: &[F],
+    sink: &mut GradSink<'_, F>,
+    rule: impl Fn(&[F], &[F], &mut [F]) + Sync,
+) {
+    if sink.wants(x) {
+        let dims = axis_split(node.value.shape(), axis, name);
+        let mut gx = sink.alloc(g.len());
+        kernels::map_lanes(sink.par, &[node.value.data(), g], &mut gx, dims, |l, o| rule(l[0], l[1], o));
+        sink.add(x, gx);
     }
 }
 

@@ -125,8 +125,35 @@ pub trait Float:
     );
 }
 
+/// Implements `Float` methods of the form `fn name(self) -> Self` by calling a
+/// function of one argument: `unary_float_fns!(exp => f64::exp, ...)`.
+macro_rules! unary_float_fns {
+    ($($name:ident => $f:expr),* $(,)?) => {
+        $(
+            #[inline(always)]
+            fn $name(self) -> Self {
+                $f(self)
+            }
+        )*
+    };
+}
+
+/// `unary_float_fns` for methods of the form `fn name(self, other: Self) -> Self`.
+macro_rules! binary_float_fns {
+    ($($name:ident => $f:expr),* $(,)?) => {
+        $(
+            #[inline(always)]
+            fn $name(self, other: Self) -> Self {
+                $f(self, other)
+            }
+        )*
+    };
+}
+
+/// The `Float` items that `f32` and `f64` implement alike: constants, `std`'s exact
+/// functions, `mul_add` by `$mul_add` and the GEMM `$gemm`.
 macro_rules! common_float_impl {
-    ($t:ty, $gemm:path) => {
+    ($t:ty, $gemm:path, $mul_add:path) => {
         const ZERO: Self = 0.0;
         const ONE: Self = 1.0;
         const INFINITY: Self = <$t>::INFINITY;
@@ -134,33 +161,12 @@ macro_rules! common_float_impl {
         const EPSILON: Self = <$t>::EPSILON;
         const NAME: &'static str = stringify!($t);
 
+        unary_float_fns!(ln_1p => <$t>::ln_1p, sqrt => <$t>::sqrt, abs => <$t>::abs);
+        binary_float_fns!(powf => <$t>::powf, atan2 => <$t>::atan2, max => <$t>::max, min => <$t>::min);
+
         #[inline(always)]
-        fn ln_1p(self) -> Self {
-            <$t>::ln_1p(self)
-        }
-        #[inline(always)]
-        fn sqrt(self) -> Self {
-            <$t>::sqrt(self)
-        }
-        #[inline(always)]
-        fn abs(self) -> Self {
-            <$t>::abs(self)
-        }
-        #[inline(always)]
-        fn powf(self, p: Self) -> Self {
-            <$t>::powf(self, p)
-        }
-        #[inline(always)]
-        fn atan2(self, x: Self) -> Self {
-            <$t>::atan2(self, x)
-        }
-        #[inline(always)]
-        fn max(self, other: Self) -> Self {
-            <$t>::max(self, other)
-        }
-        #[inline(always)]
-        fn min(self, other: Self) -> Self {
-            <$t>::min(self, other)
+        fn mul_add(self, a: Self, b: Self) -> Self {
+            $mul_add(self, a, b)
         }
         #[inline(always)]
         fn is_finite(self) -> bool {
@@ -193,7 +199,15 @@ macro_rules! common_float_impl {
 }
 
 impl Float for f64 {
-    common_float_impl!(f64, matrixmultiply::dgemm);
+    common_float_impl!(f64, matrixmultiply::dgemm, fastmath::mul_add_f64);
+    unary_float_fns!(
+        exp => f64::exp,
+        exp_nonpos => f64::exp,
+        ln => f64::ln,
+        tanh => f64::tanh,
+        sin => f64::sin,
+        cos => f64::cos,
+    );
 
     #[inline(always)]
     fn from_f64(x: f64) -> Self {
@@ -202,34 +216,6 @@ impl Float for f64 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         self
-    }
-    #[inline(always)]
-    fn exp(self) -> Self {
-        f64::exp(self)
-    }
-    #[inline(always)]
-    fn exp_nonpos(self) -> Self {
-        f64::exp(self)
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self, b: Self) -> Self {
-        fastmath::mul_add_f64(self, a, b)
-    }
-    #[inline(always)]
-    fn ln(self) -> Self {
-        f64::ln(self)
-    }
-    #[inline(always)]
-    fn tanh(self) -> Self {
-        f64::tanh(self)
-    }
-    #[inline(always)]
-    fn sin(self) -> Self {
-        f64::sin(self)
-    }
-    #[inline(always)]
-    fn cos(self) -> Self {
-        f64::cos(self)
     }
     #[inline(always)]
     fn softplus(self) -> Self {
@@ -248,7 +234,17 @@ impl Float for f64 {
 }
 
 impl Float for f32 {
-    common_float_impl!(f32, matrixmultiply::sgemm);
+    common_float_impl!(f32, matrixmultiply::sgemm, fastmath::mul_add_f32);
+    unary_float_fns!(
+        exp => fastmath::exp_f32,
+        exp_nonpos => fastmath::exp_nonpos_f32,
+        ln => fastmath::ln_f32,
+        tanh => fastmath::tanh_f32,
+        sin => fastmath::sin_f32,
+        cos => fastmath::cos_f32,
+        softplus => fastmath::softplus_f32,
+        sigmoid => fastmath::sigmoid_f32,
+    );
 
     #[inline(always)]
     fn from_f64(x: f64) -> Self {
@@ -257,41 +253,5 @@ impl Float for f32 {
     #[inline(always)]
     fn to_f64(self) -> f64 {
         self as f64
-    }
-    #[inline(always)]
-    fn exp(self) -> Self {
-        fastmath::exp_f32(self)
-    }
-    #[inline(always)]
-    fn exp_nonpos(self) -> Self {
-        fastmath::exp_nonpos_f32(self)
-    }
-    #[inline(always)]
-    fn mul_add(self, a: Self, b: Self) -> Self {
-        fastmath::mul_add_f32(self, a, b)
-    }
-    #[inline(always)]
-    fn ln(self) -> Self {
-        fastmath::ln_f32(self)
-    }
-    #[inline(always)]
-    fn tanh(self) -> Self {
-        fastmath::tanh_f32(self)
-    }
-    #[inline(always)]
-    fn sin(self) -> Self {
-        fastmath::sin_f32(self)
-    }
-    #[inline(always)]
-    fn cos(self) -> Self {
-        fastmath::cos_f32(self)
-    }
-    #[inline(always)]
-    fn softplus(self) -> Self {
-        fastmath::softplus_f32(self)
-    }
-    #[inline(always)]
-    fn sigmoid(self) -> Self {
-        fastmath::sigmoid_f32(self)
     }
 }

@@ -39,12 +39,12 @@ impl Parallelism {
     }
 }
 
-/// `dst[i] = f(src[i])`.
-pub(crate) fn map<F: Float>(par: Parallelism, src: &[F], dst: &mut [F], f: impl Fn(F) -> F + Sync) {
-    debug_assert_eq!(src.len(), dst.len());
+/// `f(&mut dst[i], src[i])` for every `i`: the loop, split into chunks, of
+/// [`map`] and [`add_assign`].
+fn update<F: Float>(par: Parallelism, dst: &mut [F], src: &[F], f: impl Fn(&mut F, F) + Sync) {
     let body = |d: &mut [F], s: &[F]| {
         for (o, &x) in d.iter_mut().zip(s) {
-            *o = f(x);
+            f(o, x);
         }
     };
     if par.split(dst.len()) {
@@ -52,6 +52,12 @@ pub(crate) fn map<F: Float>(par: Parallelism, src: &[F], dst: &mut [F], f: impl 
     } else {
         body(dst, src);
     }
+}
+
+/// `dst[i] = f(src[i])`.
+pub(crate) fn map<F: Float>(par: Parallelism, src: &[F], dst: &mut [F], f: impl Fn(F) -> F + Sync) {
+    debug_assert_eq!(src.len(), dst.len());
+    update(par, dst, src, |o, x| *o = f(x));
 }
 
 /// `dst[i] = f(a[i], b[i])`.
@@ -99,16 +105,7 @@ pub(crate) fn zip3<F: Float>(
 
 /// `dst[i] += src[i]`.
 pub(crate) fn add_assign<F: Float>(par: Parallelism, dst: &mut [F], src: &[F]) {
-    let body = |d: &mut [F], s: &[F]| {
-        for (o, &x) in d.iter_mut().zip(s) {
-            *o += x;
-        }
-    };
-    if par.split(dst.len()) {
-        dst.par_chunks_mut(CHUNK_ELEMS).zip(src.par_chunks(CHUNK_ELEMS)).for_each(|(d, s)| body(d, s));
-    } else {
-        body(dst, src);
-    }
+    update(par, dst, src, |o, x| *o += x);
 }
 
 /// Adds `row` to every row of `dst` (a bias): `dst[r, j] += row[j]`.

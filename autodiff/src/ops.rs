@@ -351,18 +351,9 @@ impl<'t, F: Float> Var<'t, F> {
     /// Sum along `axis` (the axis is kept with length 1 if `keepdim`).
     #[track_caller]
     pub fn sum_axis(self, axis: usize, keepdim: bool) -> Var<'t, F> {
-        let shape = self.shape();
-        let dims = axis_split(&shape, axis, "sum_axis");
-        self.record(
-            &[self.id],
-            reduced_shape(&shape, axis, keepdim),
-            || Op::SumAxis(self.id, axis),
-            |v, out, par| {
-                kernels::reduce_lanes(par, v[0].data(), out, dims, |lane| {
-                    F::from_f64(lane.iter().map(|x| x.to_f64()).sum())
-                })
-            },
-        )
+        self.reduce_lanes(axis, keepdim, "sum_axis", Op::SumAxis, |lane| {
+            F::from_f64(lane.iter().map(|x| x.to_f64()).sum())
+        })
     }
 
     /// Mean along `axis`.
@@ -375,68 +366,76 @@ impl<'t, F: Float> Var<'t, F> {
     /// `ln sum exp` along `axis`, fused and stable (a lane of all `-inf` gives `-inf`).
     #[track_caller]
     pub fn logsumexp(self, axis: usize, keepdim: bool) -> Var<'t, F> {
+        self.reduce_lanes(axis, keepdim, "logsumexp", Op::LogSumExp, |lane| {
+            let (m, ls) = lane_max_logsum(lane);
+            if m == F::NEG_INFINITY {
+                m
+            } else {
+                m + F::from_f64(ls)
+            }
+        })
+    }
+
+    /// The forward pass of [`Var::sum_axis`] and [`Var::logsumexp`]: `f` of each lane
+    /// along `axis`, recorded as `op(self, axis)`.
+    #[track_caller]
+    fn reduce_lanes(
+        self,
+        axis: usize,
+        keepdim: bool,
+        name: &str,
+        op: fn(NodeId, usize) -> Op,
+        f: impl Fn(&[F]) -> F + Sync,
+    ) -> Var<'t, F> {
         let shape = self.shape();
-        let dims = axis_split(&shape, axis, "logsumexp");
+        let dims = axis_split(&shape, axis, name);
         self.record(
             &[self.id],
             reduced_shape(&shape, axis, keepdim),
-            || Op::LogSumExp(self.id, axis),
-            |v, out, par| {
-                kernels::reduce_lanes(par, v[0].data(), out, dims, |lane| {
-                    let (m, ls) = lane_max_logsum(lane);
-                    if m == F::NEG_INFINITY {
-                        m
-                    } else {
-                        m + F::from_f64(ls)
-                    }
-                })
-            },
+            || op(self.id, axis),
+            |v, out, par| kernels::reduce_lanes(par, v[0].data(), out, dims, f),
         )
     }
 
     /// Softmax along `axis`.
     #[track_caller]
     pub fn softmax(self, axis: usize) -> Var<'t, F> {
-        let shape = self.shape();
-        let dims = axis_split(&shape, axis, "softmax");
-        self.record(
-            &[self.id],
-            shape,
-            || Op::Softmax(self.id, axis),
-            |v, out, par| {
-                kernels::map_lanes(par, &[v[0].data()], out, dims, |lanes, o| {
-                    let (m, ls) = lane_max_logsum(lanes[0]);
-                    if m == F::NEG_INFINITY {
-                        o.iter_mut().for_each(|y| *y = F::ZERO);
-                    } else {
-                        let shift = m + F::from_f64(ls);
-                        for (y, &x) in o.iter_mut().zip(lanes[0]) {
-                            *y = (x - shift).exp();
-                        }
-                    }
-                })
-            },
-        )
+        self.normalised_lanes(axis, "softmax", Op::Softmax, F::ZERO, |z| z.exp())
     }
 
     /// Log-softmax along `axis` (normalised log-weights).
     #[track_caller]
     pub fn log_softmax(self, axis: usize) -> Var<'t, F> {
+        self.normalised_lanes(axis, "log_softmax", Op::LogSoftmax, F::NEG_INFINITY, |z| z)
+    }
+
+    /// The forward pass of [`Var::softmax`] (`f = exp`) and [`Var::log_softmax`]
+    /// (`f` the identity): `f(x - shift)` with `shift` the lane's log-sum-exp along
+    /// `axis`; `empty` throughout a lane that is all -inf.
+    #[track_caller]
+    fn normalised_lanes(
+        self,
+        axis: usize,
+        name: &str,
+        op: fn(NodeId, usize) -> Op,
+        empty: F,
+        f: impl Fn(F) -> F + Sync,
+    ) -> Var<'t, F> {
         let shape = self.shape();
-        let dims = axis_split(&shape, axis, "log_softmax");
+        let dims = axis_split(&shape, axis, name);
         self.record(
             &[self.id],
             shape,
-            || Op::LogSoftmax(self.id, axis),
+            || op(self.id, axis),
             |v, out, par| {
                 kernels::map_lanes(par, &[v[0].data()], out, dims, |lanes, o| {
                     let (m, ls) = lane_max_logsum(lanes[0]);
                     if m == F::NEG_INFINITY {
-                        o.iter_mut().for_each(|y| *y = F::NEG_INFINITY);
+                        o.iter_mut().for_each(|y| *y = empty);
                     } else {
                         let shift = m + F::from_f64(ls);
                         for (y, &x) in o.iter_mut().zip(lanes[0]) {
-                            *y = x - shift;
+                            *y = f(x - shift);
                         }
                     }
                 })

@@ -12,6 +12,7 @@ mod common;
 
 use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use common::*;
+use rand::rngs::StdRng;
 use rand::Rng;
 
 /// ~300k elements: well above the 32k-element threshold of the parallel kernels,
@@ -48,6 +49,75 @@ impl<F: Float> Cases<F> {
     {
         self.cases.push(Case { name: name.into(), inputs: inputs.to_vec(), f: Box::new(f) });
     }
+
+    /// The element-wise ops and full reductions on `x` (standard normal) and `pos`
+    /// (positive): the same cases at every size.
+    fn element_wise_ops(&mut self, x: usize, pos: usize) {
+        self.add("neg", &[x], |_, v| v[0].neg());
+        self.add("exp", &[x], |_, v| v[0].exp());
+        self.add("ln", &[pos], |_, v| v[0].ln());
+        self.add("ln_1p", &[pos], |_, v| v[0].ln_1p());
+        self.add("tanh", &[x], |_, v| v[0].tanh());
+        self.add("relu", &[x], |_, v| v[0].relu());
+        self.add("softplus", &[x], |_, v| v[0].softplus());
+        self.add("sigmoid", &[x], |_, v| v[0].sigmoid());
+        self.add("sin", &[x], |_, v| v[0].sin());
+        self.add("cos", &[x], |_, v| v[0].cos());
+        self.add("abs", &[x], |_, v| v[0].abs());
+        self.add("sqrt", &[pos], |_, v| v[0].sqrt());
+        self.add("square", &[x], |_, v| v[0].square());
+        self.add("powf", &[pos], |_, v| v[0].powf(1.7));
+        self.add("add_scalar", &[x], |_, v| v[0].add_scalar(0.3));
+        self.add("mul_scalar", &[x], |_, v| v[0].mul_scalar(-1.7));
+        self.add("clamp", &[x], |_, v| v[0].clamp(-0.5, 0.5));
+        self.add("sum", &[x], |_, v| v[0].sum());
+        self.add("mean", &[x], |_, v| v[0].mean());
+        self.add("used twice", &[x], |_, v| v[0] * v[0] + v[0].sin());
+        self.add("detach", &[x], |_, v| v[0].detach() * v[0]);
+        self.add("scalar operators", &[x], |_, v| (2.0 - v[0]) / 3.0 + 1.5 * v[0]);
+    }
+
+    /// The broadcasting binary ops for each pattern `(label, lhs shape, rhs shape)`,
+    /// on inputs with random signs and magnitudes in `[0.3, 2)` drawn from `r`.
+    fn binary_ops<const N: usize>(&mut self, r: &mut StdRng, patterns: [(&str, Vec<usize>, Vec<usize>); N]) {
+        for (label, sa, sb) in patterns {
+            let a = self.input(signed(r, &sa, 0.3, 2.0));
+            let b = self.input(signed(r, &sb, 0.3, 2.0));
+            let ab = [a, b];
+            self.add(format!("add {label}"), &ab, |_, v| v[0] + v[1]);
+            self.add(format!("sub {label}"), &ab, |_, v| v[0] - v[1]);
+            self.add(format!("mul {label}"), &ab, |_, v| v[0] * v[1]);
+            self.add(format!("div {label}"), &ab, |_, v| v[0] / v[1]);
+            self.add(format!("atan2 {label}"), &ab, |_, v| v[0].atan2(v[1]));
+            self.add(format!("minimum {label}"), &ab, |_, v| v[0].minimum(v[1]));
+            self.add(format!("maximum {label}"), &ab, |_, v| v[0].maximum(v[1]));
+        }
+    }
+
+    /// The reductions and (log-)softmax along `axis` of `x`, and those that take
+    /// -inf along `axis` of `x_inf` (which has -inf entries and all -inf lanes).
+    fn lane_ops(&mut self, axis: usize, x: usize, x_inf: usize) {
+        for keepdim in [false, true] {
+            self.add(format!("sum_axis {axis} {keepdim}"), &[x], move |_, v| v[0].sum_axis(axis, keepdim));
+            self.add(format!("logsumexp {axis} {keepdim}"), &[x], move |_, v| v[0].logsumexp(axis, keepdim));
+        }
+        self.add(format!("mean_axis {axis}"), &[x], move |_, v| v[0].mean_axis(axis, false));
+        self.add(format!("softmax {axis}"), &[x], move |_, v| v[0].softmax(axis));
+        self.add(format!("log_softmax {axis}"), &[x], move |_, v| v[0].log_softmax(axis));
+        self.add(format!("logsumexp with -inf {axis}"), &[x_inf], move |_, v| v[0].logsumexp(axis, false));
+        self.add(format!("softmax with -inf {axis}"), &[x_inf], move |_, v| v[0].softmax(axis));
+        self.add(format!("log_softmax with -inf {axis}"), &[x_inf], move |_, v| v[0].log_softmax(axis));
+    }
+}
+
+/// `t` with every 7th entry (from the 4th) set to -inf.
+fn with_scattered_neg_inf(mut t: Tensor<f64>) -> Tensor<f64> {
+    for (i, v) in t.data_mut().iter_mut().enumerate() {
+        if i % 7 == 3 {
+            *v = f64::NEG_INFINITY;
+        }
+    }
+    t
 }
 
 /// One case per op (and per broadcast pattern / axis), all above the parallel threshold.
@@ -56,30 +126,9 @@ fn big_cases<F: Float>() -> Cases<F> {
     let mut cs = Cases { tensors: Vec::new(), cases: Vec::new() };
     let n = cs.input(normal(&mut r, &BIG));
     let pos = cs.input(uniform(&mut r, &BIG, 0.1, 4.0));
-    cs.add("neg", &[n], |_, v| v[0].neg());
-    cs.add("exp", &[n], |_, v| v[0].exp());
-    cs.add("ln", &[pos], |_, v| v[0].ln());
-    cs.add("ln_1p", &[pos], |_, v| v[0].ln_1p());
-    cs.add("tanh", &[n], |_, v| v[0].tanh());
-    cs.add("relu", &[n], |_, v| v[0].relu());
-    cs.add("softplus", &[n], |_, v| v[0].softplus());
-    cs.add("sigmoid", &[n], |_, v| v[0].sigmoid());
-    cs.add("sin", &[n], |_, v| v[0].sin());
-    cs.add("cos", &[n], |_, v| v[0].cos());
-    cs.add("abs", &[n], |_, v| v[0].abs());
-    cs.add("sqrt", &[pos], |_, v| v[0].sqrt());
-    cs.add("square", &[n], |_, v| v[0].square());
-    cs.add("powf", &[pos], |_, v| v[0].powf(1.7));
-    cs.add("add_scalar", &[n], |_, v| v[0].add_scalar(0.3));
-    cs.add("mul_scalar", &[n], |_, v| v[0].mul_scalar(-1.7));
-    cs.add("clamp", &[n], |_, v| v[0].clamp(-0.5, 0.5));
-    cs.add("sum", &[n], |_, v| v[0].sum());
-    cs.add("mean", &[n], |_, v| v[0].mean());
+    cs.element_wise_ops(n, pos);
     cs.add("reshape", &[n], |_, v| v[0].reshape(&[500, 600]));
     cs.add("transpose", &[n], |_, v| v[0].t());
-    cs.add("used twice", &[n], |_, v| v[0] * v[0] + v[0].sin());
-    cs.add("detach", &[n], |_, v| v[0].detach() * v[0]);
-    cs.add("scalar operators", &[n], |_, v| (2.0 - v[0]) / 3.0 + 1.5 * v[0]);
 
     let patterns: [(&str, Vec<usize>, Vec<usize>); 5] = [
         ("same", BIG.to_vec(), BIG.to_vec()),
@@ -88,18 +137,7 @@ fn big_cases<F: Float>() -> Cases<F> {
         ("scalar", BIG.to_vec(), vec![]),
         ("3-D", vec![6, 100, 500], vec![100, 1]),
     ];
-    for (label, sa, sb) in patterns {
-        let a = cs.input(signed(&mut r, &sa, 0.3, 2.0));
-        let b = cs.input(signed(&mut r, &sb, 0.3, 2.0));
-        let ab = [a, b];
-        cs.add(format!("add {label}"), &ab, |_, v| v[0] + v[1]);
-        cs.add(format!("sub {label}"), &ab, |_, v| v[0] - v[1]);
-        cs.add(format!("mul {label}"), &ab, |_, v| v[0] * v[1]);
-        cs.add(format!("div {label}"), &ab, |_, v| v[0] / v[1]);
-        cs.add(format!("atan2 {label}"), &ab, |_, v| v[0].atan2(v[1]));
-        cs.add(format!("minimum {label}"), &ab, |_, v| v[0].minimum(v[1]));
-        cs.add(format!("maximum {label}"), &ab, |_, v| v[0].maximum(v[1]));
-    }
+    cs.binary_ops(&mut r, patterns);
 
     // Linear algebra: long m (weight gradients reduced over 4096-row blocks), a 3-D
     // lhs, and a long inner dimension (GEMM depth blocking, multi-threaded rows).
@@ -116,12 +154,7 @@ fn big_cases<F: Float>() -> Cases<F> {
     // Axis ops on a cube, every axis; in a second input, scattered -inf entries and
     // one lane along each axis entirely -inf.
     let cube = normal(&mut r, &CUBE).map(|v| 2.0 * v);
-    let mut cube_inf = cube.clone();
-    for (i, v) in cube_inf.data_mut().iter_mut().enumerate() {
-        if i % 7 == 3 {
-            *v = f64::NEG_INFINITY;
-        }
-    }
+    let mut cube_inf = with_scattered_neg_inf(cube.clone());
     for k in 0..CUBE[0] {
         cube_inf.set(&[k, 4, 9], f64::NEG_INFINITY);
     }
@@ -134,16 +167,7 @@ fn big_cases<F: Float>() -> Cases<F> {
     let c = cs.input(cube);
     let ci = cs.input(cube_inf);
     for axis in 0..3 {
-        for keepdim in [false, true] {
-            cs.add(format!("sum_axis {axis} {keepdim}"), &[c], move |_, v| v[0].sum_axis(axis, keepdim));
-            cs.add(format!("logsumexp {axis} {keepdim}"), &[c], move |_, v| v[0].logsumexp(axis, keepdim));
-        }
-        cs.add(format!("mean_axis {axis}"), &[c], move |_, v| v[0].mean_axis(axis, false));
-        cs.add(format!("softmax {axis}"), &[c], move |_, v| v[0].softmax(axis));
-        cs.add(format!("log_softmax {axis}"), &[c], move |_, v| v[0].log_softmax(axis));
-        cs.add(format!("logsumexp with -inf {axis}"), &[ci], move |_, v| v[0].logsumexp(axis, false));
-        cs.add(format!("softmax with -inf {axis}"), &[ci], move |_, v| v[0].softmax(axis));
-        cs.add(format!("log_softmax with -inf {axis}"), &[ci], move |_, v| v[0].log_softmax(axis));
+        cs.lane_ops(axis, c, ci);
         cs.add(format!("slice {axis}"), &[c], move |_, v| v[0].slice(axis, 3, 40));
         let len = CUBE[axis];
         let gidx: Vec<usize> = (0..len + 5).map(|_| r.random_range(0..len)).collect();
@@ -257,31 +281,10 @@ fn small_cases() -> Cases<f64> {
     let mut cs = Cases { tensors: Vec::new(), cases: Vec::new() };
     let x = cs.input(normal(&mut r, &[3, 4, 5]));
     let pos = cs.input(uniform(&mut r, &[3, 4, 5], 0.1, 4.0));
-    cs.add("neg", &[x], |_, v| v[0].neg());
-    cs.add("exp", &[x], |_, v| v[0].exp());
-    cs.add("ln", &[pos], |_, v| v[0].ln());
-    cs.add("ln_1p", &[pos], |_, v| v[0].ln_1p());
-    cs.add("tanh", &[x], |_, v| v[0].tanh());
-    cs.add("relu", &[x], |_, v| v[0].relu());
-    cs.add("softplus", &[x], |_, v| v[0].softplus());
-    cs.add("sigmoid", &[x], |_, v| v[0].sigmoid());
-    cs.add("sin", &[x], |_, v| v[0].sin());
-    cs.add("cos", &[x], |_, v| v[0].cos());
-    cs.add("abs", &[x], |_, v| v[0].abs());
-    cs.add("sqrt", &[pos], |_, v| v[0].sqrt());
-    cs.add("square", &[x], |_, v| v[0].square());
-    cs.add("powf", &[pos], |_, v| v[0].powf(1.7));
+    cs.element_wise_ops(x, pos);
     cs.add("powf(0)", &[pos], |_, v| v[0].powf(0.0));
-    cs.add("add_scalar", &[x], |_, v| v[0].add_scalar(0.3));
-    cs.add("mul_scalar", &[x], |_, v| v[0].mul_scalar(-1.7));
-    cs.add("clamp", &[x], |_, v| v[0].clamp(-0.5, 0.5));
-    cs.add("sum", &[x], |_, v| v[0].sum());
-    cs.add("mean", &[x], |_, v| v[0].mean());
     cs.add("reshape", &[x], |_, v| v[0].reshape(&[12, 5]));
     cs.add("transpose", &[x], |_, v| v[0].reshape(&[12, 5]).t());
-    cs.add("used twice", &[x], |_, v| v[0] * v[0] + v[0].sin());
-    cs.add("detach", &[x], |_, v| v[0].detach() * v[0]);
-    cs.add("scalar operators", &[x], |_, v| (2.0 - v[0]) / 3.0 + 1.5 * v[0]);
     let patterns: [(&str, Vec<usize>, Vec<usize>); 6] = [
         ("same", vec![3, 4], vec![3, 4]),
         ("row", vec![3, 4], vec![4]),
@@ -290,18 +293,7 @@ fn small_cases() -> Cases<f64> {
         ("3-D", vec![2, 1, 4], vec![3, 1]),
         ("empty", vec![0, 4], vec![4]),
     ];
-    for (label, sa, sb) in patterns {
-        let a = cs.input(signed(&mut r, &sa, 0.3, 2.0));
-        let b = cs.input(signed(&mut r, &sb, 0.3, 2.0));
-        let ab = [a, b];
-        cs.add(format!("add {label}"), &ab, |_, v| v[0] + v[1]);
-        cs.add(format!("sub {label}"), &ab, |_, v| v[0] - v[1]);
-        cs.add(format!("mul {label}"), &ab, |_, v| v[0] * v[1]);
-        cs.add(format!("div {label}"), &ab, |_, v| v[0] / v[1]);
-        cs.add(format!("atan2 {label}"), &ab, |_, v| v[0].atan2(v[1]));
-        cs.add(format!("minimum {label}"), &ab, |_, v| v[0].minimum(v[1]));
-        cs.add(format!("maximum {label}"), &ab, |_, v| v[0].maximum(v[1]));
-    }
+    cs.binary_ops(&mut r, patterns);
     let m = cs.input(normal(&mut r, &[5, 3]));
     let m3 = cs.input(normal(&mut r, &[2, 4, 3]));
     let w = cs.input(normal(&mut r, &[3, 4]));
@@ -317,28 +309,14 @@ fn small_cases() -> Cases<f64> {
     let wn0 = cs.input(Tensor::zeros(&[3, 0]));
     cs.add("matmul n = 0", &[m, wn0], |_, v| v[0].matmul(v[1]));
 
-    let mut xi = normal(&mut r, &[3, 4, 5]);
-    for (i, v) in xi.data_mut().iter_mut().enumerate() {
-        if i % 7 == 3 {
-            *v = f64::NEG_INFINITY;
-        }
-    }
+    let mut xi = with_scattered_neg_inf(normal(&mut r, &[3, 4, 5]));
     for k in 0..4 {
         xi.set(&[1, k, 2], f64::NEG_INFINITY);
     }
     let xi = cs.input(xi);
     let empty = cs.input(Tensor::zeros(&[3, 0, 2]));
     for axis in 0..3 {
-        for keepdim in [false, true] {
-            cs.add(format!("sum_axis {axis} {keepdim}"), &[x], move |_, v| v[0].sum_axis(axis, keepdim));
-            cs.add(format!("logsumexp {axis} {keepdim}"), &[x], move |_, v| v[0].logsumexp(axis, keepdim));
-        }
-        cs.add(format!("mean_axis {axis}"), &[x], move |_, v| v[0].mean_axis(axis, false));
-        cs.add(format!("softmax {axis}"), &[x], move |_, v| v[0].softmax(axis));
-        cs.add(format!("log_softmax {axis}"), &[x], move |_, v| v[0].log_softmax(axis));
-        cs.add(format!("logsumexp with -inf {axis}"), &[xi], move |_, v| v[0].logsumexp(axis, false));
-        cs.add(format!("softmax with -inf {axis}"), &[xi], move |_, v| v[0].softmax(axis));
-        cs.add(format!("log_softmax with -inf {axis}"), &[xi], move |_, v| v[0].log_softmax(axis));
+        cs.lane_ops(axis, x, xi);
         cs.add(format!("sum_axis of empty {axis}"), &[empty], move |_, v| v[0].sum_axis(axis, false));
         cs.add(format!("logsumexp of empty {axis}"), &[empty], move |_, v| v[0].logsumexp(axis, true));
         cs.add(format!("slice {axis}"), &[x], move |_, v| v[0].slice(axis, 1, 2));

@@ -11,16 +11,6 @@ use common::*;
 
 const SHAPE: [usize; 3] = [3, 4, 5];
 
-/// Multi-index of flat position `i` in `shape`.
-fn unravel(mut i: usize, shape: &[usize]) -> Vec<usize> {
-    let mut idx = vec![0; shape.len()];
-    for d in (0..shape.len()).rev() {
-        idx[d] = i % shape[d];
-        i /= shape[d];
-    }
-    idx
-}
-
 /// Gather indices for an axis of length 3, 4, 5: repeats, and (for 5) an omission.
 fn gather_indices(n: usize) -> Vec<usize> {
     match n {

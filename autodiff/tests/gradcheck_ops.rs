@@ -26,42 +26,36 @@ struct UnaryCase {
     kinks: &'static [f64],
 }
 
+/// A [`UnaryCase`] as a tuple of its fields, in order: the rows of [`unary_cases`].
+type UnaryRow = (&'static str, UnaryFn, fn(f64) -> f64, f64, f64, &'static [f64]);
+
 fn unary_cases() -> Vec<UnaryCase> {
-    fn c(
-        name: &'static str,
-        op: UnaryFn,
-        reference: fn(f64) -> f64,
-        lo: f64,
-        hi: f64,
-        kinks: &'static [f64],
-    ) -> UnaryCase {
-        UnaryCase { name, op, reference, lo, hi, kinks }
-    }
-    vec![
-        c("neg", |x| x.neg(), |x| -x, -3.0, 3.0, &[]),
-        c("neg operator", |x| -x, |x| -x, -3.0, 3.0, &[]),
-        c("exp", |x| x.exp(), f64::exp, -3.0, 3.0, &[]),
-        c("ln", |x| x.ln(), f64::ln, 0.2, 4.0, &[]),
-        c("ln_1p", |x| x.ln_1p(), f64::ln_1p, -0.8, 3.0, &[]),
-        c("tanh", |x| x.tanh(), f64::tanh, -3.0, 3.0, &[]),
-        c("relu", |x| x.relu(), |x| x.max(0.0), -3.0, 3.0, &[0.0]),
-        c("softplus", |x| x.softplus(), |x| (1.0 + x.exp()).ln(), -6.0, 6.0, &[]),
-        c("sigmoid", |x| x.sigmoid(), |x| 1.0 / (1.0 + (-x).exp()), -6.0, 6.0, &[]),
-        c("sin", |x| x.sin(), f64::sin, -4.0, 4.0, &[]),
-        c("cos", |x| x.cos(), f64::cos, -4.0, 4.0, &[]),
-        c("abs", |x| x.abs(), f64::abs, -3.0, 3.0, &[0.0]),
-        c("sqrt", |x| x.sqrt(), f64::sqrt, 0.1, 4.0, &[]),
-        c("square", |x| x.square(), |x| x * x, -3.0, 3.0, &[]),
-        c("powf(2.5)", |x| x.powf(2.5), |x| x.powf(2.5), 0.1, 3.0, &[]),
-        c("powf(-1.5)", |x| x.powf(-1.5), |x| x.powf(-1.5), 0.2, 3.0, &[]),
-        c("powf(3) of negatives", |x| x.powf(3.0), |x| x * x * x, -2.0, 2.0, &[]),
-        c("powf(1)", |x| x.powf(1.0), |x| x, -2.0, 2.0, &[]),
-        c("powf(0)", |x| x.powf(0.0), |_| 1.0, 0.1, 2.0, &[]),
-        c("add_scalar", |x| x.add_scalar(0.7), |x| x + 0.7, -3.0, 3.0, &[]),
-        c("mul_scalar", |x| x.mul_scalar(-1.3), |x| -1.3 * x, -3.0, 3.0, &[]),
-        c("clamp", |x| x.clamp(-0.5, 0.8), |x| x.max(-0.5).min(0.8), -2.0, 2.0, &[-0.5, 0.8]),
-        c("mean", |x| x.mean(), |x| x, -3.0, 3.0, &[]),
-    ]
+    let rows: &[UnaryRow] = &[
+        ("neg", |x| x.neg(), |x| -x, -3.0, 3.0, &[]),
+        ("neg operator", |x| -x, |x| -x, -3.0, 3.0, &[]),
+        ("exp", |x| x.exp(), f64::exp, -3.0, 3.0, &[]),
+        ("ln", |x| x.ln(), f64::ln, 0.2, 4.0, &[]),
+        ("ln_1p", |x| x.ln_1p(), f64::ln_1p, -0.8, 3.0, &[]),
+        ("tanh", |x| x.tanh(), f64::tanh, -3.0, 3.0, &[]),
+        ("relu", |x| x.relu(), |x| x.max(0.0), -3.0, 3.0, &[0.0]),
+        ("softplus", |x| x.softplus(), |x| (1.0 + x.exp()).ln(), -6.0, 6.0, &[]),
+        ("sigmoid", |x| x.sigmoid(), |x| 1.0 / (1.0 + (-x).exp()), -6.0, 6.0, &[]),
+        ("sin", |x| x.sin(), f64::sin, -4.0, 4.0, &[]),
+        ("cos", |x| x.cos(), f64::cos, -4.0, 4.0, &[]),
+        ("abs", |x| x.abs(), f64::abs, -3.0, 3.0, &[0.0]),
+        ("sqrt", |x| x.sqrt(), f64::sqrt, 0.1, 4.0, &[]),
+        ("square", |x| x.square(), |x| x * x, -3.0, 3.0, &[]),
+        ("powf(2.5)", |x| x.powf(2.5), |x| x.powf(2.5), 0.1, 3.0, &[]),
+        ("powf(-1.5)", |x| x.powf(-1.5), |x| x.powf(-1.5), 0.2, 3.0, &[]),
+        ("powf(3) of negatives", |x| x.powf(3.0), |x| x * x * x, -2.0, 2.0, &[]),
+        ("powf(1)", |x| x.powf(1.0), |x| x, -2.0, 2.0, &[]),
+        ("powf(0)", |x| x.powf(0.0), |_| 1.0, 0.1, 2.0, &[]),
+        ("add_scalar", |x| x.add_scalar(0.7), |x| x + 0.7, -3.0, 3.0, &[]),
+        ("mul_scalar", |x| x.mul_scalar(-1.3), |x| -1.3 * x, -3.0, 3.0, &[]),
+        ("clamp", |x| x.clamp(-0.5, 0.8), |x| x.max(-0.5).min(0.8), -2.0, 2.0, &[-0.5, 0.8]),
+        ("mean", |x| x.mean(), |x| x, -3.0, 3.0, &[]),
+    ];
+    rows.iter().map(|&(name, op, reference, lo, hi, kinks)| UnaryCase { name, op, reference, lo, hi, kinks }).collect()
 }
 
 #[test]
@@ -110,16 +104,6 @@ const BROADCAST_CASES: &[(&str, &[usize], &[usize])] = &[
     ("3-D vs row", &[2, 3, 4], &[4]),
     ("3-D vs middle", &[2, 3, 4], &[3, 1]),
 ];
-
-/// Multi-index of flat position `i` in `shape`.
-fn unravel(mut i: usize, shape: &[usize]) -> Vec<usize> {
-    let mut idx = vec![0; shape.len()];
-    for d in (0..shape.len()).rev() {
-        idx[d] = i % shape[d];
-        i /= shape[d];
-    }
-    idx
-}
 
 /// The element of `t` read at output multi-index `out_idx` under numpy broadcasting.
 fn broadcast_read(t: &Tensor<f64>, out_idx: &[usize]) -> f64 {

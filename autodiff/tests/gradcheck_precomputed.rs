@@ -50,21 +50,48 @@ fn fused_row_lse<'t>(tape: &'t Tape<f64>, a: Var<'t, f64>, c: Var<'t, f64>) -> V
     )
 }
 
+/// Checks the fused node `fused` against finite differences, then its value and
+/// gradients against the same function `composed` from primitive ops: the values
+/// within `value_tol` (relative, floor 1), each gradient with the input's shape and
+/// within `grad_tol` (relative, floor `grad_floor`).
+#[track_caller]
+fn assert_fused_matches_composed<Fused, Composed>(
+    name: &str,
+    fused: Fused,
+    composed: Composed,
+    inputs: &[Tensor<f64>],
+    value_tol: f64,
+    grad_tol: f64,
+    grad_floor: f64,
+) where
+    Fused: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
+    Composed: for<'t> Fn(&'t Tape<f64>, &[Var<'t, f64>]) -> Var<'t, f64>,
+{
+    check(name, &fused, inputs);
+    let (fused, fused_grads) = grads(&fused, inputs);
+    let (composed, composed_grads) = grads(composed, inputs);
+    assert_close("value", fused.data(), composed.data(), value_tol, 1.0);
+    for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
+        assert_eq!(f.shape(), c.shape(), "gradient {i}: the broadcast input keeps its shape");
+        assert_close(&format!("gradient {i}"), f.data(), c.data(), grad_tol, grad_floor);
+    }
+}
+
 #[test]
 fn element_wise_layout_matches_finite_differences_and_the_composed_density() {
     let mut r = rng(11);
     let x = normal(&mut r, &[ROWS]);
     let mu = normal(&mut r, &[1]);
     let log_sd = uniform(&mut r, &[ROWS], -0.5, 0.5);
-    let inputs = [x, mu, log_sd];
-    check("fused normal", |tape, v| fused_normal(tape, v[0], v[1], v[2]), &inputs);
-    let (fused, fused_grads) = grads(|tape, v| fused_normal(tape, v[0], v[1], v[2]), &inputs);
-    let (composed, composed_grads) = grads(|_, v| normal_logpdf(v[0], v[1], v[2]), &inputs);
-    assert_close("value", fused.data(), composed.data(), 1e-14, 1.0);
-    for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
-        assert_eq!(f.shape(), c.shape(), "gradient {i}: the broadcast input keeps its shape");
-        assert_close(&format!("gradient {i}"), f.data(), c.data(), 1e-13, 1.0);
-    }
+    assert_fused_matches_composed(
+        "fused normal",
+        |tape, v| fused_normal(tape, v[0], v[1], v[2]),
+        |_, v| normal_logpdf(v[0], v[1], v[2]),
+        &[x, mu, log_sd],
+        1e-14,
+        1e-13,
+        1.0,
+    );
 }
 
 #[test]
@@ -72,14 +99,15 @@ fn row_wise_layout_matches_finite_differences_and_logsumexp() {
     let mut r = rng(12);
     let a = normal(&mut r, &[ROWS, K]);
     let c = normal(&mut r, &[ROWS]);
-    let inputs = [a, c];
-    check("fused row logsumexp", |tape, v| fused_row_lse(tape, v[0], v[1]), &inputs);
-    let (fused, fused_grads) = grads(|tape, v| fused_row_lse(tape, v[0], v[1]), &inputs);
-    let (composed, composed_grads) = grads(|_, v| v[0].logsumexp(1, false) + v[1], &inputs);
-    assert_close("value", fused.data(), composed.data(), 1e-14, 1.0);
-    for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
-        assert_close(&format!("gradient {i}"), f.data(), c.data(), 1e-13, 1e-300);
-    }
+    assert_fused_matches_composed(
+        "fused row logsumexp",
+        |tape, v| fused_row_lse(tape, v[0], v[1]),
+        |_, v| v[0].logsumexp(1, false) + v[1],
+        &[a, c],
+        1e-14,
+        1e-13,
+        1e-300,
+    );
 }
 
 /// `y_ik = x_i a_ik + c_k` as one node: `x: [R, 1]` a column broadcast along each
@@ -108,14 +136,15 @@ fn fused_outer<'t>(tape: &'t Tape<f64>, x: Var<'t, f64>, a: Var<'t, f64>, c: Var
 fn broadcast_columns_and_rows_sum_their_partials() {
     let mut r = rng(14);
     let inputs = [normal(&mut r, &[ROWS, 1]), normal(&mut r, &[ROWS, K]), normal(&mut r, &[K])];
-    check("fused outer product", |tape, v| fused_outer(tape, v[0], v[1], v[2]), &inputs);
-    let (fused, fused_grads) = grads(|tape, v| fused_outer(tape, v[0], v[1], v[2]), &inputs);
-    let (composed, composed_grads) = grads(|_, v| v[0] * v[1] + v[2], &inputs);
-    assert_close("value", fused.data(), composed.data(), 1e-15, 1.0);
-    for (i, (f, c)) in fused_grads.iter().zip(&composed_grads).enumerate() {
-        assert_eq!(f.shape(), c.shape(), "gradient {i}");
-        assert_close(&format!("gradient {i}"), f.data(), c.data(), 1e-14, 1.0);
-    }
+    assert_fused_matches_composed(
+        "fused outer product",
+        |tape, v| fused_outer(tape, v[0], v[1], v[2]),
+        |_, v| v[0] * v[1] + v[2],
+        &inputs,
+        1e-15,
+        1e-14,
+        1.0,
+    );
 }
 
 #[test]

@@ -7,8 +7,8 @@ use autodiff::nn::ParamStore;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Action, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::models::observation::{BoxObservationModel, ObsContext, ObservationModel, PointObservationModel};
-use ssm::models::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+use ssm::models::observation::{ObsContext, ObservationModel};
+use ssm::models::params::{AnyObservation, AnyPolicy, Models};
 use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,
     VehicleState,
@@ -29,14 +29,7 @@ fn workdir(name: &str) -> PathBuf {
 fn store_for(kind: ObservationKind, neural: bool, seed: u64) -> ParamStore<f64> {
     let mut store = ParamStore::new();
     let mut rng = StdRng::seed_from_u64(seed);
-    match kind {
-        ObservationKind::Points => {
-            PointObservationModel::init_params(&mut store, OBS_PREFIX, &mut rng);
-        }
-        ObservationKind::Boxes => {
-            BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut rng);
-        }
-    }
+    AnyObservation::init(kind, &mut store, &mut rng);
     let policy = if neural {
         AnyPolicy::Neural(NeuralPolicy::new(&mut rng))
     } else {

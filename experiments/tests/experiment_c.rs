@@ -17,7 +17,7 @@ const METHODS: [&str; 5] = ["pf-sefi", "dpf-sgr", "pfnet", "pf", "pf-sefi-temper
 
 mod common;
 
-use common::{ok, s, sefi};
+use common::{failed, ok, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
     common::temp("experiment-c", name)
@@ -96,18 +96,16 @@ fn quick_experiment_c_writes_the_table_and_reruns_identically() {
 #[test]
 fn a_missing_kitti_folder_is_named() {
     let out = temp("missing");
-    let r = sefi(&["experiment-c", "--quick", "--kitti", "/nonexistent/kitti", "--out", s(&out)]);
-    assert!(!r.status.success());
-    assert!(String::from_utf8_lossy(&r.stderr).contains("/nonexistent/kitti"));
+    let err = failed(&sefi(&["experiment-c", "--quick", "--kitti", "/nonexistent/kitti", "--out", s(&out)]));
+    assert!(err.contains("/nonexistent/kitti"));
     std::fs::remove_dir_all(&out).ok();
 }
 
 #[test]
 fn an_unknown_method_is_refused_before_any_work() {
     let out = temp("method");
-    let r = sefi(&["experiment-c", "--quick", "--methods", "pf-sefi,nonsense", "--out", s(&out)]);
-    assert!(!r.status.success());
-    assert!(String::from_utf8_lossy(&r.stderr).contains("nonsense"));
+    let err = failed(&sefi(&["experiment-c", "--quick", "--methods", "pf-sefi,nonsense", "--out", s(&out)]));
+    assert!(err.contains("nonsense"));
     assert!(!out.join("data").exists(), "nothing imported");
     std::fs::remove_dir_all(&out).ok();
 }
@@ -123,9 +121,7 @@ fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
     assert_eq!(meta["steps"], 12);
     assert!((meta["dt"].as_f64().unwrap() - 0.3).abs() < 1e-9, "dt {}", meta["dt"]);
     // Other windows over the same import: refused, naming both, and the import kept.
-    let r = sefi(&[&base[..], &["--stride", "2", "--steps", "12"]].concat());
-    assert!(!r.status.success());
-    let err = String::from_utf8_lossy(&r.stderr);
+    let err = failed(&sefi(&[&base[..], &["--stride", "2", "--steps", "12"]].concat()));
     assert!(err.contains("--stride 2") && err.contains("dt = 0.3"), "{err}");
     assert!(out.join("data/train/meta.json").is_file());
     std::fs::remove_dir_all(&out).ok();

@@ -2,6 +2,9 @@
 //! model: the identities that tie the code paths together, and the statistical
 //! properties the method stands on (SPEC §2).
 
+mod common;
+
+use common::assert_unbiased;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow};
@@ -65,14 +68,7 @@ fn pf_sefi_bias_shrinks_with_the_lag_and_vanishes_at_lag_ten() {
         assert!(total(&l10) < 0.2 * total(&l0), "T={transitions}: |bias| L=0 {} vs L=10 {}", total(&l0), total(&l10));
         assert!(l0.iter().any(|r| r.z().abs() > 10.0), "T={transitions}: L=0 should be visibly biased");
         for r in &l10 {
-            assert!(
-                r.bias.abs() <= 3.0 * r.se + 0.05 * r.sd,
-                "T={transitions} {}: bias {} with se {} and sd {}",
-                r.component,
-                r.bias,
-                r.se,
-                r.sd
-            );
+            assert_unbiased(&format!("T={transitions}"), r, 3.0);
         }
     }
 }

@@ -6,6 +6,9 @@
 //! takes a step in one go when the observation is not sharp, and its results do
 //! not depend on the thread count.
 
+mod common;
+
+use common::assert_unbiased;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::score_study;
@@ -141,15 +144,7 @@ fn pf_sefi_on_the_tempered_filter_recovers_the_exact_score_on_a_sharp_model() {
     let tempered = EstimatorConfig { tempering: Some(Tempering::default()), ..base.clone() };
     let rows = score_study(&model, &ys, &[Estimator::pf_sefi(8)], &tempered, 200, 0);
     for r in &rows {
-        assert!(
-            r.bias.abs() <= 3.5 * r.se + 0.05 * r.sd,
-            "tempered {}: bias {} se {} sd {} (exact {})",
-            r.component,
-            r.bias,
-            r.se,
-            r.sd,
-            r.exact
-        );
+        assert_unbiased("tempered", r, 3.5);
     }
     let boot = score_study(&model, &ys, &[Estimator::pf_sefi(8)], &base, 200, 0);
     let worst = |rows: &[ssm::estimators::study::ScoreStudyRow]| rows.iter().map(|r| r.rmse).sum::<f64>();

@@ -7,7 +7,7 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::data::{Action, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
+use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::filter::FilterConfig;
 use ssm::metrics::{
     aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff, Summary,
@@ -28,14 +28,7 @@ const DT: f64 = 1.0 / 3.0;
 fn store_for(kind: ObservationKind, seed: u64) -> ParamStore<f64> {
     let mut store = ParamStore::new();
     let mut rng = StdRng::seed_from_u64(seed);
-    match kind {
-        ObservationKind::Points => {
-            PointObservationModel::init_params(&mut store, OBS_PREFIX, &mut rng);
-        }
-        ObservationKind::Boxes => {
-            BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut rng);
-        }
-    }
+    AnyObservation::init(kind, &mut store, &mut rng);
     AnyPolicy::HandCrafted(HandCraftedPolicy::truth()).add_to_store(&mut store);
     store
 }
@@ -99,6 +92,20 @@ fn tiny(kind: ObservationKind, models: &Models, n: usize, steps: usize, seed: u6
     b.build().unwrap()
 }
 
+/// The models of `store_for(kind, store_seed)` and a `tiny` dataset of `n` objects
+/// over `steps` steps simulated from them with `data_seed`.
+fn models_and_data(
+    kind: ObservationKind,
+    store_seed: u64,
+    n: usize,
+    steps: usize,
+    data_seed: u64,
+) -> (Models, Dataset) {
+    let models = Models::from_store(&store_for(kind, store_seed), kind).unwrap();
+    let data = tiny(kind, &models, n, steps, data_seed);
+    (models, data)
+}
+
 fn config(particles: usize, lag: usize) -> FilterConfig {
     FilterConfig { particles, lag, seed: 3, ..FilterConfig::default() }
 }
@@ -115,8 +122,7 @@ fn yaw_error_wraps() {
 
 #[test]
 fn state_errors_of_perfect_and_shifted_estimates() {
-    let models = Models::from_store(&store_for(ObservationKind::Points, 0), ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 3, 5, 1);
+    let (_, data) = models_and_data(ObservationKind::Points, 0, 3, 5, 1);
     let truth = data.states().unwrap();
     // Estimates = truth (the missing cell filled with garbage, which must be skipped).
     let perfect: Vec<Vec<State>> = (0..3)
@@ -137,18 +143,25 @@ fn state_errors_of_perfect_and_shifted_estimates() {
     assert!((e.aye.unwrap() - 0.1).abs() < 1e-9);
 }
 
-#[test]
-fn state_errors_wrap_yaw_across_pi() {
-    let mut b = Dataset::builder(Meta { dt: DT, steps: 1 }, ObservationKind::Points);
-    b.scene(0, &[Pose::default()]);
-    let s = State { x: 1.0, y: 2.0, yaw: -3.1, v: 1.0, kappa: 0.0 };
+/// A points dataset of `steps` steps under construction: scene 0 with the AV at the
+/// origin throughout, and object 0 (4 x 2 m) with prior mean `mean` and unit sds.
+fn one_object(steps: usize, mean: State) -> DatasetBuilder {
+    let mut b = Dataset::builder(Meta { dt: DT, steps }, ObservationKind::Points);
+    b.scene(0, &vec![Pose::default(); steps]);
     b.object(Object {
         scene: 0,
         id: 0,
         length: 4.0,
         width: 2.0,
-        prior: Prior { mean: s, sd: State { x: 1.0, y: 1.0, yaw: 1.0, v: 1.0, kappa: 1.0 } },
+        prior: Prior { mean, sd: State { x: 1.0, y: 1.0, yaw: 1.0, v: 1.0, kappa: 1.0 } },
     });
+    b
+}
+
+#[test]
+fn state_errors_wrap_yaw_across_pi() {
+    let s = State { x: 1.0, y: 2.0, yaw: -3.1, v: 1.0, kappa: 0.0 };
+    let mut b = one_object(1, s);
     b.state(0, 0, 0, s);
     let data = b.build().unwrap();
     let e = state_errors(&[vec![State { yaw: 3.1, ..s }]], data.states().unwrap());
@@ -158,16 +171,8 @@ fn state_errors_wrap_yaw_across_pi() {
 
 #[test]
 fn state_errors_without_any_truth_are_none() {
-    let mut b = Dataset::builder(Meta { dt: DT, steps: 2 }, ObservationKind::Points);
-    b.scene(0, &[Pose::default(); 2]);
     let s = State { x: 1.0, y: 2.0, yaw: 0.0, v: 1.0, kappa: 0.0 };
-    b.object(Object {
-        scene: 0,
-        id: 0,
-        length: 4.0,
-        width: 2.0,
-        prior: Prior { mean: s, sd: State { x: 1.0, y: 1.0, yaw: 1.0, v: 1.0, kappa: 1.0 } },
-    });
+    let mut b = one_object(2, s);
     b.with_states();
     let data = b.build().unwrap();
     let e = state_errors(&[vec![s, s]], data.states().unwrap());
@@ -179,9 +184,7 @@ fn mll_is_loglik_per_point() {
     assert_eq!(mll(-10.0, 4), Some(-2.5));
     assert_eq!(mll(-10.0, 0), None);
 
-    let store = store_for(ObservationKind::Points, 2);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 3, 6, 4);
+    let (models, data) = models_and_data(ObservationKind::Points, 2, 3, 6, 4);
     let AnyObservation::Points(obs) = &models.observation else { unreachable!() };
     let m = evaluate(&data, &models.policy, obs, &models.observation_params, &config(256, 2)).unwrap();
     assert_eq!(m.collapsed_steps, 0);
@@ -200,9 +203,7 @@ fn mll_is_loglik_per_point() {
 
 #[test]
 fn aotll_equals_a_direct_computation() {
-    let store = store_for(ObservationKind::Points, 5);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 2, 5, 6);
+    let (models, data) = models_and_data(ObservationKind::Points, 5, 2, 5, 6);
     let AnyObservation::Points(obs) = &models.observation else { unreachable!() };
     let got = aotll(&data, obs, &models.observation_params);
 
@@ -237,9 +238,7 @@ fn aotll_equals_a_direct_computation() {
 
 #[test]
 fn aotll_of_box_detections_counts_detections() {
-    let store = store_for(ObservationKind::Boxes, 7);
-    let models = Models::from_store(&store, ObservationKind::Boxes).unwrap();
-    let data = tiny(ObservationKind::Boxes, &models, 2, 4, 8);
+    let (models, data) = models_and_data(ObservationKind::Boxes, 7, 2, 4, 8);
     let AnyObservation::Boxes(obs) = &models.observation else { unreachable!() };
     let got = aotll(&data, obs, &models.observation_params);
     // 2 objects x 4 steps, minus object 0's unobserved step 2 and object 1's step 3 without truth.
@@ -251,9 +250,7 @@ fn aotll_of_box_detections_counts_detections() {
 
 #[test]
 fn aptll_equals_the_gaussian_log_density() {
-    let store = store_for(ObservationKind::Points, 9);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 3, 6, 10);
+    let (models, data) = models_and_data(ObservationKind::Points, 9, 3, 6, 10);
     let got = aptll(&data, &models.policy);
 
     let (states, actions) = (data.states().unwrap(), data.actions().unwrap());
@@ -278,9 +275,7 @@ fn aptll_equals_the_gaussian_log_density() {
 fn true_parameters_score_better_than_wrong_ones() {
     // The true policy's APTLL beats a policy with 10x sds (an easy, certain gap:
     // the log-density drops by about ln 100 = 4.6 per step plus the shrunk quadratic).
-    let store = store_for(ObservationKind::Points, 11);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 4, 8, 12);
+    let (models, data) = models_and_data(ObservationKind::Points, 11, 4, 8, 12);
     let wide = HandCraftedPolicy::new(5.0f64.ln(), 0.2f64.ln()).unwrap();
     let (good, bad) = (aptll(&data, &models.policy).mean.unwrap(), aptll(&data, &wide).mean.unwrap());
     assert!(good > bad + 3.0, "true {good}, wide {bad}");
@@ -288,9 +283,7 @@ fn true_parameters_score_better_than_wrong_ones() {
 
 #[test]
 fn tracks_cover_every_object_and_step() {
-    let store = store_for(ObservationKind::Points, 13);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 3, 7, 14);
+    let (models, data) = models_and_data(ObservationKind::Points, 13, 3, 7, 14);
     let AnyObservation::Points(obs) = &models.observation else { unreachable!() };
     let tr = track(&data, &models.policy, obs, &models.observation_params, &config(128, 3)).unwrap();
     assert_eq!(tr.filtered.len(), 3);
@@ -325,9 +318,7 @@ fn median_and_iqr() {
 
 #[test]
 fn summaries_over_repeated_runs() {
-    let store = store_for(ObservationKind::Points, 15);
-    let models = Models::from_store(&store, ObservationKind::Points).unwrap();
-    let data = tiny(ObservationKind::Points, &models, 2, 5, 16);
+    let (models, data) = models_and_data(ObservationKind::Points, 15, 2, 5, 16);
     let AnyObservation::Points(obs) = &models.observation else { unreachable!() };
     let runs: Vec<_> = (0..5)
         .map(|seed| {

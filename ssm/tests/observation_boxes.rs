@@ -8,10 +8,12 @@ use std::f64::consts::{PI, TAU};
 
 mod common;
 
-use autodiff::gradcheck::GradCheck;
 use autodiff::nn::ParamStore;
-use autodiff::{Tape, Tensor};
-use common::{assert_tape_rows_match_plain, poses, Rows};
+use autodiff::Tape;
+use common::{
+    assert_finite_at, assert_plain_matches_reference, assert_tape_rows_match_plain, check_row_gradients, poses, soa,
+    to32, Rows,
+};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};
@@ -74,10 +76,6 @@ fn reference(
     laplace(a, p.mu_along, p.b_along) + laplace(x, p.mu_across, p.b_across) + wrapped.ln()
 }
 
-fn to32(v: &[f64]) -> Vec<f32> {
-    v.iter().map(|&x| x as f32).collect()
-}
-
 #[test]
 fn plain_kernel_matches_reference_in_f64_and_f32() {
     let (model, store) = model(1);
@@ -87,20 +85,12 @@ fn plain_kernel_matches_reference_in_f64_and_f32() {
     let mut dets = Vec::new();
     model.sample(&store, &c, ps[0], 3, &mut rng, &mut dets);
     dets.push(detection(&c, ps[0], 1.5, -0.7, 3.0)); // a near-flipped heading
-    let (xs, ys, yaws): (Vec<f64>, Vec<f64>, Vec<f64>) =
-        (ps.iter().map(|p| p.x).collect(), ps.iter().map(|p| p.y).collect(), ps.iter().map(|p| p.yaw).collect());
+    let (xs, ys, yaws) = soa(&ps);
     let mut out = vec![0.0; ps.len()];
     model.log_likelihood(&store, &c, PosesRef::new(&xs, &ys, &yaws), &dets, &mut Scratch::new(), &mut out);
-    let mut per = vec![0.0; dets.len()];
-    for (i, p) in ps.iter().enumerate() {
-        let want: Vec<f64> = dets.iter().map(|d| reference(&model, &store, &c, *p, d)).collect();
-        let total: f64 = want.iter().sum();
-        assert!((out[i] - total).abs() < 1e-9 * total.abs().max(1.0), "pose {i}: {} vs {total}", out[i]);
-        model.log_density_items(&store, &c, *p, &dets, &mut per);
-        for (a, b) in per.iter().zip(&want) {
-            assert!((a - b).abs() < 1e-9 * b.abs().max(1.0));
-        }
-    }
+    assert_plain_matches_reference(&model, &store, &c, &ps, &dets, &out, 1e-9, |p, d| {
+        reference(&model, &store, &c, p, d)
+    });
     // f32: position rounding (~2e-6 m) over scales >= 0.02 m and heading rounding
     // (~5e-7 rad) over yaw scales >= 0.005 rad give <= 2e-4 per detection.
     let s32 = store.cast::<f32>();
@@ -192,34 +182,7 @@ fn tape_rows_match_plain_path() {
 fn tape_gradients_match_finite_differences() {
     let (model, store) = model(6);
     let b = rows(&model, &store, 4, 7, 0.02);
-    let items = b.item_slices();
-    let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3, 0.8]);
-    let report = GradCheck::default()
-        .check_params(&store, |tape, params| {
-            let rv = RowVars::from_poses(tape, &b.poses, &b.ctxs);
-            (model.log_likelihood_rows(params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
-        })
-        .unwrap();
-    assert!(report.comparisons >= 100, "{report:?}");
-    let c = |f: &dyn Fn(usize) -> f64| Tensor::from_vec((0..4).map(f).collect());
-    let inputs = [
-        c(&|i| b.poses[i].x),
-        c(&|i| b.poses[i].y),
-        c(&|i| b.poses[i].yaw),
-        c(&|i| b.ctxs[i].length),
-        c(&|i| b.ctxs[i].width),
-    ];
-    let report = GradCheck::default()
-        .check(
-            |tape, v| {
-                let params = store.bind(tape);
-                let rv = RowVars { x: v[0], y: v[1], yaw: v[2], length: v[3], width: v[4] };
-                (model.log_likelihood_rows(&params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
-            },
-            &inputs,
-        )
-        .unwrap();
-    assert_eq!(report.comparisons, 20);
+    check_row_gradients(&model, &store, &b, &[1.0, -0.6, 0.3, 0.8]);
 }
 
 #[test]
@@ -240,37 +203,7 @@ fn extreme_inputs_stay_finite() {
     let xs = [c.av.x, 1e4, 0.3];
     let ys = [c.av.y, -1e4, -0.2];
     let yaws = [0.0, 3.0, 1e4];
-    let mut out = [0.0; 3];
-    model.log_likelihood(&store, &c, PosesRef::new(&xs, &ys, &yaws), &dets, &mut Scratch::new(), &mut out);
-    assert!(out.iter().all(|v| v.is_finite()), "{out:?}");
-    let s32 = store.cast::<f32>();
-    let mut out32 = [0.0f32; 3];
-    model.log_likelihood(
-        &s32,
-        &c,
-        PosesRef::new(&to32(&xs), &to32(&ys), &to32(&yaws)),
-        &dets,
-        &mut Scratch::new(),
-        &mut out32,
-    );
-    assert!(out32.iter().all(|v| v.is_finite()), "{out32:?}");
-    let tape = Tape::<f32>::new();
-    let params = s32.bind(&tape);
-    let rv = RowVars {
-        x: tape.param(Tensor::from_vec(to32(&xs))),
-        y: tape.param(Tensor::from_vec(to32(&ys))),
-        yaw: tape.param(Tensor::from_vec(to32(&yaws))),
-        length: tape.param(Tensor::full(&[3], 4.4)),
-        width: tape.param(Tensor::full(&[3], 1.9)),
-    };
-    let items: Vec<&[BoxDetection]> = vec![&dets[..]; 3];
-    let v = model.log_likelihood_rows(&params, &rv, &[c.av; 3], &items);
-    assert!(v.to_tensor().all_finite(), "{:?}", v.to_tensor());
-    let g = tape.backward(v.sum());
-    assert!(params.gradients(&g).iter().all(|t| t.all_finite()));
-    for x in [rv.x, rv.y, rv.yaw, rv.length, rv.width] {
-        assert!(g.wrt(x).all_finite());
-    }
+    assert_finite_at(&model, &store, &c, (&xs, &ys, &yaws), &dets);
 }
 
 #[test]

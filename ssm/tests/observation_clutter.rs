@@ -10,7 +10,7 @@ mod common;
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{clear_of_kinks, ctx, model, poses, row_contexts, soa, to32, Rows};
+use common::{assert_finite_with_gradients, ctx, f32_row_params, kink_free_rows, model, poses, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
@@ -63,25 +63,12 @@ fn clutter_rows(
     per_row: usize,
     seed: u64,
 ) -> Rows<[f64; 2]> {
-    let mut rng = StdRng::seed_from_u64(seed);
-    let ps = poses(r, &mut rng);
-    let ctxs = row_contexts(r, &mut rng);
     let clutter = Clutter { fraction: 0.3, scale: 2.0 };
-    let points = (0..r)
-        .map(|i| {
-            let mut pts = Vec::new();
-            while pts.len() < per_row {
-                let mut cand = Vec::new();
-                model.sample_with_clutter(store, &ctxs[i], ps[i], 1, clutter, &mut rng, &mut cand);
-                if clear_of_kinks(model, store, &ctxs[i], ps[i], cand[0], 0.03) {
-                    pts.push(cand[0]);
-                }
-            }
-            pts
-        })
-        .collect();
-    let av = ctxs.iter().map(|c| c.av).collect();
-    Rows { poses: ps, ctxs, av, items: points }
+    kink_free_rows(model, store, r, per_row, seed, |ctx, pose, rng| {
+        let mut cand = Vec::new();
+        model.sample_with_clutter(store, ctx, pose, 1, clutter, rng, &mut cand);
+        cand[0]
+    })
 }
 
 /// `log_likelihood_rows_with_clutter` on an f64 tape with constant rows and clutter.
@@ -347,23 +334,19 @@ fn extreme_clutter_stays_finite() {
         assert!(out.iter().all(|v| v.is_finite()), "plain f32, lambda {lambda}, sigma {sigma}: {out:?}");
         let tape = Tape::<f32>::new();
         let params = s32.bind(&tape);
-        let rv = RowVars {
-            x: tape.param(Tensor::from_vec(xs.to_vec())),
-            y: tape.param(Tensor::from_vec(ys.to_vec())),
-            yaw: tape.param(Tensor::from_vec(yaws.to_vec())),
-            length: tape.param(Tensor::full(&[3], 4.4)),
-            width: tape.param(Tensor::full(&[3], 1.9)),
-        };
+        let rv = f32_row_params(&tape, &xs, &ys, &yaws, 4.4, 1.9);
         let l = tape.param(Tensor::from_vec(vec![lambda as f32]));
         let sg = tape.param(Tensor::from_vec(vec![sigma as f32]));
         let items: Vec<&[[f64; 2]]> = vec![&pts[..]; 3];
         let out = model.log_likelihood_rows_with_clutter(&params, &rv, &[c.av; 3], &items, l, sg);
-        assert!(out.to_tensor().all_finite(), "tape f32, lambda {lambda}, sigma {sigma}: {:?}", out.to_tensor());
-        let grads = tape.backward(out.sum());
-        assert!(params.gradients(&grads).iter().all(|g| g.all_finite()));
-        for v in [rv.x, rv.y, rv.yaw, rv.length, rv.width, l, sg] {
-            assert!(grads.wrt(v).all_finite(), "gradient, lambda {lambda}, sigma {sigma}");
-        }
+        let inputs = [rv.x, rv.y, rv.yaw, rv.length, rv.width, l, sg];
+        assert_finite_with_gradients(
+            &format!("tape f32, lambda {lambda}, sigma {sigma}"),
+            &tape,
+            &params,
+            out,
+            &inputs,
+        );
     }
     // The near-certain clutter (lambda = 30) at the box centre is the Gaussian's peak.
     let mut lg = [0.0];

@@ -6,10 +6,12 @@
 
 mod common;
 
-use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{assert_tape_rows_match_plain, clear_of_kinks, ctx, model, poses, row_contexts, soa, to32, Rows};
+use common::{
+    assert_finite_at, assert_plain_matches_reference, assert_tape_rows_match_plain, check_row_gradients, ctx,
+    kink_free_rows, model, poses, soa, to32, Rows,
+};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
@@ -123,16 +125,9 @@ fn plain_kernel_matches_reference_in_f64_and_f32() {
     let mut out = vec![0.0; ps.len()];
     let mut scratch = Scratch::new();
     model.log_likelihood(&store, &ctx, PosesRef::new(&xs, &ys, &yaws), &pts, &mut scratch, &mut out);
-    let mut per_point = vec![0.0; pts.len()];
-    for (i, p) in ps.iter().enumerate() {
-        let want: Vec<f64> = pts.iter().map(|&q| reference(&model, &store, &ctx, *p, q)).collect();
-        let total: f64 = want.iter().sum();
-        assert!((out[i] - total).abs() < 1e-10 * total.abs().max(1.0), "particle {i}: {} vs {total}", out[i]);
-        model.log_density_items(&store, &ctx, *p, &pts, &mut per_point);
-        for (a, b) in per_point.iter().zip(&want) {
-            assert!((a - b).abs() < 1e-10 * b.abs().max(1.0));
-        }
-    }
+    assert_plain_matches_reference(&model, &store, &ctx, &ps, &pts, &out, 1e-10, |p, &q| {
+        reference(&model, &store, &ctx, p, q)
+    });
     // f32 (fast exp/ln/tanh, f32 coordinates). Per point the error is at most about
     // |d log g / d position| (<= 1/b + 1/s <= 120 per m) times the coordinate rounding
     // (~2e-6 m near 20 m), ~3e-4, plus ~1e-6 relative from the fast transcendentals.
@@ -151,28 +146,17 @@ fn plain_kernel_matches_reference_in_f64_and_f32() {
     assert_eq!(&again[..], &out[..5]);
 }
 
+/// Rows whose points are model draws, one in five replaced by a point anywhere
+/// within 3 m, all clear of the density's kinks.
 fn rows(model: &PointObservationModel, store: &ParamStore<f64>, r: usize, per_row: usize, seed: u64) -> Rows<[f64; 2]> {
-    let mut rng = StdRng::seed_from_u64(seed);
-    let ps = poses(r, &mut rng);
-    let ctxs = row_contexts(r, &mut rng);
-    let points = (0..r)
-        .map(|i| {
-            let mut pts = Vec::new();
-            while pts.len() < per_row {
-                let mut cand = Vec::new();
-                model.sample(store, &ctxs[i], ps[i], 1, &mut rng, &mut cand);
-                if rng.random::<f64>() < 0.2 {
-                    cand[0] = [ps[i].x + rng.random_range(-3.0..3.0), ps[i].y + rng.random_range(-3.0..3.0)];
-                }
-                if clear_of_kinks(model, store, &ctxs[i], ps[i], cand[0], 0.03) {
-                    pts.push(cand[0]);
-                }
-            }
-            pts
-        })
-        .collect();
-    let av = ctxs.iter().map(|c| c.av).collect();
-    Rows { poses: ps, ctxs, av, items: points }
+    kink_free_rows(model, store, r, per_row, seed, |ctx, pose, rng| {
+        let mut cand = Vec::new();
+        model.sample(store, ctx, pose, 1, rng, &mut cand);
+        if rng.random::<f64>() < 0.2 {
+            cand[0] = [pose.x + rng.random_range(-3.0..3.0), pose.y + rng.random_range(-3.0..3.0)];
+        }
+        cand[0]
+    })
 }
 
 #[test]
@@ -282,28 +266,9 @@ fn fused_tape_matches_composed_tape() {
 fn tape_gradients_match_finite_differences() {
     let (model, store) = model(7);
     let b = rows(&model, &store, 3, 6, 8);
-    let items = b.item_slices();
-    let weights = Tensor::from_vec(vec![1.0, -0.6, 0.3]);
-    // With respect to every network parameter (rows constant).
-    let report = GradCheck::default()
-        .check_params(&store, |tape, params| {
-            let rv = RowVars::from_poses(tape, &b.poses, &b.ctxs);
-            (model.log_likelihood_rows(params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
-        })
-        .unwrap();
-    assert!(report.comparisons >= 100, "{report:?}");
-    // With respect to the states and extents (parameters constant).
-    let report = GradCheck::default()
-        .check(
-            |tape, v| {
-                let params = store.bind(tape);
-                let rv = RowVars { x: v[0], y: v[1], yaw: v[2], length: v[3], width: v[4] };
-                (model.log_likelihood_rows(&params, &rv, &b.av, &items) * tape.constant(weights.clone())).sum()
-            },
-            &b.inputs(),
-        )
-        .unwrap();
-    assert_eq!(report.comparisons, 15);
+    // With respect to every network parameter (rows constant), then to the states
+    // and extents (parameters constant).
+    check_row_gradients(&model, &store, &b, &[1.0, -0.6, 0.3]);
 }
 
 #[test]
@@ -351,38 +316,7 @@ fn extreme_inputs_stay_finite() {
         let xs = [poses_at.0, poses_at.0 + 1.0, poses_at.0 - 2e4];
         let ys = [poses_at.1, poses_at.1, 1e4];
         let yaws = [0.4, -1e3, 7.0];
-        let mut out = [0.0; 3];
-        model.log_likelihood(&store, &cx, PosesRef::new(&xs, &ys, &yaws), &pts, &mut Scratch::new(), &mut out);
-        assert!(out.iter().all(|v| v.is_finite()), "f64 {out:?}");
-        let mut out32 = [0.0f32; 3];
-        let s32 = store.cast::<f32>();
-        model.log_likelihood(
-            &s32,
-            &cx,
-            PosesRef::new(&to32(&xs), &to32(&ys), &to32(&yaws)),
-            &pts,
-            &mut Scratch::new(),
-            &mut out32,
-        );
-        assert!(out32.iter().all(|v| v.is_finite()), "f32 {out32:?}");
-        // Tape values and gradients (f32, the estimators' type).
-        let tape = Tape::<f32>::new();
-        let params = s32.bind(&tape);
-        let rv = RowVars {
-            x: tape.param(Tensor::from_vec(to32(&xs))),
-            y: tape.param(Tensor::from_vec(to32(&ys))),
-            yaw: tape.param(Tensor::from_vec(to32(&yaws))),
-            length: tape.param(Tensor::full(&[3], size.0 as f32)),
-            width: tape.param(Tensor::full(&[3], size.1 as f32)),
-        };
-        let items: Vec<&[[f64; 2]]> = vec![&pts[..]; 3];
-        let out = model.log_likelihood_rows(&params, &rv, &[c.av; 3], &items);
-        assert!(out.to_tensor().all_finite(), "tape {:?}", out.to_tensor());
-        let grads = tape.backward(out.sum());
-        assert!(params.gradients(&grads).iter().all(|g| g.all_finite()));
-        for v in [rv.x, rv.y, rv.yaw, rv.length, rv.width] {
-            assert!(grads.wrt(v).all_finite());
-        }
+        assert_finite_at(&model, &store, &cx, (&xs, &ys, &yaws), &pts);
     }
 }
 

@@ -23,6 +23,16 @@ fn numel(shape: &[usize]) -> usize {
     shape.iter().product()
 }
 
+/// Multi-index of flat position `i` in `shape` (row-major).
+pub fn unravel(mut i: usize, shape: &[usize]) -> Vec<usize> {
+    let mut idx = vec![0; shape.len()];
+    for d in (0..shape.len()).rev() {
+        idx[d] = i % shape[d];
+        i /= shape[d];
+    }
+    idx
+}
+
 /// Standard normal entries.
 pub fn normal(rng: &mut StdRng, shape: &[usize]) -> Tensor<f64> {
     let data = (0..numel(shape)).map(|_| rng.sample::<f64, _>(StandardNormal)).collect();

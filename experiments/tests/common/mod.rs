@@ -1,5 +1,5 @@
 //! Helpers shared by the `sefi` command-line tests: run the binary, require
-//! success, make a fresh temporary directory.
+//! success or failure, make a fresh temporary directory.
 #![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
@@ -14,6 +14,13 @@ pub fn sefi(args: &[&str]) -> Output {
 pub fn ok(out: &Output) -> String {
     assert!(out.status.success(), "stderr: {}", String::from_utf8_lossy(&out.stderr));
     String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Requires a failed run and returns its stderr.
+#[track_caller]
+pub fn failed(out: &Output) -> String {
+    assert!(!out.status.success());
+    String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
 /// A fresh (removed if present) temporary directory named after `prefix` and `name`.

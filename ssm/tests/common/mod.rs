@@ -1,14 +1,17 @@
 //! Helpers shared by the observation models' tests: a batch of rows (poses,
 //! contexts, AV poses and each row's items), the check that a model's tape
-//! path gives the plain path's row log-densities, and the point model's fixtures.
+//! path gives the plain path's row log-densities, finiteness checks, and the
+//! point model's fixtures; and the score studies' bias criterion.
 
 #![allow(dead_code)] // each test file uses what it needs
 
-use autodiff::nn::ParamStore;
-use autodiff::{Tape, Tensor};
+use autodiff::gradcheck::GradCheck;
+use autodiff::nn::{BoundParams, ParamStore};
+use autodiff::{Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;
+use ssm::estimators::study::ScoreStudyRow;
 use ssm::models::observation::edges::{edge_coords, edge_lengths, to_box_frame};
 use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
 
@@ -77,6 +80,40 @@ pub fn assert_tape_rows_match_plain<M: ObservationModel>(
     out.data().to_vec()
 }
 
+/// Checks `model`'s tape row log-likelihoods of `rows` against finite differences
+/// (at the default settings), contracted with `weights` (one per row): with
+/// respect to every network parameter (rows constant), with at least 100
+/// comparisons, and with respect to the rows' states and extents (parameters
+/// constant), each compared.
+#[track_caller]
+pub fn check_row_gradients<M: ObservationModel>(
+    model: &M,
+    store: &ParamStore<f64>,
+    rows: &Rows<M::Item>,
+    weights: &[f64],
+) {
+    let items = rows.item_slices();
+    let weights = Tensor::from_vec(weights.to_vec());
+    let report = GradCheck::default()
+        .check_params(store, |tape, params| {
+            let rv = RowVars::from_poses(tape, &rows.poses, &rows.ctxs);
+            (model.log_likelihood_rows(params, &rv, &rows.av, &items) * tape.constant(weights.clone())).sum()
+        })
+        .unwrap();
+    assert!(report.comparisons >= 100, "{report:?}");
+    let report = GradCheck::default()
+        .check(
+            |tape, v| {
+                let params = store.bind(tape);
+                let rv = RowVars { x: v[0], y: v[1], yaw: v[2], length: v[3], width: v[4] };
+                (model.log_likelihood_rows(&params, &rv, &rows.av, &items) * tape.constant(weights.clone())).sum()
+            },
+            &rows.inputs(),
+        )
+        .unwrap();
+    assert_eq!(report.comparisons, 5 * rows.poses.len());
+}
+
 /// A point observation network with parameters drawn from `seed`.
 pub fn model(seed: u64) -> (PointObservationModel, ParamStore<f64>) {
     let mut store = ParamStore::new();
@@ -141,4 +178,142 @@ pub fn row_contexts(r: usize, rng: &mut StdRng) -> Vec<ObsContext> {
             )
         })
         .collect()
+}
+
+/// Rows of `per_row` points each at poses and contexts drawn from `seed`: every
+/// point is a candidate `draw(ctx, pose, rng)` kept if [`clear_of_kinks`] by 3 cm.
+pub fn kink_free_rows(
+    model: &PointObservationModel,
+    store: &ParamStore<f64>,
+    r: usize,
+    per_row: usize,
+    seed: u64,
+    mut draw: impl FnMut(&ObsContext, Pose, &mut StdRng) -> [f64; 2],
+) -> Rows<[f64; 2]> {
+    let mut rng = StdRng::seed_from_u64(seed);
+    let ps = poses(r, &mut rng);
+    let ctxs = row_contexts(r, &mut rng);
+    let points = (0..r)
+        .map(|i| {
+            let mut pts = Vec::new();
+            while pts.len() < per_row {
+                let cand = draw(&ctxs[i], ps[i], &mut rng);
+                if clear_of_kinks(model, store, &ctxs[i], ps[i], cand, 0.03) {
+                    pts.push(cand);
+                }
+            }
+            pts
+        })
+        .collect();
+    let av = ctxs.iter().map(|c| c.av).collect();
+    Rows { poses: ps, ctxs, av, items: points }
+}
+
+/// Asserts that the plain path's log-likelihoods `out` of `items` at `poses` (one
+/// per pose) in context `ctx` and its per-item log-densities equal `reference(pose,
+/// item)` (summed over the items for `out`) within `tol` relative (floor 1).
+#[track_caller]
+pub fn assert_plain_matches_reference<M: ObservationModel>(
+    model: &M,
+    store: &ParamStore<f64>,
+    ctx: &ObsContext,
+    poses: &[Pose],
+    items: &[M::Item],
+    out: &[f64],
+    tol: f64,
+    reference: impl Fn(Pose, &M::Item) -> f64,
+) {
+    let mut per_item = vec![0.0; items.len()];
+    for (i, p) in poses.iter().enumerate() {
+        let want: Vec<f64> = items.iter().map(|q| reference(*p, q)).collect();
+        let total: f64 = want.iter().sum();
+        assert!((out[i] - total).abs() < tol * total.abs().max(1.0), "pose {i}: {} vs {total}", out[i]);
+        model.log_density_items(store, ctx, *p, items, &mut per_item);
+        for (a, b) in per_item.iter().zip(&want) {
+            assert!((a - b).abs() < tol * b.abs().max(1.0), "pose {i}: item {a} vs {b}");
+        }
+    }
+}
+
+/// Asserts that `model`'s log-likelihoods of `items` at the poses `xs`, `ys`,
+/// `yaws` (one row each) in context `ctx` are finite on the plain path in f64 and
+/// in f32, and on an f32 tape with tracked rows, together with their gradients.
+#[track_caller]
+pub fn assert_finite_at<M: ObservationModel>(
+    model: &M,
+    store: &ParamStore<f64>,
+    ctx: &ObsContext,
+    (xs, ys, yaws): (&[f64], &[f64], &[f64]),
+    items: &[M::Item],
+) {
+    let n = xs.len();
+    let mut out = vec![0.0; n];
+    model.log_likelihood(store, ctx, PosesRef::new(xs, ys, yaws), items, &mut Scratch::new(), &mut out);
+    assert!(out.iter().all(|v| v.is_finite()), "f64 {out:?}");
+    let s32 = store.cast::<f32>();
+    let (x32, y32, yaw32) = (to32(xs), to32(ys), to32(yaws));
+    let mut out32 = vec![0.0f32; n];
+    model.log_likelihood(&s32, ctx, PosesRef::new(&x32, &y32, &yaw32), items, &mut Scratch::new(), &mut out32);
+    assert!(out32.iter().all(|v| v.is_finite()), "f32 {out32:?}");
+    // Tape values and gradients (f32, the estimators' type).
+    let tape = Tape::<f32>::new();
+    let params = s32.bind(&tape);
+    let rv = f32_row_params(&tape, &x32, &y32, &yaw32, ctx.length as f32, ctx.width as f32);
+    let rows: Vec<&[M::Item]> = vec![items; n];
+    let v = model.log_likelihood_rows(&params, &rv, &vec![ctx.av; n], &rows);
+    assert_finite_with_gradients("tape", &tape, &params, v, &[rv.x, rv.y, rv.yaw, rv.length, rv.width]);
+}
+
+/// Rows on an f32 tape, all tracked: positions and headings `xs`, `ys`, `yaws`,
+/// and every row `length` by `width`.
+pub fn f32_row_params<'t>(
+    tape: &'t Tape<f32>,
+    xs: &[f32],
+    ys: &[f32],
+    yaws: &[f32],
+    length: f32,
+    width: f32,
+) -> RowVars<'t, f32> {
+    RowVars {
+        x: tape.param(Tensor::from_vec(xs.to_vec())),
+        y: tape.param(Tensor::from_vec(ys.to_vec())),
+        yaw: tape.param(Tensor::from_vec(yaws.to_vec())),
+        length: tape.param(Tensor::full(&[xs.len()], length)),
+        width: tape.param(Tensor::full(&[xs.len()], width)),
+    }
+}
+
+/// Asserts that the row values `out` on `tape` are finite, and so are the gradients
+/// of their sum for every parameter in `params` and every var in `inputs`; `what`
+/// names the case in the messages.
+#[track_caller]
+pub fn assert_finite_with_gradients<'t>(
+    what: &str,
+    tape: &'t Tape<f32>,
+    params: &BoundParams<'t, f32>,
+    out: Var<'t, f32>,
+    inputs: &[Var<'t, f32>],
+) {
+    assert!(out.to_tensor().all_finite(), "{what}: {:?}", out.to_tensor());
+    let grads = tape.backward(out.sum());
+    assert!(params.gradients(&grads).iter().all(|g| g.all_finite()), "{what}: parameter gradients");
+    for (k, v) in inputs.iter().enumerate() {
+        assert!(grads.wrt(*v).all_finite(), "{what}: gradient of input {k}");
+    }
+}
+
+/// Asserts that a score study's row is unbiased: `|bias| <= se_multiple * se +
+/// 0.05 * sd` (a bias within `se_multiple` standard errors, plus 5% of one run's
+/// spread); `what` names the case in the message.
+#[track_caller]
+pub fn assert_unbiased(what: &str, r: &ScoreStudyRow, se_multiple: f64) {
+    assert!(
+        r.bias.abs() <= se_multiple * r.se + 0.05 * r.sd,
+        "{what} {}: bias {} se {} sd {} (exact {})",
+        r.component,
+        r.bias,
+        r.se,
+        r.sd,
+        r.exact
+    );
 }
