@@ -11,7 +11,7 @@ use serde_json::json;
 use ssm::calibration::{complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig};
-use ssm::filter::{FilterConfig, Tempering};
+use ssm::filter::{FilterConfig, Sampling, Tempering};
 
 use crate::output::{ensure_dir, write_json};
 
@@ -234,12 +234,8 @@ pub fn run_score_at(args: &ScoreAtArgs) -> Result<(), String> {
     if args.particles == 0 {
         return Err("--particles must be at least 1".into());
     }
-    let config = EstimatorConfig {
-        particles: args.particles,
-        tempering: args.filter.tempering_for(&estimator)?,
-        ..EstimatorConfig::default()
-    };
-    let filter = if config.tempering.is_some() { "tempered" } else { "bootstrap" };
+    let config = EstimatorConfig::new(Sampling::new(args.particles, args.filter.tempering_for(&estimator)?));
+    let filter = if config.sampling.tempering.is_some() { "tempered" } else { "bootstrap" };
     let bar = progress(data.objects().len(), "objects");
     let s = score_at(&data, &store, &estimator, &config, args.runs, args.seed, &|| bar.inc(1))?;
     bar.finish_and_clear();
@@ -271,13 +267,7 @@ pub fn run_precision(args: &PrecisionArgs) -> Result<(), String> {
     let mut rows = Vec::new();
     for f in &filters {
         for &n in &args.particles {
-            let config = FilterConfig {
-                particles: n,
-                lag: 0,
-                seed: args.seed,
-                tempering: f.tempering()?,
-                ..FilterConfig::default()
-            };
+            let config = FilterConfig::new(Sampling::new(n, f.tempering()?), 0, args.seed);
             let p: LikelihoodPrecision = likelihood_precision(&data, &store, &config, args.runs)?;
             let mean_ess = p.ess_per_step.iter().sum::<f64>() / p.ess_per_step.len() as f64;
             let min_ess = p.min_ess_per_step.iter().copied().fold(f64::INFINITY, f64::min);

@@ -31,7 +31,7 @@ use serde_json::json;
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
-use ssm::filter::{FilterConfig, Tempering};
+use ssm::filter::{FilterConfig, Sampling, Tempering};
 use ssm::metrics::{metrics_of, track, Metrics};
 use ssm::models::params::Models;
 use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
@@ -182,7 +182,7 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
     );
     for &particles in particle_counts {
         let mut cfg = ssm::metrics::eval_config(ssm::metrics::EVAL_LAG, seed);
-        cfg.particles = particles;
+        cfg.sampling.particles = particles;
         let t = Instant::now();
         let tracks = track(data, &truth.policy, &truth.obs, &truth.params, &cfg)?;
         let m: Metrics = metrics_of(data, &tracks, &truth.policy, &truth.obs, &truth.params, &cfg);
@@ -265,13 +265,8 @@ fn learning_stage(
     // TRUE, evaluated as every run's test MLL is: the tempered filter at `eval_particles`.
     let truth =
         Models::from_store(&experiment.truth.model.params, ObservationKind::Points).map_err(|e| e.to_string())?;
-    let eval_filter = FilterConfig {
-        particles: eval_particles,
-        lag: 0,
-        seed: seed.wrapping_add(7),
-        tempering: Some(Tempering::default()),
-        ..FilterConfig::default()
-    };
+    let eval_filter =
+        FilterConfig::new(Sampling::new(eval_particles, Some(Tempering::default())), 0, seed.wrapping_add(7));
     let true_mll = metric_runs(&experiment.test, &truth, &eval_filter, 1)?[0].mll.unwrap_or(f64::NAN);
     println!(
         "learning from observations alone ({} training scenes of {} objects; TRUE test MLL {true_mll:.3} nats/point):",

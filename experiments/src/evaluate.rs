@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
-use ssm::filter::FilterConfig;
+use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
 use ssm::models::observation::ObservationModel;
 use ssm::models::params::{AnyObservation, AnyPolicy, Models};
@@ -179,13 +179,7 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         args.lag,
         args.runs
     );
-    let filter = FilterConfig {
-        particles: args.particles,
-        lag: args.lag,
-        seed: args.seed,
-        tempering: args.filter.tempering()?,
-        ..FilterConfig::default()
-    };
+    let filter = FilterConfig::new(Sampling::new(args.particles, args.filter.tempering()?), args.lag, args.seed);
     let runs = metric_runs(&data, &models, &filter, args.runs)?;
     let summary = metrics::summarise_runs(&runs);
 
@@ -259,13 +253,7 @@ pub fn track(args: &TrackArgs) -> Result<(), String> {
         None => 0,
     };
     ensure_dir(&args.out)?;
-    let config = FilterConfig {
-        particles: args.particles,
-        lag: args.lag,
-        seed: args.seed,
-        tempering: args.filter.tempering()?,
-        ..FilterConfig::default()
-    };
+    let config = FilterConfig::new(Sampling::new(args.particles, args.filter.tempering()?), args.lag, args.seed);
     eprintln!(
         "track: {} objects x {} steps ({}), {} policy, {} particles, lag {}",
         data.objects().len(),

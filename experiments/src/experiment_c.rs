@@ -58,7 +58,7 @@ use serde::Serialize;
 use serde_json::json;
 use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, ObservationKind};
-use ssm::filter::FilterConfig;
+use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{Metrics, Summary};
 use ssm::models::observation::{BoxObservationModel, FitConfig};
 use ssm::models::params::{AnyObservation, Models};
@@ -354,13 +354,8 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
         scale.scenes_per_step,
     );
     let eval_seed = 1000 + args.seed;
-    let eval_filter = FilterConfig {
-        particles: scale.eval_particles,
-        lag: scale.lag,
-        seed: eval_seed,
-        tempering: args.table.filter.tempering()?,
-        ..FilterConfig::default()
-    };
+    let sampling = Sampling::new(scale.eval_particles, args.table.filter.tempering()?);
+    let eval_filter = FilterConfig::new(sampling, scale.lag, eval_seed);
     let evaluate = |models: &Models| metric_runs(&val, models, &eval_filter, scale.eval_runs);
 
     // INIT: where every run starts.

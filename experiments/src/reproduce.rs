@@ -23,7 +23,7 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::Dataset;
-use ssm::filter::FilterConfig;
+use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{Metrics, Summary};
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
@@ -205,13 +205,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
         check_method(m, scale.lag, scale.alpha)?;
     }
     let eval_filter = |seed: u64| -> Result<FilterConfig, String> {
-        Ok(FilterConfig {
-            particles: scale.eval_particles,
-            lag: scale.lag,
-            seed,
-            tempering: args.table.filter.tempering()?,
-            ..FilterConfig::default()
-        })
+        Ok(FilterConfig::new(Sampling::new(scale.eval_particles, args.table.filter.tempering()?), scale.lag, seed))
     };
     let eval_key = |seed: u64, runs: usize| -> Result<serde_json::Value, String> {
         Ok(json!({ "filter": eval_filter(seed)?, "runs": runs }))

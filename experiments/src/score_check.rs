@@ -17,6 +17,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow, COMPONENTS};
 use ssm::estimators::{Estimator, EstimatorConfig, Precision};
+use ssm::filter::Sampling;
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 
 use crate::output::{ensure_dir, write_atomic};
@@ -161,7 +162,7 @@ pub fn run(args: &ScoreCheckArgs) -> Result<(), String> {
         ));
     }
     ensure_dir(&args.out)?;
-    let config = EstimatorConfig { particles: args.particles, precision: Precision::F64, ..EstimatorConfig::default() };
+    let config = EstimatorConfig { precision: Precision::F64, ..EstimatorConfig::new(Sampling::new(args.particles, None)) };
     let bar = ProgressBar::new(args.steps.len() as u64).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} T values ({elapsed}) {msg}").expect("valid template"),
     );

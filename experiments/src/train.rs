@@ -14,6 +14,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
+use ssm::filter::Sampling;
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{ObjectiveConfig, SceneObjective};
@@ -189,9 +190,8 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
     let config = ObjectiveConfig {
         estimator,
         estimator_config: EstimatorConfig {
-            particles: args.particles,
+            sampling: Sampling::new(args.particles, args.filter.tempering_for(&estimator)?),
             chunk_objects: args.chunk_objects.max(1),
-            tempering: args.filter.tempering_for(&estimator)?,
             ..EstimatorConfig::default()
         },
         scenes_per_step: args.scenes_per_step,

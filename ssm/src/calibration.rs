@@ -364,7 +364,7 @@ pub fn likelihood_precision(
     let quantile = |q: f64| sorted[(q * (sorted.len() - 1) as f64).round() as usize];
     let (median_sd, p95_sd) = (quantile(0.5), quantile(0.95));
     Ok(LikelihoodPrecision {
-        particles: config.particles,
+        particles: config.sampling.particles,
         runs,
         object_sd,
         median_sd,

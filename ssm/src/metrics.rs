@@ -28,7 +28,7 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 
 use crate::data::{Dataset, Pose, State, StepTable};
-use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary};
+use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary, Sampling};
 use crate::models::observation::{ObsContext, ObservationModel};
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
@@ -41,7 +41,7 @@ pub const EVAL_LAG: usize = 8;
 /// The filter settings of an evaluation: [`EVAL_PARTICLES`] particles, systematic
 /// resampling at every step, the given lag and seed.
 pub fn eval_config(lag: usize, seed: u64) -> FilterConfig {
-    FilterConfig { particles: EVAL_PARTICLES, lag, seed, ..FilterConfig::default() }
+    FilterConfig::new(Sampling::new(EVAL_PARTICLES, None), lag, seed)
 }
 
 /// `|a - b|` wrapped to `[0, pi]`: the absolute difference of two angles.
@@ -314,7 +314,7 @@ pub fn metrics_of<P: GaussianPolicy, O: ObservationModel>(
         aotll: aotll(data, observation, observation_params),
         aptll: aptll(data, policy),
         collapsed_steps: tracks.collapsed_steps(),
-        particles: config.particles,
+        particles: config.sampling.particles,
         lag: config.lag,
         seed: config.seed,
     }

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::Dataset;
 use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
-use crate::filter::{run_filter, FilterConfig, Tempering};
+use crate::filter::{run_filter, FilterConfig, Sampling, Tempering};
 use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
@@ -178,13 +178,8 @@ impl Objective for SceneObjective {
     /// test's collapsed steps and, for the hand-crafted policy, its sds.
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
-        let config = FilterConfig {
-            particles: self.config.eval_particles,
-            lag: 0,
-            seed,
-            tempering: self.config.eval_tempering,
-            ..FilterConfig::default()
-        };
+        let sampling = Sampling::new(self.config.eval_particles, self.config.eval_tempering);
+        let config = FilterConfig::new(sampling, 0, seed);
         let visit =
             LogLikelihood { config: &config, extension: self.config.extension, params, proposal: self.config.proposal };
         let (ll, units, collapsed) = models.visit(&self.test, visit)??;

@@ -30,7 +30,7 @@ pub mod study;
 use autodiff::{Float, Tape, Tensor, Var};
 use serde::{Deserialize, Serialize};
 
-use crate::filter::{FilterConfig, Resampling, Tempering};
+use crate::filter::{FilterConfig, Sampling};
 use crate::models::DifferentiableModel;
 use crate::setting::SettingError;
 
@@ -50,48 +50,32 @@ pub enum Precision {
 /// Settings shared by every estimator.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EstimatorConfig {
-    /// Particles per object (`N`).
-    pub particles: usize,
-    /// Resampling scheme.
-    pub resampling: Resampling,
-    /// ESS-triggered resampling threshold (fraction of `N`); `None` resamples every step.
-    pub ess_threshold: Option<f64>,
+    /// The filter's particles, resampling and tempering (the tempered filter for
+    /// PF-SEFI only: the through-filter baselines need the bootstrap filter, which
+    /// they replay on a tape).
+    #[serde(flatten)]
+    pub sampling: Sampling,
     /// Objects per tape of the through-filter baselines.
     pub chunk_objects: usize,
     /// Tape precision.
     pub precision: Precision,
-    /// The tempered filter's settings for PF-SEFI ([`crate::filter::Tempering`]);
-    /// `None` is the bootstrap filter, which the through-filter baselines need
-    /// (they replay it on a tape).
-    #[serde(default)]
-    pub tempering: Option<Tempering>,
 }
 
 impl Default for EstimatorConfig {
     fn default() -> Self {
-        EstimatorConfig {
-            particles: 1024,
-            resampling: Resampling::Systematic,
-            ess_threshold: None,
-            chunk_objects: 4,
-            precision: Precision::F32,
-            tempering: None,
-        }
+        EstimatorConfig { sampling: Sampling::default(), chunk_objects: 4, precision: Precision::F32 }
     }
 }
 
 impl EstimatorConfig {
+    /// The default settings with `sampling`.
+    pub fn new(sampling: Sampling) -> Self {
+        EstimatorConfig { sampling, ..EstimatorConfig::default() }
+    }
+
     /// The filter settings for `seed`, lag `lag` and optional soft resampling.
     pub fn filter(&self, seed: u64, lag: usize, soft_resampling: Option<f64>) -> FilterConfig {
-        FilterConfig {
-            particles: self.particles,
-            resampling: self.resampling,
-            ess_threshold: self.ess_threshold,
-            lag,
-            seed,
-            soft_resampling,
-            tempering: self.tempering,
-        }
+        FilterConfig { sampling: self.sampling, lag, seed, soft_resampling }
     }
 }
 

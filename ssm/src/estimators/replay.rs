@@ -109,7 +109,7 @@ impl ThroughFilter {
         // The replay needs every step: the lag only sizes the filter's ring.
         let filter = config.filter(seed, 0, soft);
         assert!(
-            filter.tempering.is_none(),
+            filter.sampling.tempering.is_none(),
             "{}: the through-filter baselines replay the bootstrap filter; tempering is for PF-SEFI",
             self.name()
         );
@@ -130,7 +130,7 @@ impl ThroughFilter {
                     }
                     // One tape per worker, reset per chunk: its buffers are recycled.
                     tape.reset();
-                    let grads = replay_gradient(model, tape, self.kind, config.particles, chunk, &records);
+                    let grads = replay_gradient(model, tape, self.kind, config.sampling.particles, chunk, &records);
                     (summaries, grads)
                 },
             )
@@ -142,8 +142,8 @@ impl ThroughFilter {
             observed_units: 0,
             gradient: Vec::new(),
             collapsed_steps: 0,
-            rows_evaluated: config.particles * model.num_steps() * model.num_objects(),
-            particle_slots: config.particles * model.num_steps() * model.num_objects(),
+            rows_evaluated: config.sampling.particles * model.num_steps() * model.num_objects(),
+            particle_slots: config.sampling.particles * model.num_steps() * model.num_objects(),
         };
         for (summaries, grads) in &per_chunk {
             accumulate(&mut gradient, grads);

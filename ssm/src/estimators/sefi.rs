@@ -160,7 +160,7 @@ impl PfSefi {
             gradient: Vec::new(),
             collapsed_steps: 0,
             rows_evaluated: 0,
-            particle_slots: config.particles * model.num_steps() * model.num_objects(),
+            particle_slots: config.sampling.particles * model.num_steps() * model.num_objects(),
         };
         for (summary, grads, rows) in &per_object {
             accumulate(&mut gradient, grads);

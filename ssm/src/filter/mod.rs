@@ -42,9 +42,12 @@ use tempering::{reweight, ParentStep, StepParticles, Temperer};
 use crate::models::{Batch, Drawn, ParticleModel};
 use crate::seed::splitmix64;
 
-/// Settings of a particle-filter run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct FilterConfig {
+/// How a filter draws and resamples its particles: the settings a filter run
+/// ([`FilterConfig`]) and a score estimator
+/// ([`EstimatorConfig`](crate::estimators::EstimatorConfig)) share. Both embed it
+/// flattened, so their serialized forms keep these fields at the top level.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Sampling {
     /// Particles per object (`N`).
     pub particles: usize,
     /// Resampling scheme.
@@ -52,6 +55,34 @@ pub struct FilterConfig {
     /// Resample only when the ESS falls below this fraction of `N`; `None` resamples
     /// at every step.
     pub ess_threshold: Option<f64>,
+    /// Tempering within a step with MCMC moves ([`Tempering`]) for sharp
+    /// observations; `None` is the bootstrap filter. Needs a model with a
+    /// noise-driven form; not with soft resampling, and not for the
+    /// through-filter baselines (they replay the bootstrap filter on a tape).
+    #[serde(default)]
+    pub tempering: Option<Tempering>,
+}
+
+impl Default for Sampling {
+    fn default() -> Self {
+        Sampling { particles: 1024, resampling: Resampling::Systematic, ess_threshold: None, tempering: None }
+    }
+}
+
+impl Sampling {
+    /// `particles` per object, tempered by `tempering` (`None`: the bootstrap
+    /// filter), resampled systematically at every step.
+    pub fn new(particles: usize, tempering: Option<Tempering>) -> Self {
+        Sampling { particles, tempering, ..Sampling::default() }
+    }
+}
+
+/// Settings of a particle-filter run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FilterConfig {
+    /// Particles, resampling and tempering.
+    #[serde(flatten)]
+    pub sampling: Sampling,
     /// Fixed lag `L` of the smoothing weights handed to observers.
     pub lag: usize,
     /// Seed of the random streams.
@@ -61,24 +92,18 @@ pub struct FilterConfig {
     /// `W^a / q^a`, normalised. `None` is ordinary resampling.
     #[serde(default)]
     pub soft_resampling: Option<f64>,
-    /// Tempering within a step with MCMC moves ([`Tempering`]) for sharp
-    /// observations; `None` is the bootstrap filter. Needs a model with a
-    /// noise-driven form; not with soft resampling.
-    #[serde(default)]
-    pub tempering: Option<Tempering>,
 }
 
 impl Default for FilterConfig {
     fn default() -> Self {
-        FilterConfig {
-            particles: 1024,
-            resampling: Resampling::Systematic,
-            ess_threshold: None,
-            lag: 8,
-            seed: 0,
-            soft_resampling: None,
-            tempering: None,
-        }
+        FilterConfig { sampling: Sampling::default(), lag: 8, seed: 0, soft_resampling: None }
+    }
+}
+
+impl FilterConfig {
+    /// `sampling` with lag `lag` and seed `seed`, without soft resampling.
+    pub fn new(sampling: Sampling, lag: usize, seed: u64) -> Self {
+        FilterConfig { sampling, lag, seed, soft_resampling: None }
     }
 }
 
@@ -246,7 +271,7 @@ where
     M: ParticleModel,
     O: Observer,
 {
-    assert!(config.particles > 0, "run_filter: need at least one particle");
+    assert!(config.sampling.particles > 0, "run_filter: need at least one particle");
     let results: Vec<(ObjectSummary, O, PhaseTimes)> = (0..model.num_objects())
         .into_par_iter()
         .map_init(
@@ -329,13 +354,13 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     scratch: &mut M::Scratch,
     observer: &mut O,
 ) -> (ObjectSummary, PhaseTimes) {
-    let n = config.particles;
+    let n = config.sampling.particles;
     let (d, a) = (model.state_dim(), model.action_dim());
     let steps = model.num_steps();
     let lag = config.lag;
     let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, object));
     // The tempered filter's lookback moves reach back to x_{t-2}.
-    let slots = if config.tempering.is_some() { (lag + 2).max(3) } else { lag + 2 };
+    let slots = if config.sampling.tempering.is_some() { (lag + 2).max(3) } else { lag + 2 };
     let mut ring = Ring::new(slots, n, d, a);
     let mut times = PhaseTimes::default();
     let mut summary = ObjectSummary { min_ess: f64::INFINITY, ..Default::default() };
@@ -354,10 +379,10 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let mut soft_q = Vec::with_capacity(if config.soft_resampling.is_some() { n } else { 0 });
     let mut resampled = false;
     assert!(
-        config.tempering.is_none() || config.soft_resampling.is_none(),
+        config.sampling.tempering.is_none() || config.soft_resampling.is_none(),
         "filter: tempering and soft resampling do not combine (soft resampling is PFNET's, a through-filter baseline)"
     );
-    let mut temperer = config.tempering.map(|c| Temperer::new(model, c));
+    let mut temperer = config.sampling.tempering.map(|c| Temperer::new(model, c));
 
     for t in 0..steps {
         let slot = ring.slot(t);
@@ -374,7 +399,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             times.propagate += clock.elapsed();
         } else {
             let prev = ring.slot(t - 1);
-            let resample_now = match config.ess_threshold {
+            let resample_now = match config.sampling.ess_threshold {
                 None => true,
                 Some(frac) => effective_sample_size(&weights) < frac * n as f64,
             };
@@ -383,7 +408,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 let floor = (1.0 - alpha) / n as f64;
                 soft_q.clear();
                 soft_q.extend(weights.iter().map(|&w| alpha * w + floor));
-                config.resampling.draw(&soft_q, &mut rng, &mut ancestors, &mut resample_scratch);
+                config.sampling.resampling.draw(&soft_q, &mut rng, &mut ancestors, &mut resample_scratch);
                 for (lw, &p) in soft_log_w.iter_mut().zip(&ancestors) {
                     *lw = log_w[p] - soft_q[p].ln();
                 }
@@ -391,7 +416,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 log_w.iter_mut().zip(&soft_log_w).for_each(|(lw, &b)| *lw = b - lse);
                 summary.resampled_steps += 1;
             } else if resample_now {
-                config.resampling.draw(&weights, &mut rng, &mut ancestors, &mut resample_scratch);
+                config.sampling.resampling.draw(&weights, &mut rng, &mut ancestors, &mut resample_scratch);
                 log_w.fill(uniform);
                 summary.resampled_steps += 1;
             } else {
@@ -450,7 +475,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     grandparents,
                 });
                 let particles = StepParticles { states: &mut states, actions: &mut actions, parent };
-                let w = tm.weigh(model, Batch { object, t, n }, particles, &mut log_w, config.resampling, &mut rng, scratch);
+                let w = tm.weigh(model, Batch { object, t, n }, particles, &mut log_w, config.sampling.resampling, &mut rng, scratch);
                 ring.put(slot, [states, actions]);
                 if t > 0 {
                     ring.put(parent_slot, [p_states, p_actions]);

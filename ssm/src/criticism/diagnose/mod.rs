@@ -61,7 +61,7 @@ use serde::{Deserialize, Serialize};
 use super::checks::{calibrate, checks_for, holm, CheckResult};
 use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
-use crate::filter::{stream_seed, FilterConfig, Tempering};
+use crate::filter::{stream_seed, FilterConfig, Sampling, Tempering};
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
@@ -217,13 +217,7 @@ impl DiagnoseConfig {
 
     /// The filter of the checks and of the evaluation, with run `run`'s seed.
     fn eval_filter(&self, run: usize) -> FilterConfig {
-        FilterConfig {
-            particles: self.eval_particles,
-            lag: 0,
-            seed: self.seed + run as u64,
-            tempering: Some(self.tempering),
-            ..FilterConfig::default()
-        }
+        FilterConfig::new(Sampling::new(self.eval_particles, Some(self.tempering)), 0, self.seed + run as u64)
     }
 }
 
@@ -646,11 +640,10 @@ fn fit(
 ) -> Result<Fitted, String> {
     let objective_config = ObjectiveConfig {
         estimator: Estimator::pf_sefi(config.lag),
-        estimator_config: EstimatorConfig {
-            particles: config.particles,
-            tempering: config.train_tempered.then_some(config.tempering),
-            ..EstimatorConfig::default()
-        },
+        estimator_config: EstimatorConfig::new(Sampling::new(
+            config.particles,
+            config.train_tempered.then_some(config.tempering),
+        )),
         scenes_per_step: config.scenes_per_step,
         eval_particles: config.eval_particles,
         extension,
