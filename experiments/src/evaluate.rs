@@ -15,8 +15,8 @@ use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
-use ssm::models::observation::ObservationModel;
-use ssm::models::params::{AnyObservation, AnyPolicy, Models};
+use ssm::models::extended::ExtensibleObservation;
+use ssm::models::params::{Models, ObservationVisitor};
 
 use crate::birdseye;
 use crate::calibrate::FilterArgs;
@@ -111,29 +111,35 @@ fn kind_name(kind: ObservationKind) -> &'static str {
 
 /// Runs the filter with whichever observation model `models` holds.
 fn run_track(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<Tracks, String> {
-    let (p, params) = (&models.policy, &models.observation_params);
-    match &models.observation {
-        AnyObservation::Points(o) => metrics::track(data, p, o, params, config),
-        AnyObservation::Boxes(o) => metrics::track(data, p, o, params, config),
+    struct Track<'a> {
+        data: &'a Dataset,
+        models: &'a Models,
+        config: &'a FilterConfig,
     }
+    impl ObservationVisitor for Track<'_> {
+        type Output = Result<Tracks, String>;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+            metrics::track(self.data, &self.models.policy, o, &self.models.observation_params, self.config)
+        }
+    }
+    models.observation.visit(Track { data, models, config })
 }
 
 fn metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterConfig) -> Metrics {
-    fn go<O: ObservationModel>(
-        data: &Dataset,
-        policy: &AnyPolicy,
-        o: &O,
-        params: &ParamStore<f64>,
-        tracks: &Tracks,
-        config: &FilterConfig,
-    ) -> Metrics {
-        metrics::metrics_of(data, tracks, policy, o, params, config)
+    struct Of<'a> {
+        data: &'a Dataset,
+        models: &'a Models,
+        tracks: &'a Tracks,
+        config: &'a FilterConfig,
     }
-    let (p, params) = (&models.policy, &models.observation_params);
-    match &models.observation {
-        AnyObservation::Points(o) => go(data, p, o, params, tracks, config),
-        AnyObservation::Boxes(o) => go(data, p, o, params, tracks, config),
+    impl ObservationVisitor for Of<'_> {
+        type Output = Metrics;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Metrics {
+            let (p, params) = (&self.models.policy, &self.models.observation_params);
+            metrics::metrics_of(self.data, self.tracks, p, o, params, self.config)
+        }
     }
+    models.observation.visit(Of { data, models, tracks, config })
 }
 
 fn fmt_opt(v: Option<f64>) -> String {

@@ -60,8 +60,9 @@ use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{Metrics, Summary};
+use ssm::models::extended::ExtensibleObservation;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
-use ssm::models::params::{AnyObservation, Models};
+use ssm::models::params::{Models, ObservationVisitor};
 use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
 
@@ -298,11 +299,14 @@ fn initial_models(seed: u64) -> Models {
 
 /// AOTLL of `models`' observation network on `data`.
 fn aotll_on(data: &Dataset, models: &Models) -> Option<f64> {
-    let p = &models.observation_params;
-    match &models.observation {
-        AnyObservation::Points(o) => ssm::metrics::aotll(data, o, p).mean,
-        AnyObservation::Boxes(o) => ssm::metrics::aotll(data, o, p).mean,
+    struct Aotll<'a>(&'a Dataset, &'a ParamStore<f64>);
+    impl ObservationVisitor for Aotll<'_> {
+        type Output = Option<f64>;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Option<f64> {
+            ssm::metrics::aotll(self.0, o, self.1).mean
+        }
     }
+    models.observation.visit(Aotll(data, &models.observation_params))
 }
 
 /// Sums of the `skipped` and `collapsed_steps` columns of a run's `train.csv`.

@@ -44,9 +44,10 @@ use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind};
-use crate::models::observation::{fit_network, Example, FitConfig, ObservationModel};
 use crate::metrics::labelled_steps;
-use crate::models::params::{AnyObservation, Models, OBS_PREFIX};
+use crate::models::extended::ExtensibleObservation;
+use crate::models::observation::{fit_network, Example, FitConfig, ObservationModel};
+use crate::models::params::{Models, ObservationVisitor, OBS_PREFIX};
 
 /// Why a supervised fit cannot run.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -185,8 +186,17 @@ pub fn fit_observation(
     data: &Dataset,
     fit: &FitConfig,
 ) -> Result<SupervisedReport, SupervisedError> {
-    match &models.observation {
-        AnyObservation::Points(o) => fit_supervised_params(o, &mut models.observation_params, data, fit),
-        AnyObservation::Boxes(o) => fit_supervised_params(o, &mut models.observation_params, data, fit),
+    /// [`fit_supervised_params`] of the visited model.
+    struct Fit<'a> {
+        params: &'a mut ParamStore<f64>,
+        data: &'a Dataset,
+        fit: &'a FitConfig,
     }
+    impl ObservationVisitor for Fit<'_> {
+        type Output = Result<SupervisedReport, SupervisedError>;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+            fit_supervised_params(o, self.params, self.data, self.fit)
+        }
+    }
+    models.observation.visit(Fit { params: &mut models.observation_params, data, fit })
 }

@@ -234,7 +234,7 @@ impl GaussianPolicy for AnyPolicy {
 }
 
 /// Either observation model (the trait has an item type, so it is not itself an
-/// object; match on this to call code generic over [`ObservationModel`]).
+/// object; [`AnyObservation::visit`] runs code generic over the model).
 #[derive(Clone, Debug, PartialEq)]
 pub enum AnyObservation {
     /// Point sets.
@@ -262,6 +262,23 @@ impl AnyObservation {
             AnyObservation::Boxes(_) => ObservationKind::Boxes,
         }
     }
+
+    /// Hands the model, of whichever kind, to `visitor` (which is generic over the
+    /// observation model): the one place that dispatches on the kind.
+    pub fn visit<V: ObservationVisitor>(&self, visitor: V) -> V::Output {
+        match self {
+            AnyObservation::Points(o) => visitor.visit(o),
+            AnyObservation::Boxes(o) => visitor.visit(o),
+        }
+    }
+}
+
+/// Code generic over the observation model, run by [`AnyObservation::visit`].
+pub trait ObservationVisitor {
+    /// What the visit returns.
+    type Output;
+    /// Runs on the model.
+    fn visit<O: ExtensibleObservation>(self, model: &O) -> Self::Output;
 }
 
 /// Code generic over the vehicle model of a dataset, run by [`Models::visit`].
@@ -316,11 +333,20 @@ impl Models {
     /// `visitor` (which is generic over the observation model). Fails if the
     /// dataset's kind is not the one the observation model reads.
     pub fn visit<V: ModelVisitor>(&self, data: &Dataset, visitor: V) -> Result<V::Output, ModelError> {
-        let (p, params) = (&self.policy, &self.observation_params);
-        match &self.observation {
-            AnyObservation::Points(o) => Ok(visitor.visit(&VehicleSsm::new(data, p, o, params)?)),
-            AnyObservation::Boxes(o) => Ok(visitor.visit(&VehicleSsm::new(data, p, o, params)?)),
+        /// The [`VehicleSsm`] of the visited observation model, handed to `visitor`.
+        struct Ssm<'a, V> {
+            data: &'a Dataset,
+            models: &'a Models,
+            visitor: V,
         }
+        impl<V: ModelVisitor> ObservationVisitor for Ssm<'_, V> {
+            type Output = Result<V::Output, ModelError>;
+            fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+                let (p, params) = (&self.models.policy, &self.models.observation_params);
+                Ok(self.visitor.visit(&VehicleSsm::new(self.data, p, o, params)?))
+            }
+        }
+        self.observation.visit(Ssm { data, models: self, visitor })
     }
 
     /// A store holding these models under the convention of the [module docs](self)
