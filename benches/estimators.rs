@@ -52,7 +52,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
 use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
-use ssm::filter::run_filter;
+use ssm::filter::{run_filter, Sampling};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::ParticleModel;
@@ -200,7 +200,7 @@ struct Outcome {
 }
 
 fn estimator_config(chunk: usize) -> EstimatorConfig {
-    EstimatorConfig { particles: PARTICLES, chunk_objects: chunk, ..EstimatorConfig::default() }
+    EstimatorConfig { chunk_objects: chunk, ..EstimatorConfig::new(Sampling::new(PARTICLES, None)) }
 }
 
 /// Runs `workload` once on the whole batch of objects.

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::filter::{run_filter, FilterConfig, PhaseTimes};
+use ssm::filter::{run_filter, FilterConfig, PhaseTimes, Sampling};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
@@ -50,7 +50,7 @@ fn main() {
     let objects = data.objects().len();
     let model = VehicleSsm::new(&data, &truth.policy, &truth.obs, &truth.params).expect("model");
     if std::env::args().any(|a| a == "--once") {
-        let cfg = FilterConfig { particles: PROFILE_PARTICLES, lag: 8, seed: 1, ..FilterConfig::default() };
+        let cfg = FilterConfig::new(Sampling::new(PROFILE_PARTICLES, None), 8, 1);
         let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
         let (t, cpu) = (Instant::now(), process_cpu_seconds());
         let run = pool.install(|| run_filter(&model, &cfg, |_| ()));
@@ -69,7 +69,7 @@ fn main() {
         points as f64 / (objects * data.steps()) as f64
     );
     for n in [1024usize, 4096] {
-        let cfg = FilterConfig { particles: n, lag: 8, seed: 1, ..FilterConfig::default() };
+        let cfg = FilterConfig::new(Sampling::new(n, None), 8, 1);
         let time = |threads: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().expect("pool");
             pool.install(|| {

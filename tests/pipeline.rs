@@ -11,7 +11,7 @@ use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, TrueMode
 
 fn metrics(data: &Dataset, truth: &TrueModel, particles: usize, seed: u64) -> Metrics {
     let mut cfg = eval_config(4, seed);
-    cfg.particles = particles;
+    cfg.sampling.particles = particles;
     evaluate(data, &truth.policy, &truth.obs, &truth.params, &cfg).expect("evaluates")
 }
 

@@ -162,7 +162,8 @@ pub fn run(args: &ScoreCheckArgs) -> Result<(), String> {
         ));
     }
     ensure_dir(&args.out)?;
-    let config = EstimatorConfig { precision: Precision::F64, ..EstimatorConfig::new(Sampling::new(args.particles, None)) };
+    let config =
+        EstimatorConfig { precision: Precision::F64, ..EstimatorConfig::new(Sampling::new(args.particles, None)) };
     let bar = ProgressBar::new(args.steps.len() as u64).with_style(
         ProgressStyle::with_template("{bar:30} {pos}/{len} T values ({elapsed}) {msg}").expect("valid template"),
     );

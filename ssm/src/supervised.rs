@@ -138,7 +138,9 @@ pub fn labelled_examples<O: ObservationModel>(data: &Dataset) -> Result<Vec<Exam
         return Err(SupervisedError::Kind { data: data.kind(), model: O::KIND });
     }
     let truth = data.states().ok_or(SupervisedError::NoStates)?;
-    Ok(labelled_steps::<O>(data, truth).map(|(ctx, pose, items)| Example { ctx, pose, items: items.to_vec() }).collect())
+    Ok(labelled_steps::<O>(data, truth)
+        .map(|(ctx, pose, items)| Example { ctx, pose, items: items.to_vec() })
+        .collect())
 }
 
 /// Fits `model`'s parameters in `params` (from their current values) to the

@@ -10,7 +10,7 @@ use rand::rngs::SmallRng;
 use rand::SeedableRng;
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Action, Dataset, ObservationKind, State};
-use ssm::filter::{run_filter, FilterConfig};
+use ssm::filter::{run_filter, FilterConfig, Sampling};
 use ssm::models::extended::{
     mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
 };
@@ -289,7 +289,7 @@ impl ModelVisitor for Defensive {
             let model = ExtendedSsm::new(base, None, &[]).unwrap().with_proposal(p).unwrap();
             let runs: Vec<f64> = (0..6)
                 .map(|seed| {
-                    let config = FilterConfig { particles: 16384, seed, ..FilterConfig::default() };
+                    let config = FilterConfig::new(Sampling::new(16384, None), 8, seed);
                     run_filter(&model, &config, |_| ()).log_likelihood()
                 })
                 .collect();

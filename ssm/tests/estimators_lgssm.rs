@@ -9,7 +9,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow};
 use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimator};
-use ssm::filter::Resampling;
+use ssm::filter::{Resampling, Sampling};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
 
@@ -21,14 +21,15 @@ fn batch(len: usize, objects: usize, seed: u64) -> LgssmBatch {
 }
 
 fn config(n: usize, precision: Precision) -> EstimatorConfig {
-    EstimatorConfig { particles: n, precision, chunk_objects: 2, ..EstimatorConfig::default() }
+    EstimatorConfig { sampling: Sampling::new(n, None), precision, chunk_objects: 2 }
 }
 
 #[test]
 fn dpf_sgr_with_stopped_particles_equals_full_path_pf_sefi() {
     let data = batch(30, 3, 1);
     for resampling in [Resampling::Systematic, Resampling::Multinomial] {
-        let cfg = EstimatorConfig { resampling, ..config(64, Precision::F64) };
+        let mut cfg = config(64, Precision::F64);
+        cfg.sampling.resampling = resampling;
         for seed in 0..3 {
             let sefi = Estimator::pf_sefi(40).estimate(&data, &cfg, seed);
             let dpf = Estimator::dpf_sgr_stopped().estimate(&data, &cfg, seed);

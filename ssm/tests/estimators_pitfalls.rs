@@ -13,7 +13,7 @@ use autodiff::{Float, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, ScoreEstimator};
-use ssm::filter::{filter_object, run_filter, FilterConfig, ObjectSummary, Observer, Resampling, StepView};
+use ssm::filter::{filter_object, run_filter, FilterConfig, ObjectSummary, Observer, Resampling, Sampling, StepView};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
 use ssm::models::{Batch, Drawn, ParticleModel};
@@ -36,7 +36,12 @@ fn batch(len: usize, objects: usize, seed: u64) -> LgssmBatch {
 }
 
 fn config(n: usize, precision: Precision) -> EstimatorConfig {
-    EstimatorConfig { particles: n, precision, chunk_objects: 2, ..EstimatorConfig::default() }
+    EstimatorConfig { sampling: Sampling::new(n, None), precision, chunk_objects: 2 }
+}
+
+/// `cfg` with another resampling scheme and ESS threshold.
+fn with_sampling(cfg: EstimatorConfig, resampling: Resampling, ess_threshold: Option<f64>) -> EstimatorConfig {
+    EstimatorConfig { sampling: Sampling { resampling, ess_threshold, ..cfg.sampling }, ..cfg }
 }
 
 /// The filter settings an estimator uses.
@@ -186,7 +191,7 @@ fn pf_sefi_equals_the_per_particle_brute_force_at_every_lag() {
         (Resampling::Multinomial, Some(0.5)),
     ];
     for (resampling, ess_threshold) in schemes {
-        let cfg = EstimatorConfig { resampling, ess_threshold, ..config(32, Precision::F64) };
+        let cfg = with_sampling(config(32, Precision::F64), resampling, ess_threshold);
         for lag in [0, 1, 3, len + 5] {
             for seed in [0, 7] {
                 let est = Estimator::pf_sefi(lag).estimate(&data, &cfg, seed);
@@ -245,7 +250,7 @@ fn a_single_observation_has_no_transition_score() {
 fn pfnet_with_alpha_one_is_pf() {
     let data = batch(15, 3, 2);
     for ess_threshold in [None, Some(0.5)] {
-        let cfg = EstimatorConfig { ess_threshold, ..config(64, Precision::F64) };
+        let cfg = with_sampling(config(64, Precision::F64), Resampling::Systematic, ess_threshold);
         for seed in 0..3 {
             // Same draws: the ancestors of every step agree.
             for object in 0..3 {
@@ -283,7 +288,7 @@ fn soft_resampling_keeps_the_likelihood_unbiased() {
     let exact = model.log_likelihood(&ys);
     let data = LgssmBatch::new(model, vec![ys; 1000]).unwrap();
     for (alpha, ess_threshold) in [(0.5, None), (0.8, None), (0.5, Some(0.5))] {
-        let cfg = EstimatorConfig { ess_threshold, ..config(64, Precision::F64) };
+        let cfg = with_sampling(config(64, Precision::F64), Resampling::Systematic, ess_threshold);
         let run = run_filter(&data, &filter_config(&cfg, 3, 0, Some(alpha)), |_| ());
         let r: Vec<f64> = run.objects.iter().map(|o| (o.log_likelihood - exact).exp()).collect();
         let m = r.iter().sum::<f64>() / r.len() as f64;
@@ -377,7 +382,7 @@ fn ess_triggered_resampling_keeps_the_identities() {
     let len = 20;
     let data = batch(len, 3, 4);
     for resampling in [Resampling::Systematic, Resampling::Multinomial] {
-        let cfg = EstimatorConfig { resampling, ess_threshold: Some(0.5), ..config(64, Precision::F64) };
+        let cfg = with_sampling(config(64, Precision::F64), resampling, Some(0.5));
         for seed in 0..3 {
             let fc = filter_config(&cfg, seed, 0, None);
             let run = run_filter(&data, &fc, |_| ());
@@ -534,7 +539,10 @@ fn collapsed_steps_are_skipped_by_every_estimator() {
     let estimators = every_estimator(len);
     for precision in [Precision::F32, Precision::F64] {
         for ess_threshold in [None, Some(0.5)] {
-            let cfg = EstimatorConfig { ess_threshold, chunk_objects: 4, ..config(32, precision) };
+            let cfg = EstimatorConfig {
+                chunk_objects: 4,
+                ..with_sampling(config(32, precision), Resampling::Systematic, ess_threshold)
+            };
             for e in &estimators {
                 let got = e.estimate(&data, &cfg, 9);
                 let what = format!("{} {precision:?} ess {ess_threshold:?}", e.name());
@@ -570,7 +578,10 @@ fn partly_impossible_particles_never_give_nan() {
     let estimators = every_estimator(len);
     for precision in [Precision::F32, Precision::F64] {
         for ess_threshold in [None, Some(0.5)] {
-            let cfg = EstimatorConfig { ess_threshold, chunk_objects: 3, ..config(32, precision) };
+            let cfg = EstimatorConfig {
+                chunk_objects: 3,
+                ..with_sampling(config(32, precision), Resampling::Systematic, ess_threshold)
+            };
             for e in &estimators {
                 let got = e.estimate(&data, &cfg, 4);
                 let what = format!("{} {precision:?} ess {ess_threshold:?}", e.name());
@@ -760,7 +771,7 @@ mod vehicle {
                 }
             }
             for (ess_threshold, seed) in [(None, 0), (None, 1), (Some(0.5), 2), (Some(0.5), 3)] {
-                let cfg = EstimatorConfig { ess_threshold, ..cfg.clone() };
+                let cfg = with_sampling(cfg.clone(), cfg.sampling.resampling, ess_threshold);
                 let sefi = Estimator::pf_sefi(steps).estimate(&model, &cfg, seed);
                 let dpf = Estimator::dpf_sgr_stopped().estimate(&model, &cfg, seed);
                 assert_eq!(sefi.log_likelihood, dpf.log_likelihood);

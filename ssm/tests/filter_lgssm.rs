@@ -5,7 +5,7 @@
 
 use rand::rngs::{SmallRng, StdRng};
 use rand::SeedableRng;
-use ssm::filter::{run_filter, FilterConfig, LagView, Moments, Observer, Resampling};
+use ssm::filter::{run_filter, FilterConfig, LagView, Moments, Observer, Resampling, Sampling};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
 use ssm::models::{Batch, Drawn, ParticleModel};
@@ -24,7 +24,7 @@ fn replicated(ys: &[f64], objects: usize) -> LgssmBatch {
 }
 
 fn config(n: usize, lag: usize, resampling: Resampling, ess: Option<f64>) -> FilterConfig {
-    FilterConfig { particles: n, resampling, ess_threshold: ess, lag, seed: 17, soft_resampling: None, tempering: None }
+    FilterConfig::new(Sampling { particles: n, resampling, ess_threshold: ess, tempering: None }, lag, 17)
 }
 
 /// mean of exp(l_hat - l) over runs and its standard error.

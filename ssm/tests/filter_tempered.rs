@@ -13,7 +13,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::score_study;
 use ssm::estimators::{Estimator, EstimatorConfig, Precision};
-use ssm::filter::{run_filter, FilterConfig, FilterRun, Tempering};
+use ssm::filter::{run_filter, FilterConfig, FilterRun, Sampling, Tempering};
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::models::linear_gaussian::particles::LgssmBatch;
 
@@ -27,7 +27,7 @@ fn replicated(model: &Lgssm, ys: &[f64], objects: usize) -> LgssmBatch {
 }
 
 fn config(n: usize, tempering: Option<Tempering>) -> FilterConfig {
-    FilterConfig { particles: n, lag: 0, seed: 11, tempering, ..FilterConfig::default() }
+    FilterConfig::new(Sampling::new(n, tempering), 0, 11)
 }
 
 /// `(mean, se)` of `exp(l_hat - exact)` and the sd of `l_hat` over the objects.
@@ -140,8 +140,8 @@ fn pf_sefi_on_the_tempered_filter_recovers_the_exact_score_on_a_sharp_model() {
     // filter's is within noise of the Kalman score.
     let model = sharp_model(0.5, 0.05);
     let ys = model.simulate(21, &mut StdRng::seed_from_u64(6)).ys;
-    let base = EstimatorConfig { particles: 256, precision: Precision::F64, ..EstimatorConfig::default() };
-    let tempered = EstimatorConfig { tempering: Some(Tempering::default()), ..base.clone() };
+    let base = EstimatorConfig { precision: Precision::F64, ..EstimatorConfig::new(Sampling::new(256, None)) };
+    let tempered = EstimatorConfig { sampling: Sampling::new(256, Some(Tempering::default())), ..base.clone() };
     let rows = score_study(&model, &ys, &[Estimator::pf_sefi(8)], &tempered, 200, 0);
     for r in &rows {
         assert_unbiased("tempered", r, 3.5);

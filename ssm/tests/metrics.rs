@@ -8,7 +8,7 @@ use autodiff::Tensor;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::filter::FilterConfig;
+use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{
     aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff, Summary,
 };
@@ -107,7 +107,7 @@ fn models_and_data(
 }
 
 fn config(particles: usize, lag: usize) -> FilterConfig {
-    FilterConfig { particles, lag, seed: 3, ..FilterConfig::default() }
+    FilterConfig::new(Sampling::new(particles, None), lag, 3)
 }
 
 #[test]

@@ -22,7 +22,7 @@ use ssm::calibration::{complete_data_score_at, sample_dataset, score_at, ScoreAt
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
-use ssm::filter::Tempering;
+use ssm::filter::{Sampling, Tempering};
 use ssm::models::params::{AnyPolicy, Models, HAND_CRAFTED_PARAM as POLICY_LOG_SD};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
@@ -98,8 +98,8 @@ fn complete_data_score_is_zero_at_the_truth_and_not_elsewhere() {
 fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_where_the_bootstrap_filter_is_not() {
     let (data, truth) = point_data(60, 13, (0.5, 0.02), 5);
     let estimator = Estimator::pf_sefi(8);
-    let base = EstimatorConfig { particles: 256, ..EstimatorConfig::default() };
-    let tempered = EstimatorConfig { tempering: Some(Tempering::default()), ..base.clone() };
+    let base = EstimatorConfig::new(Sampling::new(256, None));
+    let tempered = EstimatorConfig::new(Sampling::new(256, Some(Tempering::default())));
     let s = score_at(&data, &truth, &estimator, &tempered, 3, 0, &|| ()).unwrap();
     assert_centred(&s, "tempered");
     // The bootstrap filter's degeneracy on sharp points inflates the smoothed
@@ -112,8 +112,7 @@ fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_where_the_bootstrap_f
 #[test]
 fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_of_box_data_with_a_neural_policy() {
     let (data, truth) = box_data(6);
-    let config =
-        EstimatorConfig { particles: 256, tempering: Some(Tempering::default()), ..EstimatorConfig::default() };
+    let config = EstimatorConfig::new(Sampling::new(256, Some(Tempering::default())));
     let s = score_at(&data, &truth, &Estimator::pf_sefi(8), &config, 3, 0, &|| ()).unwrap();
     assert_centred(&s, "boxes, neural policy");
 }

@@ -475,7 +475,15 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     grandparents,
                 });
                 let particles = StepParticles { states: &mut states, actions: &mut actions, parent };
-                let w = tm.weigh(model, Batch { object, t, n }, particles, &mut log_w, config.sampling.resampling, &mut rng, scratch);
+                let w = tm.weigh(
+                    model,
+                    Batch { object, t, n },
+                    particles,
+                    &mut log_w,
+                    config.sampling.resampling,
+                    &mut rng,
+                    scratch,
+                );
                 ring.put(slot, [states, actions]);
                 if t > 0 {
                     ring.put(parent_slot, [p_states, p_actions]);
@@ -488,7 +496,8 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 (w.observed, w.increment)
             }
             None => {
-                let observed = model.observation_loglik(Batch { object, t, n }, &ring.states[slot], &mut loglik, scratch);
+                let observed =
+                    model.observation_loglik(Batch { object, t, n }, &ring.states[slot], &mut loglik, scratch);
                 let mut increment = None;
                 if observed {
                     summary.likelihood_evaluations += 1;

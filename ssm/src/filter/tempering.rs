@@ -323,8 +323,16 @@ impl Temperer {
 
             for _ in 0..self.config.moves {
                 let parent_states = parent.as_ref().map_or(&[][..], |p| &p.states[..]);
-                let accepted =
-                    self.sweep(model, at, beta, step_current, Drawn { next: states, actions }, parent_states, rng, scratch);
+                let accepted = self.sweep(
+                    model,
+                    at,
+                    beta,
+                    step_current,
+                    Drawn { next: states, actions },
+                    parent_states,
+                    rng,
+                    scratch,
+                );
                 out.evaluations += 1;
                 out.proposed += n;
                 out.accepted += accepted;
@@ -463,7 +471,14 @@ impl Temperer {
             }
         }
         let grand = if t >= 2 { &self.grand[..] } else { &[][..] };
-        map_noise(model, before, grand, &prev.noise, Drawn { next: &mut prev.states, actions: &mut prev.actions }, scratch);
+        map_noise(
+            model,
+            before,
+            grand,
+            &prev.noise,
+            Drawn { next: &mut prev.states, actions: &mut prev.actions },
+            scratch,
+        );
         let mut evaluations = 1;
         if self.prev_observed {
             model.observation_loglik(before, &prev.states, &mut prev.loglik, scratch);
@@ -471,7 +486,14 @@ impl Temperer {
         } else {
             prev.loglik.iter_mut().for_each(|l| *l = 0.0);
         }
-        map_noise(model, at, &prev.states, &cur.noise, Drawn { next: &mut cur.states, actions: &mut cur.actions }, scratch);
+        map_noise(
+            model,
+            at,
+            &prev.states,
+            &cur.noise,
+            Drawn { next: &mut cur.states, actions: &mut cur.actions },
+            scratch,
+        );
         model.observation_loglik(at, &cur.states, &mut cur.loglik, scratch);
         let mut accepted = 0;
         for i in 0..n {
@@ -570,7 +592,14 @@ fn cloud_factor(x: &[f64], dim: usize, factor: &mut Vec<f64>) {
 }
 
 /// The model's noise-driven draw: the prior at `t = 0`, else the transition.
-fn map_noise<M: ParticleModel>(model: &M, at: Batch, parent: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut M::Scratch) {
+fn map_noise<M: ParticleModel>(
+    model: &M,
+    at: Batch,
+    parent: &[f32],
+    z: &[f32],
+    to: Drawn<'_>,
+    scratch: &mut M::Scratch,
+) {
     if at.t == 0 {
         model.prior_from_noise(at.object, at.n, z, to.next);
     } else {

@@ -487,7 +487,12 @@ impl DefensiveProposal {
     pub fn validate(&self) -> Result<(), SettingError> {
         let (f, w) = (self.fraction, self.widening);
         SettingError::check(f > 0.0 && f < 1.0, "defensive_proposal.fraction", f, "in (0, 1)")?;
-        SettingError::check(w >= 1.0 && w.is_finite(), "defensive_proposal.widening", w, "a finite number of at least 1")
+        SettingError::check(
+            w >= 1.0 && w.is_finite(),
+            "defensive_proposal.widening",
+            w,
+            "a finite number of at least 1",
+        )
     }
 }
 

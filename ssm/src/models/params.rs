@@ -45,9 +45,9 @@ use crate::data::{Dataset, ObservationKind};
 use crate::models::extended::ExtensibleObservation;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::models::road_user::VehicleSsm;
-use crate::models::ModelError;
 use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
+use crate::models::ModelError;
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";

@@ -171,7 +171,9 @@ impl<P: GaussianPolicy, O: ObservationModel> VehicleSsm<'_, P, O> {
         to: Drawn<'_>,
         scratch: &mut VehicleScratch,
     ) {
-        self.propagate_by(n, prev, to, &mut scratch.gaussians, |g, actions| g.actions_from_noise(eps_accel, eps_pinch, actions));
+        self.propagate_by(n, prev, to, &mut scratch.gaussians, |g, actions| {
+            g.actions_from_noise(eps_accel, eps_pinch, actions)
+        });
     }
 
     /// `x_t` from `x_{t-1}` (`prev`) for `n` particles by actions that `draw`

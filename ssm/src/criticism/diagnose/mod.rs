@@ -196,7 +196,12 @@ impl DiagnoseConfig {
         let fraction = |x: f64| x > 0.0 && x < 1.0;
         SettingError::check(fraction(f), "fit_fraction", f, "in (0, 1)")?;
         SettingError::check(fraction(c), "check_fraction", c, "in (0, 1)")?;
-        SettingError::check(f + c < 1.0, "fit_fraction + check_fraction", f + c, "below 1, to leave objects to evaluate the gain")?;
+        SettingError::check(
+            f + c < 1.0,
+            "fit_fraction + check_fraction",
+            f + c,
+            "below 1, to leave objects to evaluate the gain",
+        )?;
         SettingError::check(self.particles > 0, "particles", self.particles, "at least 1")?;
         SettingError::check(self.eval_particles > 0, "eval_particles", self.eval_particles, "at least 1")?;
         SettingError::check(self.eval_runs > 0, "eval_runs", self.eval_runs, "at least 1")?;

@@ -535,7 +535,15 @@ impl Sequence {
     /// frame) with ground-truth `states`: its scene (if new), the object with
     /// its prior from the first detection, the states, the actions (if asked)
     /// and the detections.
-    fn add_window(&self, track: &Track, run: &[usize], k0: usize, states: &[State], o: &KittiOptions, split: &mut Split) {
+    fn add_window(
+        &self,
+        track: &Track,
+        run: &[usize],
+        k0: usize,
+        states: &[State],
+        o: &KittiOptions,
+        split: &mut Split,
+    ) {
         let (poses, offset, dets) = (&self.poses, self.offset, &self.dets);
         let r = &mut split.report;
         let run_first = self.labels[run[0]].frame;

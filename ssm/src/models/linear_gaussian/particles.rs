@@ -10,8 +10,8 @@ use rand::Rng;
 use rand_distr::StandardNormal;
 
 use crate::models::linear_gaussian::kalman::{Lgssm, ThetaVars};
-use crate::models::{Block, DifferentiableModel};
 use crate::models::{Batch, Drawn, ModelError, NoiseDims, ParticleModel};
+use crate::models::{Block, DifferentiableModel};
 
 /// The name of the model's one parameter tensor `[phi, ln s_v, ln s_w]`.
 pub const THETA_PARAM: &str = "theta";
