@@ -33,10 +33,7 @@ use rand::Rng;
 
 use super::edges::sample_laplace;
 use super::features::{av_features_on_tape, NUM_FEATURES};
-use super::{
-    check_item_outputs, detection_items, fit_len, needs_kernels, net, split_rows, ObsContext, ObservationModel,
-    PosesRef, RowVars, Scratch,
-};
+use super::{detection_items, fit_len, net, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::data::{BoxDetection, Dataset, ObservationKind, Pose};
 
 /// Widths of the box network, input first.
@@ -137,7 +134,8 @@ impl BoxObservationModel {
     /// The detection distribution at one state (f64).
     pub fn distribution(&self, params: &ParamStore<f64>, ctx: &ObsContext, pose: Pose) -> DetectionDistribution {
         let mut s = Scratch::<f64>::new();
-        net::forward_plain(&self.mlp, params, ctx, PosesRef::one(&pose), &mut s);
+        let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
+        net::forward_plain(&self.mlp, params, ctx, PosesRef::new(&x, &y, &yaw), &mut s);
         let o = &s.outputs;
         DetectionDistribution {
             mu_along: BOX_OFFSET_SCALE * o[0],
@@ -162,7 +160,12 @@ impl BoxObservationModel {
         let o = &s.outputs[..6 * n];
         let row = |k: usize| &o[k * n..(k + 1) * n];
         let (o0, o1, o2, o3, o4, o5) = (row(0), row(1), row(2), row(3), row(4), row(5));
-        let [h, h1, h2, h3, h4, h5, h6] = split_rows::<_, HEAD_ROWS>(&mut s.head, n);
+        let (h, rest) = s.head.split_at_mut(n);
+        let (h1, rest) = rest.split_at_mut(n);
+        let (h2, rest) = rest.split_at_mut(n);
+        let (h3, rest) = rest.split_at_mut(n);
+        let (h4, rest) = rest.split_at_mut(n);
+        let (h5, h6) = rest.split_at_mut(n);
         for i in 0..n {
             let ba = sc * o2[i].softplus() + mn;
             let bc = sc * o3[i].softplus() + mn;
@@ -236,7 +239,10 @@ impl ObservationModel for BoxObservationModel {
         scratch: &mut Scratch<F>,
         out: &mut [F],
     ) {
-        if !needs_kernels("BoxObservationModel::log_likelihood", poses.len(), items.len(), out) {
+        let n = poses.len();
+        assert_eq!(out.len(), n, "BoxObservationModel::log_likelihood: {n} poses, room for {}", out.len());
+        if items.is_empty() || n == 0 {
+            out.fill(F::ZERO);
             return;
         }
         self.prepare(params, ctx, poses, scratch);
@@ -258,12 +264,13 @@ impl ObservationModel for BoxObservationModel {
         items: &[BoxDetection],
         out: &mut [f64],
     ) {
-        check_item_outputs(items.len(), out.len());
+        assert_eq!(out.len(), items.len(), "log_density_items: {} items, room for {}", items.len(), out.len());
         if items.is_empty() {
             return;
         }
         let mut scratch = Scratch::new();
-        let poses = PosesRef::one(&pose);
+        let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
+        let poses = PosesRef::new(&x, &y, &yaw);
         self.prepare(params, ctx, poses, &mut scratch);
         for (o, det) in out.iter_mut().zip(items) {
             let mut v = [0.0];

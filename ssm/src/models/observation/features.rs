@@ -22,7 +22,7 @@
 
 use autodiff::{Float, Tape, Tensor, Var};
 
-use super::{split_rows, ObsContext, PosesRef, RowVars};
+use super::{ObsContext, PosesRef, RowVars};
 use crate::data::Pose;
 
 /// Number of network inputs.
@@ -94,7 +94,12 @@ pub(crate) fn features_with_trig<F: Float>(
     let lf = f(ctx.length / LENGTH_SCALE);
     let wf = f(ctx.width / WIDTH_SCALE);
     let (xs, ys, cs, ss) = (&poses.x[..n], &poses.y[..n], &cos[..n], &sin[..n]);
-    let [o0, o1, o2, o3, o4, o5, o6] = split_rows::<_, NUM_FEATURES>(out, n);
+    let (o0, rest) = out.split_at_mut(n);
+    let (o1, rest) = rest.split_at_mut(n);
+    let (o2, rest) = rest.split_at_mut(n);
+    let (o3, rest) = rest.split_at_mut(n);
+    let (o4, rest) = rest.split_at_mut(n);
+    let (o5, o6) = rest.split_at_mut(n);
     for i in 0..n {
         let dx = xs[i] - ax;
         let dy = ys[i] - ay;

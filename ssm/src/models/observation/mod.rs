@@ -121,14 +121,6 @@ impl<'a, F> PosesRef<'a, F> {
     }
 }
 
-impl<'a> PosesRef<'a, f64> {
-    /// The single pose `pose`, borrowed (the per-item f64 paths).
-    pub fn one(pose: &'a Pose) -> Self {
-        use std::slice::from_ref;
-        PosesRef { x: from_ref(&pose.x), y: from_ref(&pose.y), yaw: from_ref(&pose.yaw) }
-    }
-}
-
 impl<'a, F: Float> From<crate::models::vehicle::StatesRef<'a, F>> for PosesRef<'a, F> {
     fn from(s: crate::models::vehicle::StatesRef<'a, F>) -> Self {
         PosesRef { x: s.x, y: s.y, yaw: s.yaw }
@@ -256,41 +248,6 @@ pub(crate) fn fit_len<F: Float>(v: &mut Vec<F>, n: usize) {
     }
 }
 
-/// The first `K` rows of `n` values of the feature-major buffer `buf`
-/// (`[k * n + i]`), each exactly `n` long; the rest of `buf` is left out.
-///
-/// # Panics
-/// If `buf` holds fewer than `K * n` values.
-#[inline(always)]
-pub(crate) fn split_rows<F, const K: usize>(buf: &mut [F], n: usize) -> [&mut [F]; K] {
-    let mut rest = buf;
-    std::array::from_fn(|_| {
-        let (row, tail) = std::mem::take(&mut rest).split_at_mut(n);
-        rest = tail;
-        row
-    })
-}
-
-/// The start of a model's [`ObservationModel::log_likelihood`] named `op`: checks
-/// that `out` has one value per pose and, when there is nothing to evaluate (no
-/// items or no poses), fills it with 0. Returns whether the kernels must run.
-#[track_caller]
-pub(crate) fn needs_kernels<F: Float>(op: &str, poses: usize, items: usize, out: &mut [F]) -> bool {
-    assert_eq!(out.len(), poses, "{op}: {poses} poses, room for {}", out.len());
-    if items == 0 || poses == 0 {
-        out.fill(F::ZERO);
-        return false;
-    }
-    true
-}
-
-/// Checks that `out` has room for one log-density per item
-/// ([`ObservationModel::log_density_items`]).
-#[track_caller]
-pub(crate) fn check_item_outputs(items: usize, out: usize) {
-    assert_eq!(out, items, "log_density_items: {items} items, room for {out}");
-}
-
 /// An observation model `g(y | x)` (SPEC §3): the density of one step's
 /// observation of one object — a slice of items independent given the state — as
 /// a function of the object's pose `(x, y, yaw)`, its extents and the AV's pose,
@@ -387,11 +344,19 @@ pub trait ObservationModel: Clone + Send + Sync {
         items: &[Self::Item],
         out: &mut [f64],
     ) {
-        check_item_outputs(items.len(), out.len());
+        assert_eq!(out.len(), items.len(), "log_density_items: {} items, room for {}", items.len(), out.len());
         let mut scratch = Scratch::new();
+        let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
         for (o, item) in out.iter_mut().zip(items) {
             let mut v = [0.0];
-            self.log_likelihood(params, ctx, PosesRef::one(&pose), std::slice::from_ref(item), &mut scratch, &mut v);
+            self.log_likelihood(
+                params,
+                ctx,
+                PosesRef::new(&x, &y, &yaw),
+                std::slice::from_ref(item),
+                &mut scratch,
+                &mut v,
+            );
             *o = v[0];
         }
     }
