@@ -1,9 +1,9 @@
 //! Model criticism (SPEC §7): what the fitted simulation gets wrong, which
 //! catalogue extension explains it, and how much it gains.
 //!
-//! * [`extensions`]: the catalogue — latency, clutter, size bias, heavy-tailed
+//! * [`extensions`](crate::models::extended): the catalogue — latency, clutter, size bias, heavy-tailed
 //!   acceleration, heading flips — each a model component with learnable
-//!   parameters ([`extensions::ExtendedSsm`]) that PF-SEFI trains like the base.
+//!   parameters ([`ExtendedSsm`](crate::models::extended::ExtendedSsm)) that PF-SEFI trains like the base.
 //! * [`checks`]: discrepancy statistics of drawn paths and their observations,
 //!   computed alike on measured and replicated data (posterior predictive checks).
 //! * [`hidden`]: generated datasets with one hidden effect each, to test that the

@@ -95,7 +95,7 @@ pub const EVAL_LOG: &str = "eval.csv";
 pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
 /// The parameter store alone, as [`ParamStore::save`] writes it.
 pub const PARAMS_FILE: &str = "params.bin";
-/// Format version of [`CHECKPOINT_FILE`] (checked by [`read_versioned`]).
+/// Format version of [`CHECKPOINT_FILE`] (checked by [`autodiff::nn::read_versioned`]).
 pub const CHECKPOINT_VERSION: u32 = 2;
 /// Columns of [`TRAIN_LOG`].
 ///

@@ -10,7 +10,7 @@
 //! 2. **Fit the base** (neural policy and the observation network of the data's
 //!    kind, from the network's own initialisation: nothing taken from the data
 //!    or a generator) with PF-SEFI.
-//! 3. **Check it** on the check part ([`check_model`]): the tempered filter's
+//! 3. **Check it** on the check part (`check_model`): the tempered filter's
 //!    genealogy gives paths drawn from the particle smoother; along each path
 //!    the model simulates replicated observations and actions; every statistic
 //!    of [`super::checks`] is computed on the measured and the replicated data

@@ -285,7 +285,7 @@ impl MotionModel {
     /// All inputs have shape `[n]`; so do the outputs. Each output is one fused
     /// node ([`autodiff::Tape::precomputed`]) whose values are those of
     /// [`MotionModel::propagate`] (the same arithmetic) and whose partial derivatives
-    /// come out of the same passes over the quadrature nodes ([`step_tile`]).
+    /// come out of the same passes over the quadrature nodes (`step_tile`).
     #[track_caller]
     pub fn propagate_on_tape<'t, F: Float>(&self, s: &StateVars<'t, F>, a: &ActionVars<'t, F>) -> StateVars<'t, F> {
         let n = s.x.numel();
