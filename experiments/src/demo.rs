@@ -38,6 +38,7 @@ use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, Syntheti
 
 use crate::birdseye;
 use crate::calibrate::{FilterArgs, FilterKind};
+use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::output::{ensure_dir, write_csv, write_json, write_with};
 use crate::plot::{line_chart, Series};
@@ -292,7 +293,7 @@ fn learning_stage(
             ..defaults
         };
         let bar = crate::train::bar(name);
-        let outcome = train_run(&args, &bar)?;
+        let outcome = train_run(&args, &bar, &Cluster::single())?;
         bar.finish_and_clear();
         let curve = read_eval_curve(&args.out, "test_mll")?;
         let sds = (read_eval_curve(&args.out, "sd_accel")?, read_eval_curve(&args.out, "sd_pinch")?);

@@ -67,6 +67,7 @@ use ssm::supervised::{fit_observation, SupervisedReport};
 use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
 
 use crate::calibrate::{check_method, method_settings, FilterArgs};
+use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
@@ -403,7 +404,7 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
             ..TrainArgs::with_defaults(train_dir.clone(), val_dir.clone(), dir.clone())
         };
         let bar = train::bar(method);
-        let outcome = train::train_run(&train_args, &bar)?;
+        let outcome = train::train_run(&train_args, &bar, &Cluster::single())?;
         bar.finish_and_clear();
         let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
         let models = Models::from_store(&store, val.kind()).map_err(|e| e.to_string())?;

@@ -4,6 +4,7 @@
 
 mod birdseye;
 mod calibrate;
+mod cluster;
 mod demo;
 mod diagnose;
 mod evaluate;
@@ -97,6 +98,14 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    let cluster = cluster::Cluster::join();
+    if cluster.size() > 1 && !matches!(cli.command, Command::Train(_)) {
+        if cluster.is_root() {
+            eprintln!("error: only `sefi train` runs as an MPI job; start other commands without mpiexec");
+        }
+        cluster.fail(2);
+        return ExitCode::FAILURE;
+    }
     let result = match cli.command {
         Command::Demo { out, seed, quick } => demo::run(&out, seed, quick),
         Command::ImportKitti { root, out, steps, stride, gate, min_score } => {
@@ -105,7 +114,7 @@ fn main() -> ExitCode {
         Command::Generate(args) => generate::run(&args),
         Command::Eval(args) => evaluate::eval(&args),
         Command::Track(args) => evaluate::track(&args),
-        Command::Train(args) => train::run(&args),
+        Command::Train(args) => train::run(&args, &cluster),
         Command::Reproduce(args) => reproduce::run(&args),
         Command::ScoreCheck(args) => score_check::run(&args),
         Command::ExperimentC(args) => experiment_c::run(&args),
@@ -118,6 +127,7 @@ fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");
+            cluster.fail(1);
             ExitCode::FAILURE
         }
     }

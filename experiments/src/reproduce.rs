@@ -30,6 +30,7 @@ use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 use ssm::training::PARAMS_FILE;
 
 use crate::calibrate::{check_method, method_settings, FilterArgs};
+use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
@@ -295,7 +296,7 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
                     ..TrainArgs::with_defaults(data_dir.join("train"), data_dir.join("test"), dir.clone())
                 };
                 let bar = train::bar(&format!("{method} s{seed}"));
-                train::train_run(&train_args, &bar)?;
+                train::train_run(&train_args, &bar, &Cluster::single())?;
                 bar.finish_and_clear();
             }
             let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;

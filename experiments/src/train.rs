@@ -21,6 +21,7 @@ use ssm::objective::{ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
 use crate::calibrate::{FilterArgs, FilterKind};
+use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_json};
 use crate::plot::{line_chart, Series};
 
@@ -165,8 +166,10 @@ pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Vec<(f64, f64)>, Stri
     Ok(points)
 }
 
-/// Runs one training run; `bar` shows its progress (hidden for none).
-pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, String> {
+/// Runs one training run as one process of `cluster` (of one, but for `sefi
+/// train` under mpiexec); `bar` shows its progress (hidden for none). Only the
+/// first process writes files.
+pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Result<TrainOutcome, String> {
     let estimator = Estimator::parse(&args.estimator, args.lag, args.alpha)?;
     if args.particles == 0 || args.eval_particles == 0 {
         return Err("--particles and --eval-particles must be at least 1".into());
@@ -175,6 +178,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
     let test = Dataset::read(&args.test).map_err(|e| e.to_string())?;
     ensure_dir(&args.out)?;
     let run_file = args.out.join("run.json");
+    let root = cluster.is_root();
     if args.resume {
         let text = std::fs::read_to_string(&run_file).map_err(|e| format!("{}: {e}", run_file.display()))?;
         let before: TrainArgs =
@@ -201,7 +205,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         proposal: None,
         eval_tempering: args.filter.tempering_of(args.eval_filter)?,
     };
-    let mut objective = SceneObjective::new(&data, test, config)?;
+    let mut objective = SceneObjective::new(&data, test, config)?.distributed(cluster.collective());
     let train_config = TrainConfig {
         lr: args.lr,
         final_lr: None,
@@ -213,7 +217,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
         shuffle: true,
     };
     let description = serde_json::to_value(args).map_err(|e| e.to_string())?;
-    if !args.resume {
+    if !args.resume && root {
         // Refuse before writing anything if the directory holds a run.
         if args.out.join(ssm::training::CHECKPOINT_FILE).exists() {
             return Err(format!(
@@ -230,6 +234,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
             bar.set_position(first_step.saturating_sub(1) as u64);
         }
         TrainEvent::Step { step, ll_per_unit, .. } => {
+            cluster.inject_failure(*step);
             bar.set_position(*step as u64);
             bar.set_message(format!("train {ll_per_unit:.3} nats/pt, test {last_mll:.3}"));
         }
@@ -242,6 +247,9 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar) -> Result<TrainOutcome, St
     };
     let outcome = train(&mut objective, initial, &train_config, &args.out, args.resume, &mut on_event)
         .map_err(|e| e.to_string())?;
+    if !root {
+        return Ok(outcome);
+    }
     let curve = read_eval_curve(&args.out, "test_mll")?;
     let series = [Series { name: args.estimator.clone(), points: curve }];
     line_chart(
@@ -262,11 +270,24 @@ pub fn bar(prefix: &str) -> ProgressBar {
     )
 }
 
-/// Runs `sefi train`.
-pub fn run(args: &TrainArgs) -> Result<(), String> {
-    let bar = bar(&args.estimator);
-    let outcome = train_run(args, &bar)?;
+/// Runs `sefi train` as one process of `cluster`.
+pub fn run(args: &TrainArgs, cluster: &Cluster) -> Result<(), String> {
+    let bar = if cluster.is_root() { bar(&args.estimator) } else { ProgressBar::hidden() };
+    let started = std::time::Instant::now();
+    let outcome = train_run(args, &bar, cluster)?;
     bar.finish();
+    if !cluster.is_root() {
+        return Ok(());
+    }
+    if cluster.size() > 1 {
+        let steps = outcome.steps.max(1) as f64;
+        println!(
+            "{} processes; {:.0} bytes sent per step by this process in the reductions; {:.3} s per step",
+            cluster.size(),
+            cluster.collective().bytes_sent() as f64 / steps,
+            started.elapsed().as_secs_f64() / steps
+        );
+    }
     println!(
         "{} steps ({} skipped) in {:.1} s; final: {}",
         outcome.steps,

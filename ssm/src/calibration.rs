@@ -399,7 +399,7 @@ impl ModelVisitor for SampleFromModel<'_> {
             b.scene(scene.id, &scene.av);
         }
         for (o, object) in data.objects().iter().enumerate() {
-            let mut rng = rand::rngs::SmallRng::seed_from_u64(crate::filter::stream_seed(self.seed, o));
+            let mut rng = rand::rngs::SmallRng::seed_from_u64(crate::filter::stream_seed(self.seed, o as u64));
             let mut states = vec![sampler.sample_initial_state(o, &mut rng)];
             let mut actions = Vec::with_capacity(data.steps());
             for _ in 1..data.steps() {

@@ -15,6 +15,7 @@ pub mod filter;
 pub mod metrics;
 pub mod models;
 pub mod objective;
+pub mod reduce;
 pub mod seed;
 pub mod setting;
 pub mod stats;

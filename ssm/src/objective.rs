@@ -9,19 +9,28 @@
 //! is the score divided by the batch's observed units (the gradient of the
 //! per-point log-likelihood), so learning rates and clipping thresholds do not
 //! depend on how many points a scene has.
+//!
+//! Data-parallel training ([`SceneObjective::distributed`]): each process of a
+//! job keeps, of every batch, only the blocks of objects it owns
+//! ([`crate::reduce::assign_blocks`], balanced by [`block_cost`]), estimates their partial sums, and the
+//! exact reduction gives every process the same score, bit for bit, whatever the
+//! number of processes. The test evaluation runs on the first process only.
+
+use std::sync::Arc;
 
 use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
 use crate::data::Dataset;
-use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimate, ScoreEstimator};
+use crate::estimators::{reduction_blocks, Estimator, EstimatorConfig, PartialEstimate, ScoreEstimator};
 use crate::filter::{run_filter, FilterConfig, Sampling, Tempering};
 use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::GaussianPolicy;
 use crate::models::DifferentiableModel;
+use crate::reduce::{assign_blocks, Collective, SingleProcess};
 use crate::training::{non_finite, BatchEstimate, EstimateError, Objective};
 
 /// How the objective estimates and evaluates.
@@ -59,6 +68,7 @@ pub struct SceneObjective {
     batches: Vec<Dataset>,
     test: Dataset,
     config: ObjectiveConfig,
+    comm: Arc<dyn Collective>,
 }
 
 impl SceneObjective {
@@ -74,7 +84,27 @@ impl SceneObjective {
         let per = config.scenes_per_step.max(1);
         let scenes: Vec<usize> = (0..train.scenes().len()).collect();
         let batches = scenes.chunks(per).map(|c| train.select_scenes(c)).collect();
-        Ok(SceneObjective { batches, test, config })
+        Ok(SceneObjective { batches, test, config, comm: Arc::new(SingleProcess) })
+    }
+
+    /// The objective of one process of the job `comm`: of every batch it keeps only
+    /// the blocks of objects (runs of `estimator_config.chunk_objects`) that
+    /// [`assign_blocks`] gives it by their [`block_cost`], so its memory holds its
+    /// share of the training objects. Every process of the job must build its
+    /// objective alike and step together (each estimate is a collective call).
+    pub fn distributed(mut self, comm: Arc<dyn Collective>) -> Self {
+        let (rank, size) = (comm.rank(), comm.size());
+        let chunk = self.config.estimator_config.chunk_objects;
+        for batch in &mut self.batches {
+            let blocks: Vec<_> = reduction_blocks(batch.objects().len(), chunk).collect();
+            let costs: Vec<f64> = blocks.iter().map(|r| block_cost(batch, r.clone())).collect();
+            let owners = assign_blocks(&costs, size);
+            let owned: Vec<usize> =
+                blocks.into_iter().zip(owners).filter(|(_, p)| *p == rank).flat_map(|(r, _)| r).collect();
+            *batch = batch.select_objects(&owned);
+        }
+        self.comm = comm;
+        self
     }
 
     /// The models a store describes for this data's kind.
@@ -82,6 +112,18 @@ impl SceneObjective {
         Models::from_store(params, self.test.kind()).map_err(|e| e.to_string())
     }
 }
+
+/// Relative cost of a block of objects for the load balance of a distributed
+/// job: its observed items plus [`STEP_COST_IN_UNITS`] per object-step.
+pub fn block_cost(data: &Dataset, objects: std::ops::Range<usize>) -> f64 {
+    objects.map(|o| data.object_units(o) as f64 + STEP_COST_IN_UNITS * data.steps() as f64).sum()
+}
+
+/// The cost of propagating one object's particles through one step, in observed
+/// items' likelihoods: in the filter's profile (likelihood 61%, propagation 29%)
+/// propagation takes about half the time of the point likelihood at ~9.5 points
+/// per object-step, i.e. about as much as 4 to 5 points.
+pub const STEP_COST_IN_UNITS: f64 = 4.5;
 
 struct Estimate<'a> {
     estimator: &'a Estimator,
@@ -93,13 +135,13 @@ struct Estimate<'a> {
 }
 
 impl ModelVisitor for Estimate<'_> {
-    type Output = Result<(ScoreEstimate, Vec<String>), String>;
+    type Output = Result<(PartialEstimate, Vec<String>), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
         let model = ExtendedSsm::from_store(model, self.extension, self.params)?.with_proposal(self.proposal)?;
         if self.proposal.is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
             return Err("a filter proposal other than the transition works with PF-SEFI only".into());
         }
-        Ok((self.estimator.estimate(&model, self.config, self.seed), model.parameter_names()))
+        Ok((self.estimator.estimate_blocks(&model, self.config, self.seed), model.parameter_names()))
     }
 }
 
@@ -145,6 +187,10 @@ impl Objective for SceneObjective {
         self.batches.len()
     }
 
+    fn is_root(&self) -> bool {
+        self.comm.rank() == 0
+    }
+
     fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError> {
         let models = self.models(params)?;
         let visit = Estimate {
@@ -155,7 +201,8 @@ impl Objective for SceneObjective {
             params,
             seed,
         };
-        let (estimate, names) = models.visit(&self.batches[batch], visit)??;
+        let (partial, names) = models.visit(&self.batches[batch], visit)??;
+        let estimate = partial.reduce(&*self.comm);
         if !estimate.is_finite() {
             return Err(non_finite(format!("score estimate on batch {batch}")));
         }
@@ -175,17 +222,27 @@ impl Objective for SceneObjective {
     }
 
     /// `test_mll` (nats per point, one filter run with `eval_particles`), the
-    /// test's collapsed steps and, for the hand-crafted policy, its sds.
+    /// test's collapsed steps and, for the hand-crafted policy, its sds. On a
+    /// process other than the first of a distributed job the filter is not run
+    /// and its two metrics are NaN (that process writes no logs).
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
-        let sampling = Sampling::new(self.config.eval_particles, self.config.eval_tempering);
-        let config = FilterConfig::new(sampling, 0, seed);
-        let visit =
-            LogLikelihood { config: &config, extension: self.config.extension, params, proposal: self.config.proposal };
-        let (ll, units, collapsed) = models.visit(&self.test, visit)??;
+        let (ll, units, collapsed) = if self.is_root() {
+            let sampling = Sampling::new(self.config.eval_particles, self.config.eval_tempering);
+            let config = FilterConfig::new(sampling, 0, seed);
+            let visit = LogLikelihood {
+                config: &config,
+                extension: self.config.extension,
+                params,
+                proposal: self.config.proposal,
+            };
+            models.visit(&self.test, visit)??
+        } else {
+            (f64::NAN, 0, usize::MAX)
+        };
         let mut metrics = vec![
             ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),
-            ("test_collapsed_steps".to_string(), collapsed as f64),
+            ("test_collapsed_steps".to_string(), if collapsed == usize::MAX { f64::NAN } else { collapsed as f64 }),
         ];
         if let AnyPolicy::HandCrafted(_) = &models.policy {
             let p = models.policy.parameters();

@@ -317,6 +317,16 @@ impl Dataset {
         self.meta.dt
     }
 
+    /// Observed items (points, or box detections) of `object` over all its steps.
+    pub fn object_units(&self, object: usize) -> usize {
+        (0..self.steps())
+            .map(|t| match &self.observations {
+                Observations::Points(p) => p.get(object, t).len(),
+                Observations::Boxes(b) => usize::from(b.get(object, t).is_some()),
+            })
+            .sum()
+    }
+
     /// All scenes, sorted by id.
     pub fn scenes(&self) -> &[Scene] {
         &self.scenes

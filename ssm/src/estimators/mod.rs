@@ -16,8 +16,11 @@
 //! baselines process objects in chunks of [`EstimatorConfig::chunk_objects`] (one
 //! tape per chunk, freed before the next), so their memory grows with `N`, `T` and
 //! the chunk size but not with the number of objects. Work is spread over the
-//! rayon pool by object (PF-SEFI) or by chunk (baselines); gradients are summed in
-//! a fixed order, so results do not depend on the number of threads.
+//! rayon pool by object (PF-SEFI) or by chunk (baselines). Each estimator returns
+//! one partial sum per *block* of [`EstimatorConfig::chunk_objects`] consecutive
+//! objects (a [`PartialEstimate`]), and [`PartialEstimate::reduce`] adds the blocks
+//! exactly ([`crate::reduce`]): the estimate has the same bits for any number of
+//! threads, and for any number of processes that each hold some of the blocks.
 //!
 //! The estimate of each is the gradient of the total log-likelihood of the
 //! objects (the sum over objects, not a mean); `l_hat` is reported with it. The
@@ -32,6 +35,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::filter::{FilterConfig, Sampling};
 use crate::models::DifferentiableModel;
+use crate::reduce::{exact_sum, Collective, SingleProcess};
 use crate::setting::SettingError;
 
 pub use replay::{ThroughFilter, ThroughFilterKind};
@@ -55,7 +59,8 @@ pub struct EstimatorConfig {
     /// they replay on a tape).
     #[serde(flatten)]
     pub sampling: Sampling,
-    /// Objects per tape of the through-filter baselines.
+    /// Objects per tape of the through-filter baselines, and per block of the
+    /// exact reduction for every estimator ([`PartialEstimate`]).
     pub chunk_objects: usize,
     /// Tape precision.
     pub precision: Precision,
@@ -105,14 +110,139 @@ impl ScoreEstimate {
     }
 }
 
+/// One block's share of a [`ScoreEstimate`]: its objects' sums, in object order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BlockEstimate {
+    /// `l_hat` of the block's objects.
+    pub log_likelihood: f64,
+    /// Their score, flattened in parameter order.
+    pub gradient: Vec<f64>,
+    /// Observed units.
+    pub observed_units: usize,
+    /// Collapsed steps.
+    pub collapsed_steps: usize,
+    /// Particle rows evaluated on the tape.
+    pub rows_evaluated: usize,
+    /// Particle slots of the filter.
+    pub particle_slots: usize,
+}
+
+impl BlockEstimate {
+    /// A block with nothing in it yet, for `params` parameter values.
+    fn zero(params: usize) -> Self {
+        BlockEstimate {
+            log_likelihood: 0.0,
+            gradient: vec![0.0; params],
+            observed_units: 0,
+            collapsed_steps: 0,
+            rows_evaluated: 0,
+            particle_slots: 0,
+        }
+    }
+
+    /// Adds one object's (or one tape's) gradient, tensor by tensor in parameter order.
+    fn add_gradient<F: Float>(&mut self, grads: &[Tensor<F>]) {
+        let flat = grads.iter().flat_map(|g| g.data().iter());
+        for (a, &g) in self.gradient.iter_mut().zip(flat) {
+            *a += g.to_f64();
+        }
+    }
+
+    /// Adds one object's filter summary.
+    fn add_summary(&mut self, s: &crate::filter::ObjectSummary) {
+        self.log_likelihood += s.log_likelihood;
+        self.observed_units += s.observed_units;
+        self.collapsed_steps += s.collapsed_steps;
+    }
+}
+
+/// The blocks of a score estimate that this process computed; [`Self::reduce`]
+/// adds them, with those of every other process, into the [`ScoreEstimate`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PartialEstimate {
+    /// Shapes of the parameter tensors (as [`DifferentiableModel::parameters`]).
+    pub shapes: Vec<Vec<usize>>,
+    /// Partial sums, one per block of consecutive objects.
+    pub blocks: Vec<BlockEstimate>,
+}
+
+impl PartialEstimate {
+    /// No blocks, for parameters of `shapes`: what a process that owns no object
+    /// of a batch contributes.
+    pub fn empty(shapes: Vec<Vec<usize>>) -> Self {
+        PartialEstimate { shapes, blocks: Vec::new() }
+    }
+
+    /// Number of scalar parameter values.
+    fn dim(&self) -> usize {
+        self.shapes.iter().map(|s| s.iter().product::<usize>()).sum()
+    }
+
+    /// The exact sum of every block of every process of `comm` (a collective
+    /// call: every process must make it). Counts are summed as integers; `l_hat`
+    /// and the score by [`exact_sum`], so the result does not depend on how the
+    /// blocks were spread over threads or processes.
+    pub fn reduce(self, comm: &dyn Collective) -> ScoreEstimate {
+        let dim = self.dim();
+        let rows: Vec<Vec<f64>> = self
+            .blocks
+            .iter()
+            .map(|b| std::iter::once(b.log_likelihood).chain(b.gradient.iter().copied()).collect())
+            .collect();
+        let sum = exact_sum(&rows, dim + 1, comm);
+        let mut counts = [0i64; 4];
+        for b in &self.blocks {
+            for (c, v) in
+                counts.iter_mut().zip([b.observed_units, b.collapsed_steps, b.rows_evaluated, b.particle_slots])
+            {
+                *c += v as i64;
+            }
+        }
+        comm.sum_i64(&mut counts);
+        let mut flat = sum[1..].iter().copied();
+        let gradient = self
+            .shapes
+            .iter()
+            .map(|shape| Tensor::new(shape, flat.by_ref().take(shape.iter().product()).collect()))
+            .collect();
+        ScoreEstimate {
+            log_likelihood: sum[0],
+            observed_units: counts[0] as usize,
+            gradient,
+            collapsed_steps: counts[1] as usize,
+            rows_evaluated: counts[2] as usize,
+            particle_slots: counts[3] as usize,
+        }
+    }
+}
+
+/// The blocks of the exact reduction over `objects` objects: consecutive runs of
+/// `chunk` (at least 1) objects, the last possibly shorter.
+pub fn reduction_blocks(objects: usize, chunk: usize) -> impl Iterator<Item = std::ops::Range<usize>> {
+    let chunk = chunk.max(1);
+    (0..objects).step_by(chunk).map(move |s| s..objects.min(s + chunk))
+}
+
 /// A particle-filter score estimator.
 pub trait ScoreEstimator: Send + Sync {
     /// A short name for tables and files (e.g. `pf-sefi`).
     fn name(&self) -> String;
 
-    /// Estimates the score of every object of `model` from the filter's draws with
-    /// `seed` (the same seed gives the same draws to every estimator).
-    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate;
+    /// The score of every object of `model` from the filter's draws with `seed`
+    /// (the same seed gives the same draws to every estimator), as partial sums
+    /// over the blocks of [`reduction_blocks`] with `config.chunk_objects`.
+    fn estimate_blocks<M: DifferentiableModel>(
+        &self,
+        model: &M,
+        config: &EstimatorConfig,
+        seed: u64,
+    ) -> PartialEstimate;
+
+    /// The score of every object of `model`: [`Self::estimate_blocks`] reduced
+    /// in this process.
+    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
+        self.estimate_blocks(model, config, seed).reduce(&SingleProcess)
+    }
 }
 
 /// Any of the estimators, chosen at run time (by a config or a command line).
@@ -175,26 +305,28 @@ impl ScoreEstimator for Estimator {
         }
     }
 
-    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
+    fn estimate_blocks<M: DifferentiableModel>(
+        &self,
+        model: &M,
+        config: &EstimatorConfig,
+        seed: u64,
+    ) -> PartialEstimate {
         match self {
-            Estimator::PfSefi(e) => e.estimate(model, config, seed),
-            Estimator::ThroughFilter(e) => e.estimate(model, config, seed),
+            Estimator::PfSefi(e) => e.estimate_blocks(model, config, seed),
+            Estimator::ThroughFilter(e) => e.estimate_blocks(model, config, seed),
         }
     }
 }
 
-/// Adds `from` into `into` (f64 accumulation of per-object or per-chunk gradients).
-pub(crate) fn accumulate<F: Float>(into: &mut [Tensor<f64>], from: &[Tensor<F>]) {
-    for (a, g) in into.iter_mut().zip(from) {
-        for (x, &y) in a.data_mut().iter_mut().zip(g.data()) {
-            *x += y.to_f64();
-        }
-    }
-}
-
-/// Zero tensors shaped like `params`.
-pub(crate) fn zeros_like(params: &[Tensor<f64>]) -> Vec<Tensor<f64>> {
-    params.iter().map(|p| Tensor::zeros(p.shape())).collect()
+/// An empty partial estimate for `model`'s parameters with one zero block per
+/// block of [`reduction_blocks`].
+pub(crate) fn zero_blocks<M: DifferentiableModel>(model: &M, config: &EstimatorConfig) -> PartialEstimate {
+    let shapes: Vec<Vec<usize>> = model.parameters().iter().map(|p| p.shape().to_vec()).collect();
+    let mut partial = PartialEstimate::empty(shapes);
+    let dim = partial.dim();
+    partial.blocks =
+        reduction_blocks(model.num_objects(), config.chunk_objects).map(|_| BlockEstimate::zero(dim)).collect();
+    partial
 }
 
 /// A constant `[R]` column per component from dimension-major values

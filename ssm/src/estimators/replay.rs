@@ -28,8 +28,8 @@ use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
-use super::{ScoreEstimate, ScoreEstimator};
+use super::ScoreEstimator;
+use super::{columns, reduction_blocks, zero_blocks, EstimatorConfig, PartialEstimate, Precision};
 use crate::filter::{filter_object, ObjectSummary, Observer, StepView};
 use crate::models::{Block, DifferentiableModel};
 
@@ -67,7 +67,12 @@ impl ScoreEstimator for ThroughFilter {
         .into()
     }
 
-    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
+    fn estimate_blocks<M: DifferentiableModel>(
+        &self,
+        model: &M,
+        config: &EstimatorConfig,
+        seed: u64,
+    ) -> PartialEstimate {
         match config.precision {
             Precision::F32 => self.estimate_in::<M, f32>(model, config, seed),
             Precision::F64 => self.estimate_in::<M, f64>(model, config, seed),
@@ -101,7 +106,7 @@ impl ThroughFilter {
         model: &M,
         config: &EstimatorConfig,
         seed: u64,
-    ) -> ScoreEstimate {
+    ) -> PartialEstimate {
         let soft = match self.kind {
             ThroughFilterKind::Pfnet { alpha } => Some(alpha),
             _ => None,
@@ -113,8 +118,10 @@ impl ThroughFilter {
             "{}: the through-filter baselines replay the bootstrap filter; tempering is for PF-SEFI",
             self.name()
         );
+        // The tapes' chunks are the blocks of the exact reduction.
         let objects: Vec<usize> = (0..model.num_objects()).collect();
-        let chunks: Vec<&[usize]> = objects.chunks(config.chunk_objects.max(1)).collect();
+        let chunks: Vec<&[usize]> =
+            reduction_blocks(objects.len(), config.chunk_objects).map(|r| &objects[r]).collect();
         let per_chunk: Vec<(Vec<ObjectSummary>, Vec<Tensor<F>>)> = chunks
             .par_iter()
             .map_init(
@@ -136,25 +143,17 @@ impl ThroughFilter {
             )
             .collect();
 
-        let mut gradient = zeros_like(&model.parameters());
-        let mut estimate = ScoreEstimate {
-            log_likelihood: 0.0,
-            observed_units: 0,
-            gradient: Vec::new(),
-            collapsed_steps: 0,
-            rows_evaluated: config.sampling.particles * model.num_steps() * model.num_objects(),
-            particle_slots: config.sampling.particles * model.num_steps() * model.num_objects(),
-        };
-        for (summaries, grads) in &per_chunk {
-            accumulate(&mut gradient, grads);
+        let mut partial = zero_blocks(model, config);
+        let slots = config.sampling.particles * model.num_steps();
+        for (block, (summaries, grads)) in partial.blocks.iter_mut().zip(&per_chunk) {
+            block.add_gradient(grads);
             for s in summaries {
-                estimate.log_likelihood += s.log_likelihood;
-                estimate.observed_units += s.observed_units;
-                estimate.collapsed_steps += s.collapsed_steps;
+                block.add_summary(s);
             }
+            block.rows_evaluated = slots * summaries.len();
+            block.particle_slots = slots * summaries.len();
         }
-        estimate.gradient = gradient;
-        estimate
+        partial
     }
 }
 

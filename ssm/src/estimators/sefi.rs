@@ -18,8 +18,8 @@ use autodiff::{Float, Parallelism, Tape, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{accumulate, columns, zeros_like, EstimatorConfig, Precision};
-use super::{ScoreEstimate, ScoreEstimator};
+use super::ScoreEstimator;
+use super::{columns, reduction_blocks, zero_blocks, EstimatorConfig, PartialEstimate, Precision};
 use crate::filter::{filter_object, LagView, ObjectSummary, Observer, StepView};
 use crate::models::{Block, DifferentiableModel};
 
@@ -35,7 +35,12 @@ impl ScoreEstimator for PfSefi {
         "pf-sefi".into()
     }
 
-    fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
+    fn estimate_blocks<M: DifferentiableModel>(
+        &self,
+        model: &M,
+        config: &EstimatorConfig,
+        seed: u64,
+    ) -> PartialEstimate {
         match config.precision {
             Precision::F32 => self.estimate_in::<M, f32>(model, config, seed),
             Precision::F64 => self.estimate_in::<M, f64>(model, config, seed),
@@ -134,7 +139,7 @@ impl PfSefi {
         model: &M,
         config: &EstimatorConfig,
         seed: u64,
-    ) -> ScoreEstimate {
+    ) -> PartialEstimate {
         let filter = config.filter(seed, self.lag, None);
         let (d, a) = (model.state_dim(), model.action_dim());
         let per_object: Vec<(ObjectSummary, Vec<Tensor<F>>, usize)> = (0..model.num_objects())
@@ -152,25 +157,18 @@ impl PfSefi {
             )
             .collect();
 
-        let params = model.parameters();
-        let mut gradient = zeros_like(&params);
-        let mut estimate = ScoreEstimate {
-            log_likelihood: 0.0,
-            observed_units: 0,
-            gradient: Vec::new(),
-            collapsed_steps: 0,
-            rows_evaluated: 0,
-            particle_slots: config.sampling.particles * model.num_steps() * model.num_objects(),
-        };
-        for (summary, grads, rows) in &per_object {
-            accumulate(&mut gradient, grads);
-            estimate.log_likelihood += summary.log_likelihood;
-            estimate.observed_units += summary.observed_units;
-            estimate.collapsed_steps += summary.collapsed_steps;
-            estimate.rows_evaluated += rows;
+        let mut partial = zero_blocks(model, config);
+        let slots = config.sampling.particles * model.num_steps();
+        for (block, range) in partial.blocks.iter_mut().zip(reduction_blocks(model.num_objects(), config.chunk_objects))
+        {
+            for (summary, grads, rows) in &per_object[range] {
+                block.add_gradient(grads);
+                block.add_summary(summary);
+                block.rows_evaluated += rows;
+                block.particle_slots += slots;
+            }
         }
-        estimate.gradient = gradient;
-        estimate
+        partial
     }
 }
 

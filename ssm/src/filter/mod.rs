@@ -259,9 +259,10 @@ impl<O> FilterRun<O> {
     }
 }
 
-/// The seed of one object's random stream (SplitMix64 of seed and object).
-pub fn stream_seed(seed: u64, object: usize) -> u64 {
-    splitmix64(seed ^ splitmix64(object as u64 ^ 0x5eed))
+/// The seed of one random stream: SplitMix64 of the seed and the stream's key
+/// (an object's [`ParticleModel::stream_key`], or any other index).
+pub fn stream_seed(seed: u64, key: u64) -> u64 {
+    splitmix64(seed ^ splitmix64(key ^ 0x5eed))
 }
 
 /// Filters every object of `model`, in parallel over objects. `make_observer(object)`
@@ -358,7 +359,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let (d, a) = (model.state_dim(), model.action_dim());
     let steps = model.num_steps();
     let lag = config.lag;
-    let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, object));
+    let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, model.stream_key(object)));
     // The tempered filter's lookback moves reach back to x_{t-2}.
     let slots = if config.sampling.tempering.is_some() { (lag + 2).max(3) } else { lag + 2 };
     let mut ring = Ring::new(slots, n, d, a);

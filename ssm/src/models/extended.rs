@@ -745,6 +745,10 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         self.base.num_objects()
     }
 
+    fn stream_key(&self, object: usize) -> u64 {
+        self.base.stream_key(object)
+    }
+
     fn num_steps(&self) -> usize {
         self.base.num_steps()
     }

@@ -74,6 +74,14 @@ pub trait ParticleModel: Sync {
     /// Number of objects.
     fn num_objects(&self) -> usize;
 
+    /// The key of `object`'s random stream in the filter (with the filter's seed):
+    /// its index by default. Models over a dataset key by the object's identity
+    /// (scene and object id), so that an object gets the same draws in any subset
+    /// of the data, whichever process or position holds it.
+    fn stream_key(&self, object: usize) -> u64 {
+        object as u64
+    }
+
     /// Number of steps, `T + 1` (steps are `0..=T`).
     fn num_steps(&self) -> usize;
 

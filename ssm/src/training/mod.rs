@@ -147,6 +147,13 @@ pub trait Objective {
     /// Test metrics, e.g. `[("test_mll", -1.5)]`; the names are the columns of
     /// [`EVAL_LOG`] and must be the same, in the same order, on every call.
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String>;
+
+    /// Whether this process writes the run's files: true but on the processes
+    /// other than the first of a distributed job, which train alongside it (the
+    /// same steps, the same updates) and write nothing.
+    fn is_root(&self) -> bool {
+        true
+    }
 }
 
 /// Progress of [`train`], for a progress bar or a console log.
@@ -224,9 +231,12 @@ struct Run<'a, O: Objective + ?Sized> {
     last_eval: (usize, Vec<f64>),
     prior_seconds: f64,
     started: Instant,
-    /// Created after the initial evaluation of a fresh run.
+    /// Created after the initial evaluation of a fresh run (never on a process
+    /// that writes no files).
     train_log: Option<CsvLog>,
     eval_log: Option<CsvLog>,
+    /// Whether this process writes the run's files ([`Objective::is_root`]).
+    writes: bool,
 }
 
 impl<O: Objective + ?Sized> Run<'_, O> {
@@ -290,19 +300,21 @@ impl<O: Objective + ?Sized> Run<'_, O> {
         }
         let ll_per_unit = per_unit(ll, units);
         let flag = |b: bool| if b { "1" } else { "0" }.to_string();
-        self.train_log.as_mut().expect("created before the first step").row(&[
-            step.to_string(),
-            epoch.to_string(),
-            batch.to_string(),
-            num(ll),
-            units.to_string(),
-            num(ll_per_unit),
-            num(grad_norm),
-            flag(clipped),
-            flag(skipped),
-            collapsed.to_string(),
-            num(t0.elapsed().as_secs_f64()),
-        ])?;
+        if let Some(log) = self.train_log.as_mut().filter(|_| self.writes) {
+            log.row(&[
+                step.to_string(),
+                epoch.to_string(),
+                batch.to_string(),
+                num(ll),
+                units.to_string(),
+                num(ll_per_unit),
+                num(grad_norm),
+                flag(clipped),
+                flag(skipped),
+                collapsed.to_string(),
+                num(t0.elapsed().as_secs_f64()),
+            ])?;
+        }
         Ok(TrainEvent::Step { step, ll_per_unit, grad_norm, skipped })
     }
 
@@ -324,18 +336,24 @@ impl<O: Objective + ?Sized> Run<'_, O> {
             Some(_) => {}
             None => self.eval_names = Some(names.clone()),
         }
+        self.last_eval = (step, metrics.iter().map(|(_, v)| *v).collect());
+        if !self.writes {
+            return Ok(TrainEvent::Evaluated { step, metrics });
+        }
         if self.eval_log.is_none() {
             let header: Vec<String> = std::iter::once("step".to_string()).chain(names).collect();
             self.eval_log = Some(CsvLog::create(&self.dir.join(EVAL_LOG), &header)?);
         }
         let row: Vec<String> = std::iter::once(step.to_string()).chain(metrics.iter().map(|(_, v)| num(*v))).collect();
         self.eval_log.as_mut().expect("created above").row(&row)?;
-        self.last_eval = (step, metrics.iter().map(|(_, v)| *v).collect());
         Ok(TrainEvent::Evaluated { step, metrics })
     }
 
-    /// Writes the checkpoint, then the parameter file.
+    /// Writes the checkpoint, then the parameter file (on the writing process).
     fn checkpoint(&mut self, step: usize) -> Result<TrainEvent, TrainError> {
+        if !self.writes {
+            return Ok(TrainEvent::Checkpointed { step });
+        }
         let ckpt = Checkpoint {
             step,
             params: self.params.clone(),
@@ -382,6 +400,7 @@ pub fn train(
         return Err(TrainError::Config("the objective has no batches to train on".into()));
     }
     let total = config.epochs * batches;
+    let writes = objective.is_root();
     std::fs::create_dir_all(out_dir).map_err(|source| TrainError::Io { path: out_dir.to_path_buf(), source })?;
     let started = Instant::now();
     let ckpt_path = out_dir.join(CHECKPOINT_FILE);
@@ -412,8 +431,14 @@ pub fn train(
             });
         }
         let eval_header: Vec<String> = std::iter::once("step".to_string()).chain(ckpt.eval_names.clone()).collect();
-        let train_log = truncate_log(&out_dir.join(TRAIN_LOG), &train_header, ckpt.step)?;
-        let eval_log = truncate_log(&out_dir.join(EVAL_LOG), &eval_header, ckpt.step)?;
+        let (train_log, eval_log) = if writes {
+            (
+                Some(truncate_log(&out_dir.join(TRAIN_LOG), &train_header, ckpt.step)?),
+                Some(truncate_log(&out_dir.join(EVAL_LOG), &eval_header, ckpt.step)?),
+            )
+        } else {
+            (None, None)
+        };
         let run = Run {
             objective,
             config,
@@ -426,14 +451,15 @@ pub fn train(
             last_eval: ckpt.last_eval,
             prior_seconds: ckpt.seconds,
             started,
-            train_log: Some(train_log),
-            eval_log: Some(eval_log),
+            train_log,
+            eval_log,
+            writes,
         };
         (run, ckpt.step)
     } else {
         for name in [CHECKPOINT_FILE, TRAIN_LOG, EVAL_LOG, PARAMS_FILE] {
             let path = out_dir.join(name);
-            if path.exists() {
+            if writes && path.exists() {
                 return Err(TrainError::Exists { path });
             }
         }
@@ -451,6 +477,7 @@ pub fn train(
             started,
             train_log: None,
             eval_log: None,
+            writes,
         };
         (run, 0)
     };
@@ -460,7 +487,9 @@ pub fn train(
         // Nothing is written before the objective has evaluated the initial
         // parameters, so a run that fails at once leaves no files to refuse later.
         on_event(&run.evaluate(0)?);
-        run.train_log = Some(CsvLog::create(&out_dir.join(TRAIN_LOG), &train_header)?);
+        if writes {
+            run.train_log = Some(CsvLog::create(&out_dir.join(TRAIN_LOG), &train_header)?);
+        }
         on_event(&run.checkpoint(0)?);
     }
     let mut order = Vec::new();

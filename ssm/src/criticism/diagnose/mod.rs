@@ -513,7 +513,7 @@ fn run(
         .enumerate()
         .map(|(i, f)| {
             let d = differences(&f.eval.object_ll, &base_eval.object_ll);
-            sign_flip_p(&d, config.permutations, stream_seed(config.seed ^ 0x5f1b, i))
+            sign_flip_p(&d, config.permutations, stream_seed(config.seed ^ 0x5f1b, i as u64))
         })
         .collect();
     let adjusted = holm(&p_values);

@@ -39,13 +39,13 @@ pub(super) fn posterior_predictive_checks<P: GaussianPolicy, O: ExtensibleObserv
     let (draws, seed) = (config.draws, config.seed);
     let steps = ParticleModel::num_steps(model);
     let run = run_filter(model, &config.eval_filter(0), |object| {
-        PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object))
+        PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object as u64))
     });
     let data = model.data();
     let mut measured = Vec::with_capacity(draws);
     let mut replicated = Vec::with_capacity(draws);
     for k in 0..draws {
-        let mut rng = SmallRng::seed_from_u64(stream_seed(seed ^ 0x7e71, k));
+        let mut rng = SmallRng::seed_from_u64(stream_seed(seed ^ 0x7e71, k as u64));
         let real: Vec<ObjectSample> = run
             .observers
             .iter()

@@ -1,0 +1,158 @@
+//! `sefi train` as an MPI job (cargo feature `mpi`; needs `mpiexec` on the path,
+//! from Debian's `mpich`): the same parameter file, bit for bit, on 1, 2 and 3
+//! processes and without MPI; a process that fails ends the job promptly with a
+//! clear error, and the run resumed on another number of processes ends where an
+//! uninterrupted one does.
+#![cfg(feature = "mpi")]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+mod common;
+
+use common::{ok, s, sefi};
+
+fn temp(name: &str) -> PathBuf {
+    common::temp("mpi", name)
+}
+
+/// Runs `command`, killing it if it has not ended within `limit` (a job that
+/// hangs in a collective must fail the test, not stall it).
+fn run_with_limit(mut command: Command, limit: Duration) -> Output {
+    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().expect("starts");
+    let started = Instant::now();
+    loop {
+        if child.try_wait().expect("waits").is_some() {
+            return child.wait_with_output().expect("collects");
+        }
+        if started.elapsed() > limit {
+            child.kill().ok();
+            let out = child.wait_with_output().expect("collects");
+            panic!("still running after {limit:?}; stderr:\n{}", String::from_utf8_lossy(&out.stderr));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// `sefi train` on `processes` MPI processes (`None`: one process without MPI,
+/// the rayon path), with `extra` arguments and environment.
+fn train(processes: Option<usize>, args: &[String], env: &[(&str, &str)]) -> Output {
+    let mut command = match processes {
+        Some(n) => {
+            let mut c = Command::new("mpiexec");
+            c.args(["-n", &n.to_string(), env!("CARGO_BIN_EXE_sefi")]);
+            // One rayon thread per process: the processes share the machine's cores.
+            c.env("RAYON_NUM_THREADS", "1");
+            c
+        }
+        None => {
+            let mut c = Command::new(env!("CARGO_BIN_EXE_sefi"));
+            c.env("SEFI_NO_MPI", "1");
+            c
+        }
+    };
+    command.arg("train").args(args);
+    for (k, v) in env {
+        command.env(k, v);
+    }
+    run_with_limit(command, Duration::from_secs(300))
+}
+
+fn train_args(data: &Path, out: &Path, estimator: &str) -> Vec<String> {
+    let (train, test) = (data.join("train"), data.join("test"));
+    [
+        "--data",
+        s(&train),
+        "--test",
+        s(&test),
+        "--out",
+        s(out),
+        "--estimator",
+        estimator,
+        "--epochs",
+        "2",
+        "--particles",
+        "24",
+        "--eval-particles",
+        "32",
+        "--eval-every",
+        "2",
+        "--checkpoint-every",
+        "1",
+        "--chunk-objects",
+        "2",
+    ]
+    .into_iter()
+    .map(String::from)
+    .collect()
+}
+
+fn params(out: &Path) -> Vec<u8> {
+    std::fs::read(out.join("params.bin")).unwrap_or_else(|e| panic!("{}: {e}", out.display()))
+}
+
+fn rows(path: &Path) -> usize {
+    std::fs::read_to_string(path).unwrap().lines().count() - 1
+}
+
+#[test]
+fn any_number_of_processes_learns_the_same_bits_as_one() {
+    let dir = temp("ranks");
+    let data = dir.join("data");
+    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    for estimator in ["pf-sefi", "dpf-sgr"] {
+        let reference = dir.join(format!("{estimator}-rayon"));
+        ok(&train(None, &train_args(&data, &reference, estimator), &[]));
+        let expected = params(&reference);
+        for n in 1..=3 {
+            let out = dir.join(format!("{estimator}-{n}"));
+            let stdout = ok(&train(Some(n), &train_args(&data, &out, estimator), &[]));
+            assert_eq!(params(&out), expected, "{estimator} on {n} processes differs from one process without MPI");
+            // Only the first process writes: one row per step, one per evaluation.
+            assert_eq!(rows(&out.join("train.csv")), rows(&reference.join("train.csv")), "{estimator}, {n}");
+            assert_eq!(rows(&out.join("eval.csv")), rows(&reference.join("eval.csv")), "{estimator}, {n}");
+            if n > 1 {
+                assert!(stdout.contains("bytes sent per step"), "{stdout}");
+            }
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_failed_process_ends_the_job_and_the_run_resumes_on_other_processes() {
+    let dir = temp("failure");
+    let data = dir.join("data");
+    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    let whole = dir.join("whole");
+    ok(&train(Some(2), &train_args(&data, &whole, "pf-sefi"), &[]));
+
+    let out = dir.join("interrupted");
+    let args = train_args(&data, &out, "pf-sefi");
+    let started = Instant::now();
+    let failed = train(Some(2), &args, &[("SEFI_FAIL_AT_STEP", "2"), ("SEFI_FAIL_RANK", "1")]);
+    assert!(!failed.status.success(), "the job must fail");
+    let stderr = String::from_utf8_lossy(&failed.stderr);
+    assert!(stderr.contains("injected failure at step 2 on process 1"), "{stderr}");
+    assert!(started.elapsed() < Duration::from_secs(120), "the job took {:?} to end", started.elapsed());
+    // The checkpoint of step 1 survived; resume on three processes.
+    assert!(out.join("checkpoint.bin").is_file());
+    let mut resume = args.clone();
+    resume.push("--resume".into());
+    ok(&train(Some(3), &resume, &[]));
+    assert_eq!(params(&out), params(&whole), "the resumed run must end where the uninterrupted one did");
+    assert_eq!(rows(&out.join("train.csv")), rows(&whole.join("train.csv")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn commands_other_than_train_refuse_to_run_as_a_job() {
+    let dir = temp("refuse");
+    let mut c = Command::new("mpiexec");
+    c.args(["-n", "2", env!("CARGO_BIN_EXE_sefi"), "generate", "--quick", "--exp", "A", "--out", s(&dir)]);
+    let out = run_with_limit(c, Duration::from_secs(120));
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("only `sefi train` runs as an MPI job"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
