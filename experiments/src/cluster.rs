@@ -75,13 +75,19 @@ impl Cluster {
         let _ = code;
     }
 
-    /// Panics with a clear message at step `step` on the process named by
-    /// `SEFI_FAIL_AT_STEP` and `SEFI_FAIL_RANK` (default rank 0): the failure the
-    /// tests inject to check that a job ends promptly and resumes bit for bit.
+    /// Fails at step `step` on the process named by `SEFI_FAIL_AT_STEP` and
+    /// `SEFI_FAIL_RANK` (default rank 0): a panic with a clear message, or with
+    /// `SEFI_FAIL_HOW=abort` the process killed by `SIGABRT` (no panic hook, no
+    /// unwinding). The failures the tests inject to check that a job ends promptly
+    /// and resumes bit for bit.
     pub fn inject_failure(&self, step: usize) {
         let at: Option<usize> = std::env::var("SEFI_FAIL_AT_STEP").ok().and_then(|v| v.parse().ok());
         let rank: usize = std::env::var("SEFI_FAIL_RANK").ok().and_then(|v| v.parse().ok()).unwrap_or(0);
         if at == Some(step) && rank == self.rank() {
+            if std::env::var("SEFI_FAIL_HOW").is_ok_and(|h| h == "abort") {
+                eprintln!("injected abort at step {step} on process {rank} (SEFI_FAIL_AT_STEP)");
+                std::process::abort();
+            }
             panic!("injected failure at step {step} on process {rank} (SEFI_FAIL_AT_STEP)");
         }
     }

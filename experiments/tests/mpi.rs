@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 
 mod common;
 
-use common::{ok, s, sefi};
+use common::{ok, rows, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
     common::temp("mpi", name)
@@ -88,19 +88,21 @@ fn train_args(data: &Path, out: &Path, estimator: &str) -> Vec<String> {
     .collect()
 }
 
+/// A fresh folder `name` holding generated quick data in `data/`.
+fn generated(name: &str) -> (PathBuf, PathBuf) {
+    let dir = temp(name);
+    let data = dir.join("data");
+    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    (dir, data)
+}
+
 fn params(out: &Path) -> Vec<u8> {
     std::fs::read(out.join("params.bin")).unwrap_or_else(|e| panic!("{}: {e}", out.display()))
 }
 
-fn rows(path: &Path) -> usize {
-    std::fs::read_to_string(path).unwrap().lines().count() - 1
-}
-
 #[test]
 fn any_number_of_processes_learns_the_same_bits_as_one() {
-    let dir = temp("ranks");
-    let data = dir.join("data");
-    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    let (dir, data) = generated("ranks");
     for estimator in ["pf-sefi", "dpf-sgr"] {
         let reference = dir.join(format!("{estimator}-rayon"));
         ok(&train(None, &train_args(&data, &reference, estimator), &[]));
@@ -122,9 +124,7 @@ fn any_number_of_processes_learns_the_same_bits_as_one() {
 
 #[test]
 fn a_failed_process_ends_the_job_and_the_run_resumes_on_other_processes() {
-    let dir = temp("failure");
-    let data = dir.join("data");
-    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&data)]));
+    let (dir, data) = generated("failure");
     let whole = dir.join("whole");
     ok(&train(Some(2), &train_args(&data, &whole, "pf-sefi"), &[]));
 
@@ -143,6 +143,20 @@ fn a_failed_process_ends_the_job_and_the_run_resumes_on_other_processes() {
     ok(&train(Some(3), &resume, &[]));
     assert_eq!(params(&out), params(&whole), "the resumed run must end where the uninterrupted one did");
     assert_eq!(rows(&out.join("train.csv")), rows(&whole.join("train.csv")));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_killed_process_ends_the_job() {
+    let (dir, data) = generated("killed");
+    let out = dir.join("run");
+    let started = Instant::now();
+    let env = [("SEFI_FAIL_AT_STEP", "2"), ("SEFI_FAIL_RANK", "2"), ("SEFI_FAIL_HOW", "abort")];
+    let killed = train(Some(3), &train_args(&data, &out, "pf-sefi"), &env);
+    assert!(!killed.status.success(), "the job must fail");
+    assert!(started.elapsed() < Duration::from_secs(120), "the job took {:?} to end", started.elapsed());
+    let stderr = String::from_utf8_lossy(&killed.stderr);
+    assert!(stderr.contains("injected abort at step 2 on process 2"), "{stderr}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -6,14 +6,10 @@ use std::process::Command;
 
 mod common;
 
-use common::{ok, s, sefi};
+use common::{ok, rows, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
     common::temp("train", name)
-}
-
-fn rows(path: &Path) -> usize {
-    std::fs::read_to_string(path).unwrap().lines().count() - 1
 }
 
 #[test]

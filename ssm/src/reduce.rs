@@ -63,7 +63,8 @@ impl Collective for SingleProcess {
 ///
 /// ```
 /// use ssm::reduce::assign_blocks;
-/// assert_eq!(assign_blocks(&[5.0, 1.0, 4.0, 2.0], 2), vec![0, 1, 1, 1]);
+/// // 5 -> 0, 4 -> 1, 2 -> 1 (4 < 5), 1 -> 0 (5 < 6)
+/// assert_eq!(assign_blocks(&[5.0, 1.0, 4.0, 2.0], 2), vec![0, 0, 1, 1]);
 /// assert_eq!(assign_blocks(&[1.0, 1.0, 1.0], 1), vec![0, 0, 0]);
 /// ```
 pub fn assign_blocks(costs: &[f64], size: usize) -> Vec<usize> {
@@ -104,7 +105,7 @@ fn scale_pow2(x: f64, e: i32) -> f64 {
 /// let fwd = exact_sum(&blocks, 2, &SingleProcess);
 /// let rev: Vec<Vec<f64>> = blocks.iter().rev().cloned().collect();
 /// assert_eq!(fwd, exact_sum(&rev, 2, &SingleProcess));
-/// assert_eq!(fwd, vec![1.0, -2.5]); // naive left-to-right gives 0.0 for the first
+/// assert_eq!(fwd, vec![1.0, -1.5]); // naive left-to-right gives 0.0 for the first
 /// ```
 ///
 /// # Panics

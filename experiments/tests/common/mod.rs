@@ -34,3 +34,8 @@ pub fn temp(prefix: &str, name: &str) -> PathBuf {
 pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
+
+/// Data rows of a CSV file (lines after the header).
+pub fn rows(path: &Path) -> usize {
+    std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).lines().count() - 1
+}
