@@ -141,7 +141,7 @@ impl ModelVisitor for Estimate<'_> {
         if self.proposal.is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
             return Err("a filter proposal other than the transition works with PF-SEFI only".into());
         }
-        Ok((self.estimator.estimate_blocks(&model, self.config, self.seed), model.parameter_names()))
+        Ok((self.estimator.partial(&model, self.config, self.seed), model.parameter_names()))
     }
 }
 

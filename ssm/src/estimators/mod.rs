@@ -231,17 +231,12 @@ pub trait ScoreEstimator: Send + Sync {
     /// The score of every object of `model` from the filter's draws with `seed`
     /// (the same seed gives the same draws to every estimator), as partial sums
     /// over the blocks of [`reduction_blocks`] with `config.chunk_objects`.
-    fn estimate_blocks<M: DifferentiableModel>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate;
+    fn partial<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate;
 
-    /// The score of every object of `model`: [`Self::estimate_blocks`] reduced
+    /// The score of every object of `model`: [`Self::partial`] reduced
     /// in this process.
     fn estimate<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> ScoreEstimate {
-        self.estimate_blocks(model, config, seed).reduce(&SingleProcess)
+        self.partial(model, config, seed).reduce(&SingleProcess)
     }
 }
 
@@ -305,16 +300,30 @@ impl ScoreEstimator for Estimator {
         }
     }
 
-    fn estimate_blocks<M: DifferentiableModel>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate {
+    fn partial<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate {
         match self {
-            Estimator::PfSefi(e) => e.estimate_blocks(model, config, seed),
-            Estimator::ThroughFilter(e) => e.estimate_blocks(model, config, seed),
+            Estimator::PfSefi(e) => e.partial(model, config, seed),
+            Estimator::ThroughFilter(e) => e.partial(model, config, seed),
         }
+    }
+}
+
+/// An estimator's work in one float type of its tapes.
+pub(crate) trait EstimateIn {
+    /// [`ScoreEstimator::partial`] with tapes of `F`.
+    fn run<M: DifferentiableModel, F: Float>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate;
+}
+
+/// [`EstimateIn::run`] in the float type `config.precision` names.
+pub(crate) fn by_precision<E: EstimateIn, M: DifferentiableModel>(
+    estimator: &E,
+    model: &M,
+    config: &EstimatorConfig,
+    seed: u64,
+) -> PartialEstimate {
+    match config.precision {
+        Precision::F32 => estimator.run::<M, f32>(model, config, seed),
+        Precision::F64 => estimator.run::<M, f64>(model, config, seed),
     }
 }
 

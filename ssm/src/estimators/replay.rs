@@ -29,7 +29,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ScoreEstimator;
-use super::{columns, reduction_blocks, zero_blocks, EstimatorConfig, PartialEstimate, Precision};
+use super::{by_precision, columns, reduction_blocks, zero_blocks, EstimateIn, EstimatorConfig, PartialEstimate};
 use crate::filter::{filter_object, ObjectSummary, Observer, StepView};
 use crate::models::{Block, DifferentiableModel};
 
@@ -67,16 +67,8 @@ impl ScoreEstimator for ThroughFilter {
         .into()
     }
 
-    fn estimate_blocks<M: DifferentiableModel>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate {
-        match config.precision {
-            Precision::F32 => self.estimate_in::<M, f32>(model, config, seed),
-            Precision::F64 => self.estimate_in::<M, f64>(model, config, seed),
-        }
+    fn partial<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate {
+        by_precision(self, model, config, seed)
     }
 }
 
@@ -100,13 +92,8 @@ impl Observer for Record {
     }
 }
 
-impl ThroughFilter {
-    fn estimate_in<M: DifferentiableModel, F: Float>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate {
+impl EstimateIn for ThroughFilter {
+    fn run<M: DifferentiableModel, F: Float>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate {
         let soft = match self.kind {
             ThroughFilterKind::Pfnet { alpha } => Some(alpha),
             _ => None,

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::ScoreEstimator;
-use super::{columns, reduction_blocks, zero_blocks, EstimatorConfig, PartialEstimate, Precision};
+use super::{by_precision, columns, reduction_blocks, zero_blocks, EstimateIn, EstimatorConfig, PartialEstimate};
 use crate::filter::{filter_object, LagView, ObjectSummary, Observer, StepView};
 use crate::models::{Block, DifferentiableModel};
 
@@ -35,16 +35,8 @@ impl ScoreEstimator for PfSefi {
         "pf-sefi".into()
     }
 
-    fn estimate_blocks<M: DifferentiableModel>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate {
-        match config.precision {
-            Precision::F32 => self.estimate_in::<M, f32>(model, config, seed),
-            Precision::F64 => self.estimate_in::<M, f64>(model, config, seed),
-        }
+    fn partial<M: DifferentiableModel>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate {
+        by_precision(self, model, config, seed)
     }
 }
 
@@ -133,13 +125,8 @@ fn gather_weights<'t, F: Float>(tape: &'t Tape<F>, w: &[f64], ranges: &[(usize, 
     tape.constant(Tensor::from_vec(v))
 }
 
-impl PfSefi {
-    fn estimate_in<M: DifferentiableModel, F: Float>(
-        &self,
-        model: &M,
-        config: &EstimatorConfig,
-        seed: u64,
-    ) -> PartialEstimate {
+impl EstimateIn for PfSefi {
+    fn run<M: DifferentiableModel, F: Float>(&self, model: &M, config: &EstimatorConfig, seed: u64) -> PartialEstimate {
         let filter = config.filter(seed, self.lag, None);
         let (d, a) = (model.state_dim(), model.action_dim());
         let per_object: Vec<(ObjectSummary, Vec<Tensor<F>>, usize)> = (0..model.num_objects())

@@ -56,13 +56,13 @@ impl Clutter {
 #[derive(Clone, Copy, Debug)]
 pub(super) struct ClutterConsts<F> {
     /// `ln(1 - eps)`.
-    pub(super) ln_keep: F,
+    ln_keep: F,
     /// `ln eps - ln(2 pi) - 2 ln s`.
-    pub(super) ln_peak: F,
+    ln_peak: F,
     /// `1 / s^2`.
     pub(super) prec: F,
     /// `1 / (2 s^2)`.
-    pub(super) half_prec: F,
+    half_prec: F,
     /// `eps`.
     pub(super) eps: F,
 }

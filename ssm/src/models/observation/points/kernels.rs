@@ -101,20 +101,20 @@ pub(super) const PRODUCT_RANGE_LOG2: f64 = 120.0;
 #[derive(Clone, Copy, Debug)]
 pub(super) struct PointConsts<F> {
     /// `1 / s`.
-    pub(super) inv_s: F,
+    inv_s: F,
     /// `-hw / s` and `-hl / s`.
-    pub(super) neg_hw_s: F,
-    pub(super) neg_hl_s: F,
+    neg_hw_s: F,
+    neg_hl_s: F,
     /// `ln((1 - e^{-L/s}) / 2)` of the width and length edges (added outside them).
-    pub(super) tail_w: F,
-    pub(super) tail_l: F,
+    tail_w: F,
+    tail_l: F,
     /// `e^{-L/s}` of the width and length edges, flushed to 0 as in `SoftConsts`.
-    pub(super) exp_neg_w: F,
-    pub(super) exp_neg_l: F,
+    exp_neg_w: F,
+    exp_neg_l: F,
     /// Whether either `e^{-L/s}` is kept (the kernel then adds the far end's term).
     pub(super) far: bool,
     /// Points whose mixture sums are multiplied before one logarithm is taken.
-    pub(super) points_per_log: usize,
+    points_per_log: usize,
 }
 
 impl<F: Float> PointConsts<F> {
@@ -187,11 +187,11 @@ pub(super) fn point_terms<F: Float, const FAR: bool>(
 pub(super) struct Block<'a, F> {
     pub(super) x: &'a [F],
     pub(super) y: &'a [F],
-    pub(super) cos: &'a [F],
-    pub(super) sin: &'a [F],
-    pub(super) k: [&'a [F]; NUM_EDGES],
-    pub(super) off: [&'a [F]; NUM_EDGES],
-    pub(super) nib: [&'a [F]; NUM_EDGES],
+    cos: &'a [F],
+    sin: &'a [F],
+    k: [&'a [F]; NUM_EDGES],
+    off: [&'a [F]; NUM_EDGES],
+    nib: [&'a [F]; NUM_EDGES],
 }
 
 impl<'a, F: Float> Block<'a, F> {

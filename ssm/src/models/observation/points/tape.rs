@@ -101,11 +101,11 @@ impl PointObservationModel {
 /// gradient kernel needs.
 #[derive(Clone, Copy)]
 pub(super) struct EdgeTerm<F> {
-    pub(super) ub: F,
-    pub(super) fac: F,
-    pub(super) inside: bool,
-    pub(super) e_near: F,
-    pub(super) e_far: F,
+    ub: F,
+    fac: F,
+    inside: bool,
+    e_near: F,
+    e_far: F,
 }
 
 /// `k` is `ln phi - ln(2 b) - ln L`; the soft uniform adds `ln fac` inside the edge
@@ -134,11 +134,11 @@ pub(super) fn edge_term<F: Float, const FAR: bool>(
 /// Constants of one object (or row) shared by its points.
 #[derive(Clone, Copy)]
 pub(super) struct BoxConsts<F> {
-    pub(super) hl: F,
-    pub(super) hw: F,
+    hl: F,
+    hw: F,
     /// Soft-uniform constants of the width edges (0, 2) and the length edges (1, 3).
-    pub(super) sw: SoftConsts<F>,
-    pub(super) sl: SoftConsts<F>,
+    sw: SoftConsts<F>,
+    sl: SoftConsts<F>,
 }
 
 impl<F: Float> BoxConsts<F> {
@@ -189,9 +189,9 @@ pub(super) fn edge_partials<F: Float>(t: &EdgeTerm<F>, alpha: F, beta: F, mu: F,
 pub(super) struct RowsHead<F> {
     /// `(ln phi, mu, b)`: `ln phi = log_softmax(o[0..4])`, `mu = POINT_OFFSET_SCALE
     /// o[4..8]`, `b = POINT_SCALE_SCALE softplus(o[8..12]) + POINT_MIN_SCALE`.
-    pub(super) head: Vec<F>,
+    head: Vec<F>,
     /// `phi` (4 columns), then `d b / d o = POINT_SCALE_SCALE sigmoid(o[8..12])` (4).
-    pub(super) slopes: Vec<F>,
+    slopes: Vec<F>,
 }
 
 impl<F: Float> RowsHead<F> {
@@ -267,23 +267,23 @@ impl<F: Float> RowsHead<F> {
 /// the tile's work columns.
 pub(super) struct Tile<F> {
     /// `ln phi_e - ln(2 b_e) - ln L_e`, per edge.
-    pub(super) k: [[F; TILE_ROWS]; NUM_EDGES],
+    k: [[F; TILE_ROWS]; NUM_EDGES],
     /// Laplace means `mu_e`, per edge.
-    pub(super) mu: [[F; TILE_ROWS]; NUM_EDGES],
+    mu: [[F; TILE_ROWS]; NUM_EDGES],
     /// `1 / b_e`, per edge.
-    pub(super) ib: [[F; TILE_ROWS]; NUM_EDGES],
+    ib: [[F; TILE_ROWS]; NUM_EDGES],
     /// Cosine of the heading.
-    pub(super) c: [F; TILE_ROWS],
+    c: [F; TILE_ROWS],
     /// Sine of the heading.
-    pub(super) s: [F; TILE_ROWS],
+    s: [F; TILE_ROWS],
     /// Position x.
-    pub(super) x: [F; TILE_ROWS],
+    x: [F; TILE_ROWS],
     /// Position y.
-    pub(super) y: [F; TILE_ROWS],
+    y: [F; TILE_ROWS],
     /// One point's outputs, `[output][row]`, in the kernel's type.
-    pub(super) val: [[F; TILE_ROWS]; ROW_OUT + CLUTTER_OUT],
+    val: [[F; TILE_ROWS]; ROW_OUT + CLUTTER_OUT],
     /// Sums over the points so far of every output, `[output][row]`, in f64.
-    pub(super) acc: [[f64; TILE_ROWS]; ROW_OUT + CLUTTER_OUT],
+    acc: [[f64; TILE_ROWS]; ROW_OUT + CLUTTER_OUT],
 }
 
 impl<F: Float> Tile<F> {
@@ -447,13 +447,13 @@ pub(super) fn tile_point<F: Float, const GRAD: bool, const CLUTTER: bool>(
 /// mu, b)` feature-major (`[k * R + r]`, 12 columns), the rest `[R]`; `items[r]`
 /// are row `r`'s points.
 pub(super) struct RowSlices<'a, F> {
-    pub(super) head: &'a [F],
-    pub(super) x: &'a [F],
-    pub(super) y: &'a [F],
-    pub(super) yaw: &'a [F],
-    pub(super) length: &'a [F],
-    pub(super) width: &'a [F],
-    pub(super) items: &'a [&'a [[f64; 2]]],
+    head: &'a [F],
+    x: &'a [F],
+    y: &'a [F],
+    yaw: &'a [F],
+    length: &'a [F],
+    width: &'a [F],
+    items: &'a [&'a [[f64; 2]]],
 }
 
 impl<F: Float> RowSlices<'_, F> {
