@@ -1,7 +1,7 @@
 //! `sefi train`, `sefi reproduce --quick` and `sefi score-check` end to end: the
 //! files they promise, refusals that protect earlier work, and resuming.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Command;
 
 mod common;
