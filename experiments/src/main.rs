@@ -102,6 +102,10 @@ fn main() -> ExitCode {
     if cluster.size() > 1 && !matches!(cli.command, Command::Train(_)) {
         if cluster.is_root() {
             eprintln!("error: only `sefi train` runs as an MPI job; start other commands without mpiexec");
+        } else {
+            // Wait for the first process to print its message and abort the job: an
+            // abort from here could end it before the message is out.
+            cluster.collective().max_f64(&mut [0.0]);
         }
         cluster.fail(2);
         return ExitCode::FAILURE;

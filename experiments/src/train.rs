@@ -280,7 +280,7 @@ pub fn run(args: &TrainArgs, cluster: &Cluster) -> Result<(), String> {
         return Ok(());
     }
     if cluster.size() > 1 {
-        let steps = outcome.steps.max(1) as f64;
+        let steps = outcome.steps_run.max(1) as f64;
         println!(
             "{} processes; {:.0} bytes sent per step by this process in the reductions; {:.3} s per step",
             cluster.size(),

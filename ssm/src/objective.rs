@@ -94,6 +94,11 @@ impl SceneObjective {
     /// objective alike and step together (each estimate is a collective call).
     pub fn distributed(mut self, comm: Arc<dyn Collective>) -> Self {
         let (rank, size) = (comm.rank(), comm.size());
+        if size == 1 {
+            // One process owns every block: the batches stay as they are.
+            self.comm = comm;
+            return self;
+        }
         let chunk = self.config.estimator_config.chunk_objects;
         for batch in &mut self.batches {
             let blocks: Vec<_> = reduction_blocks(batch.objects().len(), chunk).collect();
@@ -227,7 +232,7 @@ impl Objective for SceneObjective {
     /// and its two metrics are NaN (that process writes no logs).
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
-        let (ll, units, collapsed) = if self.is_root() {
+        let (ll, units, collapsed): (f64, usize, Option<usize>) = if self.is_root() {
             let sampling = Sampling::new(self.config.eval_particles, self.config.eval_tempering);
             let config = FilterConfig::new(sampling, 0, seed);
             let visit = LogLikelihood {
@@ -236,13 +241,14 @@ impl Objective for SceneObjective {
                 params,
                 proposal: self.config.proposal,
             };
-            models.visit(&self.test, visit)??
+            let (ll, units, collapsed) = models.visit(&self.test, visit)??;
+            (ll, units, Some(collapsed))
         } else {
-            (f64::NAN, 0, usize::MAX)
+            (f64::NAN, 0, None)
         };
         let mut metrics = vec![
             ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),
-            ("test_collapsed_steps".to_string(), if collapsed == usize::MAX { f64::NAN } else { collapsed as f64 }),
+            ("test_collapsed_steps".to_string(), collapsed.map_or(f64::NAN, |c| c as f64)),
         ];
         if let AnyPolicy::HandCrafted(_) = &models.policy {
             let p = models.policy.parameters();

@@ -202,6 +202,8 @@ pub struct TrainOutcome {
     pub steps: usize,
     /// Steps skipped because the estimate was not finite.
     pub skipped_steps: usize,
+    /// Steps this call ran (fewer than `steps` after a resume).
+    pub steps_run: usize,
     /// The objective's metrics at the trained parameters.
     pub final_eval: Vec<(String, f64)>,
     /// Wall-clock seconds of the run, summed over sessions (work redone after a
@@ -300,7 +302,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
         }
         let ll_per_unit = per_unit(ll, units);
         let flag = |b: bool| if b { "1" } else { "0" }.to_string();
-        if let Some(log) = self.train_log.as_mut().filter(|_| self.writes) {
+        if let Some(log) = self.train_log.as_mut() {
             log.row(&[
                 step.to_string(),
                 epoch.to_string(),
@@ -514,6 +516,7 @@ pub fn train(
         seconds: run.seconds(),
         steps: total,
         skipped_steps: run.skipped,
+        steps_run: total - done,
         params: run.params,
     })
 }
