@@ -7,6 +7,7 @@
 //! (resumable state and the learned parameters, for `sefi eval --params`), and
 //! `curve.svg` (test MLL against training step).
 
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use autodiff::nn::ParamStore;
@@ -17,7 +18,7 @@ use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use ssm::objective::{ObjectiveConfig, SceneObjective};
+use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
 use crate::calibrate::{FilterArgs, FilterKind};
@@ -166,6 +167,28 @@ pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Vec<(f64, f64)>, Stri
     Ok(points)
 }
 
+/// The training data this process holds and the test data. A job of one reads
+/// both whole. On a job of many, each process reads the training data's layout,
+/// then only the objects it owns ([`owned_objects`]); only the first process,
+/// which evaluates, reads the test objects (the others hold the test scenes
+/// without objects).
+fn read_data(args: &TrainArgs, config: &ObjectiveConfig, cluster: &Cluster) -> Result<(Dataset, Dataset), String> {
+    let read = |dir: &Path| Dataset::read(dir).map_err(|e| e.to_string());
+    if cluster.size() == 1 {
+        return Ok((read(&args.data)?, read(&args.test)?));
+    }
+    let layout = Dataset::read_layout(&args.data).map_err(|e| e.to_string())?;
+    let owned = owned_objects(&layout, config, cluster.rank(), cluster.size());
+    let keep: HashSet<(i64, i64)> = owned.iter().map(|&o| layout.objects[o]).collect();
+    let data = Dataset::read_shard(&args.data, &keep).map_err(|e| e.to_string())?;
+    let test = if cluster.is_root() {
+        read(&args.test)?
+    } else {
+        Dataset::read_shard(&args.test, &HashSet::new()).map_err(|e| e.to_string())?
+    };
+    Ok((data, test))
+}
+
 /// Runs one training run as one process of `cluster` (of one, but for `sefi
 /// train` under mpiexec); `bar` shows its progress (hidden for none). Only the
 /// first process writes files.
@@ -174,8 +197,6 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
     if args.particles == 0 || args.eval_particles == 0 {
         return Err("--particles and --eval-particles must be at least 1".into());
     }
-    let data = Dataset::read(&args.data).map_err(|e| e.to_string())?;
-    let test = Dataset::read(&args.test).map_err(|e| e.to_string())?;
     ensure_dir(&args.out)?;
     let run_file = args.out.join("run.json");
     let root = cluster.is_root();
@@ -190,7 +211,6 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
             ));
         }
     }
-    let initial = initial_store(args, &data)?;
     let config = ObjectiveConfig {
         estimator,
         estimator_config: EstimatorConfig {
@@ -205,7 +225,9 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
         proposal: None,
         eval_tempering: args.filter.tempering_of(args.eval_filter)?,
     };
-    let mut objective = SceneObjective::new(&data, test, config)?.distributed(cluster.collective());
+    let (data, test) = read_data(args, &config, cluster)?;
+    let initial = initial_store(args, &data)?;
+    let mut objective = SceneObjective::new(&data, test, config)?.with_collective(cluster.collective());
     let train_config = TrainConfig {
         lr: args.lr,
         final_lr: None,

@@ -10,10 +10,11 @@
 //! per-point log-likelihood), so learning rates and clipping thresholds do not
 //! depend on how many points a scene has.
 //!
-//! Data-parallel training ([`SceneObjective::distributed`]): each process of a
-//! job keeps, of every batch, only the blocks of objects it owns
-//! ([`crate::reduce::assign_blocks`], balanced by [`block_cost`]), estimates their partial sums, and the
-//! exact reduction gives every process the same score, bit for bit, whatever the
+//! Data-parallel training ([`SceneObjective::with_collective`]): each process of
+//! a job holds, of every batch, only the blocks of objects it owns
+//! ([`owned_objects`], balanced by [`block_cost`]; read with
+//! [`Dataset::read_shard`]), estimates their partial sums, and the exact
+//! reduction gives every process the same score, bit for bit, whatever the
 //! number of processes. The test evaluation runs on the first process only.
 
 use std::sync::Arc;
@@ -22,7 +23,7 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::data::Dataset;
+use crate::data::{DataLayout, Dataset};
 use crate::estimators::{reduction_blocks, Estimator, EstimatorConfig, PartialEstimate, ScoreEstimator};
 use crate::filter::{run_filter, FilterConfig, Sampling, Tempering};
 use crate::models::extended::{DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension};
@@ -87,27 +88,14 @@ impl SceneObjective {
         Ok(SceneObjective { batches, test, config, comm: Arc::new(SingleProcess) })
     }
 
-    /// The objective of one process of the job `comm`: of every batch it keeps only
-    /// the blocks of objects (runs of `estimator_config.chunk_objects`) that
-    /// [`assign_blocks`] gives it by their [`block_cost`], so its memory holds its
-    /// share of the training objects. Every process of the job must build its
-    /// objective alike and step together (each estimate is a collective call).
-    pub fn distributed(mut self, comm: Arc<dyn Collective>) -> Self {
-        let (rank, size) = (comm.rank(), comm.size());
-        if size == 1 {
-            // One process owns every block: the batches stay as they are.
-            self.comm = comm;
-            return self;
-        }
-        let chunk = self.config.estimator_config.chunk_objects;
-        for batch in &mut self.batches {
-            let blocks: Vec<_> = reduction_blocks(batch.objects().len(), chunk).collect();
-            let costs: Vec<f64> = blocks.iter().map(|r| block_cost(batch, r.clone())).collect();
-            let owners = assign_blocks(&costs, size);
-            let owned: Vec<usize> =
-                blocks.into_iter().zip(owners).filter(|(_, p)| *p == rank).flat_map(|(r, _)| r).collect();
-            *batch = batch.select_objects(&owned);
-        }
+    /// The objective of one process of the job `comm`, on `train` holding that
+    /// process's share of the training objects ([`owned_objects`]: read with
+    /// [`Dataset::read_shard`], or cut from the whole data with
+    /// [`Dataset::shard`]) and every scene, so that every process has the same
+    /// batches. Every process of the job must build its objective alike and step
+    /// together (each estimate is a collective call); on a job of one, `train`
+    /// is the whole data.
+    pub fn with_collective(mut self, comm: Arc<dyn Collective>) -> Self {
         self.comm = comm;
         self
     }
@@ -118,10 +106,32 @@ impl SceneObjective {
     }
 }
 
+/// The training objects (indices into [`Dataset::objects`], ascending) that
+/// process `rank` of a job of `size` owns: of every batch (runs of
+/// `scenes_per_step` scenes, as [`SceneObjective::new`] cuts them), the blocks
+/// of `estimator_config.chunk_objects` consecutive objects
+/// ([`reduction_blocks`]) that [`assign_blocks`] gives it by their
+/// [`block_cost`]. Computed alike on every process from the data's
+/// [`DataLayout`], before any object is read.
+pub fn owned_objects(layout: &DataLayout, config: &ObjectiveConfig, rank: usize, size: usize) -> Vec<usize> {
+    let chunk = config.estimator_config.chunk_objects;
+    let mut owned = Vec::new();
+    for scenes in layout.scenes.chunks(config.scenes_per_step.max(1)) {
+        let first = scenes.first().map_or(0, |r| r.start);
+        let last = scenes.last().map_or(0, |r| r.end);
+        let blocks: Vec<_> = reduction_blocks(last - first, chunk).map(|r| first + r.start..first + r.end).collect();
+        let costs: Vec<f64> = blocks.iter().map(|r| block_cost(layout, r.clone())).collect();
+        let owners = assign_blocks(&costs, size);
+        owned.extend(blocks.into_iter().zip(owners).filter(|(_, p)| *p == rank).flat_map(|(r, _)| r));
+    }
+    owned.sort_unstable();
+    owned
+}
+
 /// Relative cost of a block of objects for the load balance of a distributed
 /// job: its observed items plus [`STEP_COST_IN_UNITS`] per object-step.
-pub fn block_cost(data: &Dataset, objects: std::ops::Range<usize>) -> f64 {
-    objects.map(|o| data.object_units(o) as f64 + STEP_COST_IN_UNITS * data.steps() as f64).sum()
+pub fn block_cost(layout: &DataLayout, objects: std::ops::Range<usize>) -> f64 {
+    objects.map(|o| layout.units[o] as f64 + STEP_COST_IN_UNITS * layout.steps as f64).sum()
 }
 
 /// The cost of propagating one object's particles through one step, in observed

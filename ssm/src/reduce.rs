@@ -56,6 +56,72 @@ impl Collective for SingleProcess {
     fn sum_i64(&self, _: &mut [i64]) {}
 }
 
+/// A job of `size` processes simulated by the threads of one process: each
+/// thread holds one [`ThreadGroup::member`] and makes the collective calls as
+/// an MPI process would. What tests of data-parallel code run on, without MPI.
+pub struct ThreadGroup {
+    size: usize,
+    slots: std::sync::Mutex<Vec<Vec<u64>>>,
+    barrier: std::sync::Barrier,
+}
+
+impl ThreadGroup {
+    /// A group of `size` (at least 1) members.
+    pub fn new(size: usize) -> std::sync::Arc<Self> {
+        let size = size.max(1);
+        std::sync::Arc::new(ThreadGroup {
+            size,
+            slots: std::sync::Mutex::new(vec![Vec::new(); size]),
+            barrier: std::sync::Barrier::new(size),
+        })
+    }
+
+    /// Member `rank` of the group, for the thread that plays that process.
+    ///
+    /// # Panics
+    /// If `rank` is not below the group's size.
+    pub fn member(self: &std::sync::Arc<Self>, rank: usize) -> ThreadMember {
+        assert!(rank < self.size, "ThreadGroup::member: rank {rank} of {}", self.size);
+        ThreadMember { group: self.clone(), rank }
+    }
+}
+
+/// One member of a [`ThreadGroup`].
+pub struct ThreadMember {
+    group: std::sync::Arc<ThreadGroup>,
+    rank: usize,
+}
+
+impl ThreadMember {
+    /// Posts this member's values (as bits), waits for every member, and
+    /// combines all members' values in rank order with `op`.
+    fn combine<T: Copy>(&self, values: &mut [T], to: fn(T) -> u64, from: fn(u64) -> T, op: fn(T, T) -> T) {
+        let g = &self.group;
+        g.slots.lock().unwrap_or_else(|e| e.into_inner())[self.rank] = values.iter().map(|&v| to(v)).collect();
+        g.barrier.wait();
+        let all = g.slots.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        g.barrier.wait();
+        for (j, v) in values.iter_mut().enumerate() {
+            *v = all.iter().map(|a| from(a[j])).reduce(op).expect("size >= 1");
+        }
+    }
+}
+
+impl Collective for ThreadMember {
+    fn rank(&self) -> usize {
+        self.rank
+    }
+    fn size(&self) -> usize {
+        self.group.size
+    }
+    fn max_f64(&self, values: &mut [f64]) {
+        self.combine(values, f64::to_bits, f64::from_bits, f64::max);
+    }
+    fn sum_i64(&self, values: &mut [i64]) {
+        self.combine(values, |v| v as u64, |b| b as i64, i64::wrapping_add);
+    }
+}
+
 /// The owner of each block of a batch among `size` processes, balancing the
 /// blocks' `costs`: longest first, each to the least-loaded process (ties: the
 /// lower block index, the lower rank). Deterministic; which process holds a block
@@ -190,59 +256,14 @@ mod tests {
         }
     }
 
-    /// `size` processes simulated by threads: each reduction posts this thread's
-    /// values, waits for all, and combines every process's values in rank order.
-    struct Threads {
-        rank: usize,
-        size: usize,
-        slots: std::sync::Arc<std::sync::Mutex<Vec<Vec<f64>>>>,
-        barrier: std::sync::Arc<std::sync::Barrier>,
-    }
-
-    impl Threads {
-        fn combine(&self, values: &mut [f64], op: fn(f64, f64) -> f64) {
-            self.slots.lock().unwrap()[self.rank] = values.to_vec();
-            self.barrier.wait();
-            let all = self.slots.lock().unwrap().clone();
-            self.barrier.wait();
-            for (j, v) in values.iter_mut().enumerate() {
-                *v = all.iter().map(|a| a[j]).reduce(op).unwrap();
-            }
-        }
-    }
-
-    impl Collective for Threads {
-        fn rank(&self) -> usize {
-            self.rank
-        }
-        fn size(&self) -> usize {
-            self.size
-        }
-        fn max_f64(&self, values: &mut [f64]) {
-            self.combine(values, f64::max);
-        }
-        fn sum_i64(&self, values: &mut [i64]) {
-            // i64 through f64 slots would round: post the bits instead.
-            let bits: Vec<f64> = values.iter().map(|&v| f64::from_bits(v as u64)).collect();
-            self.slots.lock().unwrap()[self.rank] = bits;
-            self.barrier.wait();
-            let all = self.slots.lock().unwrap().clone();
-            self.barrier.wait();
-            for (j, v) in values.iter_mut().enumerate() {
-                *v = all.iter().map(|a| a[j].to_bits() as i64).sum();
-            }
-        }
-    }
-
     /// The exact sum of `blocks` dealt round-robin to `size` simulated processes;
     /// every process must get the same answer, which is returned.
     fn split_sum(blocks: &[Vec<f64>], dim: usize, size: usize) -> Vec<f64> {
-        let slots = std::sync::Arc::new(std::sync::Mutex::new(vec![Vec::new(); size]));
-        let barrier = std::sync::Arc::new(std::sync::Barrier::new(size));
+        let group = ThreadGroup::new(size);
         let answers: Vec<Vec<f64>> = std::thread::scope(|scope| {
             let handles: Vec<_> = (0..size)
                 .map(|rank| {
-                    let comm = Threads { rank, size, slots: slots.clone(), barrier: barrier.clone() };
+                    let comm = group.member(rank);
                     let owners = assign_blocks(&vec![1.0; blocks.len()], size);
                     let mine: Vec<Vec<f64>> =
                         blocks.iter().enumerate().filter(|(b, _)| owners[*b] == rank).map(|(_, v)| v.clone()).collect();

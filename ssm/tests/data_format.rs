@@ -4,6 +4,7 @@
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{Action, BoxDetection, DataError, Dataset, Meta, Object, ObservationKind, Place, Pose, Prior, State};
+use std::collections::HashSet;
 use std::fs;
 use std::path::Path;
 
@@ -162,6 +163,62 @@ fn layout_serves_the_filter() {
     let dir = tempfile::tempdir().unwrap();
     sub.write(dir.path()).unwrap();
     assert_bit_exact(&sub, &Dataset::read(dir.path()).unwrap());
+}
+
+// ---------------------------------------------------------------- sharded reads
+
+/// Every subset of the synthetic dataset's objects, read as one process's share,
+/// equals the same share cut from the whole dataset in memory, on both kinds;
+/// the layout read without values equals the whole dataset's.
+#[test]
+fn a_shard_read_from_files_equals_the_shard_cut_in_memory() {
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        let ds = synthetic(kind);
+        let dir = tempfile::tempdir().unwrap();
+        ds.write(dir.path()).unwrap();
+        let layout = Dataset::read_layout(dir.path()).unwrap();
+        assert_eq!(layout, ds.layout());
+        assert_eq!(layout.scenes, vec![0..2, 2..4, 4..4]);
+        assert_eq!(layout.units.iter().sum::<usize>(), ds.observations().count());
+        let n = ds.objects().len();
+        for mask in 0..1u32 << n {
+            let picked: Vec<usize> = (0..n).filter(|o| mask >> o & 1 == 1).collect();
+            let keep: HashSet<(i64, i64)> = picked.iter().map(|&o| layout.objects[o]).collect();
+            let shard = Dataset::read_shard(dir.path(), &keep).unwrap();
+            assert_bit_exact(&shard, &ds.shard(&picked));
+            // Every scene stays, with its AV poses, even without objects.
+            assert_eq!(shard.scenes().len(), ds.scenes().len());
+            assert_eq!(shard.objects().len(), picked.len());
+        }
+    }
+}
+
+/// A process validates the rows it keeps and skips the values of the others;
+/// rows of an object no file lists are an error for every process.
+#[test]
+fn a_shard_read_validates_its_own_rows_and_rejects_unknown_objects() {
+    let dir = tempfile::tempdir().unwrap();
+    base(dir.path(), false);
+    edit(dir.path(), "points.csv", &Edit::Replace(5, "2,10,1,-10,oops"));
+    let mine: HashSet<(i64, i64)> = [(2, 10)].into();
+    let others: HashSet<(i64, i64)> = [(1, 10), (1, 11)].into();
+    let err = Dataset::read_shard(dir.path(), &mine).expect_err("the owner sees the bad value");
+    assert_eq!((err.line(), err.column()), (Some(5), Some("y")), "{err}");
+    let shard = Dataset::read_shard(dir.path(), &others).expect("the bad row is another process's");
+    assert_eq!(shard.objects().len(), 2);
+    // The layout counts rows without parsing values.
+    assert_eq!(Dataset::read_layout(dir.path()).unwrap().units, vec![3, 0, 1]);
+
+    base(dir.path(), false);
+    edit(dir.path(), "points.csv", &Edit::Append("1,99,0,1,1"));
+    for keep in [&mine, &others] {
+        let err = Dataset::read_shard(dir.path(), keep).expect_err("an unknown object is an error");
+        assert!(err.to_string().contains("99"), "{err}");
+    }
+    base(dir.path(), false);
+    edit(dir.path(), "objects.csv", &Edit::Append("7,1,4.5,1.8,10,0,0,5,0,1,1,0.1,1,0.01"));
+    let err = Dataset::read_layout(dir.path()).expect_err("an object of an unknown scene");
+    assert_eq!((err.line(), err.column()), (Some(5), Some("scene")), "{err}");
 }
 
 // ---------------------------------------------------------------- bad input

@@ -10,12 +10,13 @@ use super::builder::{assemble, Rec, Records};
 use super::error::{DataError, Place, Problem};
 use super::meta::{parse_meta, render_meta};
 use super::{
-    Action, BoxDetection, Dataset, Object, ObservationKind, Observations, Pose, Prior, State, ACTIONS_FILE,
+    Action, BoxDetection, DataLayout, Dataset, Object, ObservationKind, Observations, Pose, Prior, State, ACTIONS_FILE,
     ACTION_COLUMNS, AV_COLUMNS, AV_FILE, BOXES_FILE, BOX_COLUMNS, META_FILE, OBJECTS_FILE, OBJECT_COLUMNS, POINTS_FILE,
     POINT_COLUMNS, STATES_FILE, STATE_COLUMNS,
 };
+use std::collections::HashSet;
 use std::fs;
-use std::io::{self, BufWriter, Write};
+use std::io::{self, BufRead, BufWriter, Write};
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -77,31 +78,59 @@ impl Row<'_> {
     }
 }
 
-/// Reads the CSV file `name` of `dir`: checks the header and the field count
-/// of every row, and turns each row into a `T` with `parse`.
-fn read_csv<T>(
+/// Opens a file for reading; a missing file is [`DataError::MissingFile`].
+fn open(path: &Path) -> Result<io::BufReader<fs::File>, DataError> {
+    fs::File::open(path).map(io::BufReader::new).map_err(|e| {
+        if e.kind() == io::ErrorKind::NotFound {
+            DataError::MissingFile { path: path.to_path_buf() }
+        } else {
+            DataError::io(path, e)
+        }
+    })
+}
+
+/// Checks line 1 of the CSV file `name` against its `columns`.
+fn check_header(name: &'static str, columns: &'static [&'static str], line: &str) -> Result<(), DataError> {
+    let line = line.strip_prefix('\u{feff}').unwrap_or(line);
+    let header: Vec<&str> = line.split(',').map(str::trim).collect();
+    if header == columns {
+        return Ok(());
+    }
+    let i = header.iter().zip(columns).position(|(a, b)| a != b).unwrap_or(header.len().min(columns.len()));
+    let column = columns.get(i).or(header.get(i)).copied().unwrap_or("-");
+    Err(DataError::invalid(
+        name,
+        Place::Line(1),
+        column,
+        Problem::Header { expected: columns.join(","), found: header.join(",") },
+    ))
+}
+
+/// Streams the CSV file `name` of `dir` line by line (the file is never held in
+/// memory whole): checks the header and the field count of every row, and hands
+/// each row to `visit`.
+fn read_rows(
     dir: &Path,
     name: &'static str,
     columns: &'static [&'static str],
-    mut parse: impl FnMut(&Row<'_>) -> Result<T, DataError>,
-) -> Result<Vec<T>, DataError> {
-    let text = read_text(&dir.join(name))?;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
-    let mut lines = text.split('\n').map(|l| l.strip_suffix('\r').unwrap_or(l));
-    let header: Vec<&str> = lines.next().unwrap_or("").split(',').map(str::trim).collect();
-    if header != columns {
-        let i = header.iter().zip(columns).position(|(a, b)| a != b).unwrap_or(header.len().min(columns.len()));
-        let column = columns.get(i).or(header.get(i)).copied().unwrap_or("-");
-        return Err(DataError::invalid(
-            name,
-            Place::Line(1),
-            column,
-            Problem::Header { expected: columns.join(","), found: header.join(",") },
-        ));
-    }
-    let mut out = Vec::new();
-    for (k, line) in lines.enumerate() {
-        let line_no = k + 2;
+    mut visit: impl FnMut(&Row<'_>) -> Result<(), DataError>,
+) -> Result<(), DataError> {
+    let path = dir.join(name);
+    let mut reader = open(&path)?;
+    let mut buffer = String::new();
+    let mut line_no = 0;
+    loop {
+        buffer.clear();
+        if reader.read_line(&mut buffer).map_err(|e| DataError::io(&path, e))? == 0 {
+            break;
+        }
+        line_no += 1;
+        let line = buffer.strip_suffix('\n').unwrap_or(&buffer);
+        let line = line.strip_suffix('\r').unwrap_or(line);
+        if line_no == 1 {
+            check_header(name, columns, line)?;
+            continue;
+        }
         if line.trim().is_empty() {
             continue;
         }
@@ -126,94 +155,206 @@ fn read_csv<T>(
                 Problem::FieldCount { expected: columns.len(), found: count },
             ));
         }
-        out.push(parse(&row)?);
+        visit(&row)?;
     }
+    if line_no == 0 {
+        check_header(name, columns, "")?;
+    }
+    Ok(())
+}
+
+/// Reads the CSV file `name` of `dir` ([`read_rows`]), turning each row into a
+/// `T` with `parse`.
+fn read_csv<T>(
+    dir: &Path,
+    name: &'static str,
+    columns: &'static [&'static str],
+    mut parse: impl FnMut(&Row<'_>) -> Result<T, DataError>,
+) -> Result<Vec<T>, DataError> {
+    let mut out = Vec::new();
+    read_rows(dir, name, columns, |row| {
+        out.push(parse(row)?);
+        Ok(())
+    })?;
     Ok(out)
+}
+
+/// Reads the (scene, object, t)-keyed CSV file `name` of `dir`, skipping the rows
+/// of objects `shard` leaves to other processes before parsing their values.
+fn read_keyed<T>(
+    dir: &Path,
+    name: &'static str,
+    columns: &'static [&'static str],
+    shard: Option<&Shard>,
+    mut value: impl FnMut(&Row<'_>) -> Result<T, DataError>,
+) -> Result<Vec<Rec<T>>, DataError> {
+    let mut out = Vec::new();
+    read_rows(dir, name, columns, |r| {
+        let (scene, object) = (r.int(0)?, r.int(1)?);
+        if shard.is_some_and(|s| s.elsewhere(scene, object)) {
+            return Ok(());
+        }
+        let t = r.int(2)?;
+        out.push(Rec { place: r.place(), scene, object, t, value: value(r)? });
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// The objects one process of a job reads ([`read_shard`]).
+struct Shard<'a> {
+    /// Every object of `objects.csv`.
+    known: HashSet<(i64, i64)>,
+    /// This process's objects.
+    keep: &'a HashSet<(i64, i64)>,
+}
+
+impl Shard<'_> {
+    /// Whether the rows of (`scene`, `object`) belong to another process. Rows
+    /// of an object `objects.csv` lacks are kept, so that reading reports them.
+    fn elsewhere(&self, scene: i64, object: i64) -> bool {
+        !self.keep.contains(&(scene, object)) && self.known.contains(&(scene, object))
+    }
 }
 
 /// Reads and validates the dataset in `dir`.
 pub(crate) fn read_dir(dir: &Path) -> Result<Dataset, DataError> {
-    let meta = parse_meta(&read_text(&dir.join(META_FILE))?)?;
-    let has_points = dir.join(POINTS_FILE).exists();
-    let has_boxes = dir.join(BOXES_FILE).exists();
-    let kind = match (has_points, has_boxes) {
-        (true, false) => ObservationKind::Points,
-        (false, true) => ObservationKind::Boxes,
-        (both, _) => return Err(DataError::ObservationFiles { dir: dir.to_path_buf(), both }),
-    };
+    read_objects(dir, None)
+}
 
+/// Reads and validates the part of the dataset in `dir` that one process of a
+/// data-parallel job owns: every scene, and of the objects only those in
+/// `keep` (keys `(scene, object)`). The rows of other objects are skipped
+/// before their values are parsed; they are validated by the process that owns
+/// them. Rows of objects `objects.csv` does not list are an error, as in
+/// [`read_dir`].
+pub(crate) fn read_shard(dir: &Path, keep: &HashSet<(i64, i64)>) -> Result<Dataset, DataError> {
+    read_objects(dir, Some(keep))
+}
+
+/// The observation kind of the dataset in `dir`, from which file it has.
+fn observation_kind(dir: &Path) -> Result<ObservationKind, DataError> {
+    match (dir.join(POINTS_FILE).exists(), dir.join(BOXES_FILE).exists()) {
+        (true, false) => Ok(ObservationKind::Points),
+        (false, true) => Ok(ObservationKind::Boxes),
+        (both, _) => Err(DataError::ObservationFiles { dir: dir.to_path_buf(), both }),
+    }
+}
+
+/// [`read_dir`] (`keep` = `None`) or [`read_shard`].
+fn read_objects(dir: &Path, keep: Option<&HashSet<(i64, i64)>>) -> Result<Dataset, DataError> {
+    let meta = parse_meta(&read_text(&dir.join(META_FILE))?)?;
+    let kind = observation_kind(dir)?;
+    let av = read_csv(dir, AV_FILE, &AV_COLUMNS, |r| {
+        // Parse in column order so the first bad column is reported.
+        let (scene, t) = (r.int(0)?, r.int(1)?);
+        let value = Pose { x: r.num(2)?, y: r.num(3)?, yaw: r.num(4)? };
+        Ok(Rec { place: r.place(), scene, object: 0, t, value })
+    })?;
+    let mut objects = read_csv(dir, OBJECTS_FILE, &OBJECT_COLUMNS, |r| {
+        let (scene, id) = (r.int(0)?, r.int(1)?);
+        let (length, width) = (r.num(2)?, r.num(3)?);
+        let mut v = [0.0; 10];
+        for (i, x) in v.iter_mut().enumerate() {
+            *x = r.num(4 + i)?;
+        }
+        let mean = State::from_array([v[0], v[1], v[2], v[3], v[4]]);
+        let sd = State::from_array([v[5], v[6], v[7], v[8], v[9]]);
+        Ok(Rec {
+            place: r.place(),
+            scene,
+            object: id,
+            t: 0,
+            value: Object { scene, id, length, width, prior: Prior { mean, sd } },
+        })
+    })?;
+    let shard = keep.map(|keep| Shard { known: objects.iter().map(|r| (r.scene, r.object)).collect(), keep });
+    if let Some(shard) = &shard {
+        objects.retain(|r| !shard.elsewhere(r.scene, r.object));
+    }
+    let shard = shard.as_ref();
     let mut records = Records {
-        av: read_csv(dir, AV_FILE, &AV_COLUMNS, |r| {
-            // Parse in column order so the first bad column is reported.
-            let (scene, t) = (r.int(0)?, r.int(1)?);
-            let value = Pose { x: r.num(2)?, y: r.num(3)?, yaw: r.num(4)? };
-            Ok(Rec { place: r.place(), scene, object: 0, t, value })
-        })?,
-        objects: read_csv(dir, OBJECTS_FILE, &OBJECT_COLUMNS, |r| {
-            let (scene, id) = (r.int(0)?, r.int(1)?);
-            let (length, width) = (r.num(2)?, r.num(3)?);
-            let mut v = [0.0; 10];
-            for (i, x) in v.iter_mut().enumerate() {
-                *x = r.num(4 + i)?;
-            }
-            let mean = State::from_array([v[0], v[1], v[2], v[3], v[4]]);
-            let sd = State::from_array([v[5], v[6], v[7], v[8], v[9]]);
-            Ok(Rec {
-                place: r.place(),
-                scene,
-                object: id,
-                t: 0,
-                value: Object { scene, id, length, width, prior: Prior { mean, sd } },
-            })
-        })?,
+        av,
+        objects,
         ..Records::default()
     };
     match kind {
         ObservationKind::Points => {
-            records.points = read_csv(dir, POINTS_FILE, &POINT_COLUMNS, |r| {
-                let key = (r.int(0)?, r.int(1)?, r.int(2)?);
-                keyed(r, key, [r.num(3)?, r.num(4)?])
-            })?
+            records.points = read_keyed(dir, POINTS_FILE, &POINT_COLUMNS, shard, |r| Ok([r.num(3)?, r.num(4)?]))?
         }
         ObservationKind::Boxes => {
-            records.boxes = read_csv(dir, BOXES_FILE, &BOX_COLUMNS, |r| {
-                let key = (r.int(0)?, r.int(1)?, r.int(2)?);
-                let value = BoxDetection {
+            records.boxes = read_keyed(dir, BOXES_FILE, &BOX_COLUMNS, shard, |r| {
+                Ok(BoxDetection {
                     x: r.num(3)?,
                     y: r.num(4)?,
                     yaw: r.num(5)?,
                     length: r.num(6)?,
                     width: r.num(7)?,
                     score: r.num(8)?,
-                };
-                keyed(r, key, value)
+                })
             })?
         }
     }
     if dir.join(STATES_FILE).exists() {
-        records.states = Some(read_csv(dir, STATES_FILE, &STATE_COLUMNS, |r| {
-            let key = (r.int(0)?, r.int(1)?, r.int(2)?);
+        records.states = Some(read_keyed(dir, STATES_FILE, &STATE_COLUMNS, shard, |r| {
             let mut v = [0.0; 5];
             for (i, x) in v.iter_mut().enumerate() {
                 *x = r.num(3 + i)?;
             }
-            keyed(r, key, State::from_array(v))
+            Ok(State::from_array(v))
         })?);
     }
     if dir.join(ACTIONS_FILE).exists() {
-        records.actions = Some(read_csv(dir, ACTIONS_FILE, &ACTION_COLUMNS, |r| {
-            let key = (r.int(0)?, r.int(1)?, r.int(2)?);
-            let value = Action { accel: r.num(3)?, pinch: r.num(4)? };
-            keyed(r, key, value)
+        records.actions = Some(read_keyed(dir, ACTIONS_FILE, &ACTION_COLUMNS, shard, |r| {
+            Ok(Action { accel: r.num(3)?, pinch: r.num(4)? })
         })?);
     }
     assemble(meta, kind, records)
 }
 
-/// A record keyed by (scene, object, t); the key is parsed before the value
-/// so that the first bad column is the one reported.
-fn keyed<T>(row: &Row<'_>, key: (i64, i64, i64), value: T) -> Result<Rec<T>, DataError> {
-    Ok(Rec { place: row.place(), scene: key.0, object: key.1, t: key.2, value })
+/// The first pass of a sharded read: the dataset's layout from `meta.json`,
+/// the keys of `av.csv` and `objects.csv` and a count of the observation rows
+/// of each object, without parsing any value. An object whose scene `av.csv`
+/// lacks is reported here, as [`read_dir`] would.
+pub(crate) fn read_layout(dir: &Path) -> Result<DataLayout, DataError> {
+    let meta = parse_meta(&read_text(&dir.join(META_FILE))?)?;
+    let kind = observation_kind(dir)?;
+    let mut scene_ids = Vec::new();
+    read_rows(dir, AV_FILE, &AV_COLUMNS, |r| {
+        scene_ids.push(r.int(0)?);
+        Ok(())
+    })?;
+    scene_ids.sort_unstable();
+    scene_ids.dedup();
+    let mut objects = Vec::new();
+    read_rows(dir, OBJECTS_FILE, &OBJECT_COLUMNS, |r| {
+        let (scene, id) = (r.int(0)?, r.int(1)?);
+        if scene_ids.binary_search(&scene).is_err() {
+            return Err(DataError::invalid(OBJECTS_FILE, r.place(), "scene", Problem::UnknownScene { scene }));
+        }
+        objects.push((scene, id));
+        Ok(())
+    })?;
+    objects.sort_unstable();
+    let mut units = vec![0usize; objects.len()];
+    let (file, columns): (&'static str, &'static [&'static str]) = match kind {
+        ObservationKind::Points => (POINTS_FILE, &POINT_COLUMNS),
+        ObservationKind::Boxes => (BOXES_FILE, &BOX_COLUMNS),
+    };
+    let mut last: Option<((i64, i64), usize)> = None;
+    read_rows(dir, file, columns, |r| {
+        let key = (r.int(0)?, r.int(1)?);
+        let o = match last {
+            Some((k, o)) if k == key => Some(o),
+            _ => objects.binary_search(&key).ok(),
+        };
+        if let Some(o) = o {
+            units[o] += 1;
+            last = Some((key, o));
+        }
+        Ok(())
+    })?;
+    Ok(DataLayout::new(meta.steps, &scene_ids, objects, units))
 }
 
 /// Distinguishes temporary files of concurrent writers in one process.

@@ -282,6 +282,36 @@ pub struct Dataset {
     actions: Option<StepTable<Action>>,
 }
 
+/// Where every object of a dataset sits and how much it observes, without its
+/// values: what a data-parallel job needs to split the objects between its
+/// processes before any of them reads one ([`Dataset::read_layout`],
+/// [`Dataset::layout`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct DataLayout {
+    /// Steps per object (`steps` of `meta.json`).
+    pub steps: usize,
+    /// Every object's key `(scene id, object id)`, sorted: the order of
+    /// [`Dataset::objects`].
+    pub objects: Vec<(i64, i64)>,
+    /// Each scene's objects, a range of `objects`, scenes sorted by id.
+    pub scenes: Vec<std::ops::Range<usize>>,
+    /// Observed items (points, or box detections) of each object
+    /// ([`Dataset::object_units`]).
+    pub units: Vec<usize>,
+}
+
+impl DataLayout {
+    /// The layout of sorted `objects` (with `units`) in the sorted scenes
+    /// `scene_ids`; every object's scene must be among them.
+    pub(crate) fn new(steps: usize, scene_ids: &[i64], objects: Vec<(i64, i64)>, units: Vec<usize>) -> Self {
+        let scenes = scene_ids
+            .iter()
+            .map(|&id| objects.partition_point(|o| o.0 < id)..objects.partition_point(|o| o.0 <= id))
+            .collect();
+        DataLayout { steps, objects, scenes, units }
+    }
+}
+
 impl Dataset {
     /// A builder for a dataset with the given metadata and observation kind.
     pub fn builder(meta: Meta, kind: ObservationKind) -> DatasetBuilder {
@@ -291,6 +321,36 @@ impl Dataset {
     /// Reads and validates a dataset directory.
     pub fn read(dir: impl AsRef<std::path::Path>) -> Result<Dataset, DataError> {
         format::read_dir(dir.as_ref())
+    }
+
+    /// Reads the part of the dataset in `dir` that one process of a
+    /// data-parallel job owns: every scene (with its AV poses), and only the
+    /// objects whose `(scene, object)` key is in `keep`. The other objects' rows
+    /// are skipped unparsed, so a process's memory holds its share; each row is
+    /// validated by the process that keeps it. Equal to
+    /// [`Dataset::shard`] of the whole dataset for the same objects.
+    pub fn read_shard(
+        dir: impl AsRef<std::path::Path>,
+        keep: &std::collections::HashSet<(i64, i64)>,
+    ) -> Result<Dataset, DataError> {
+        format::read_shard(dir.as_ref(), keep)
+    }
+
+    /// The layout of the dataset in `dir` (objects, scenes, observed items per
+    /// object), read without parsing any value: the first pass of a sharded
+    /// read. Equal to [`Dataset::layout`] of the dataset read whole.
+    pub fn read_layout(dir: impl AsRef<std::path::Path>) -> Result<DataLayout, DataError> {
+        format::read_layout(dir.as_ref())
+    }
+
+    /// The layout of this dataset (see [`DataLayout`]).
+    pub fn layout(&self) -> DataLayout {
+        DataLayout {
+            steps: self.steps(),
+            objects: self.objects.iter().map(|o| (o.scene, o.id)).collect(),
+            scenes: self.scenes.iter().map(|s| s.objects.clone()).collect(),
+            units: (0..self.objects.len()).map(|o| self.object_units(o)).collect(),
+        }
     }
 
     /// Writes the dataset into `dir` (created if needed). Each file is written
@@ -430,6 +490,24 @@ impl Dataset {
             .flat_map(|&s| self.scenes[s].objects.clone().filter(|o| picked.binary_search(o).is_ok()))
             .collect();
         self.select(&scenes, &ordered)
+    }
+
+    /// A dataset with every scene (each with its AV poses) and only the listed
+    /// objects (indices into [`Dataset::objects`], in any order): one
+    /// process's share of a data-parallel job, in memory (see
+    /// [`Dataset::read_shard`]). Unlike [`Dataset::select_objects`] it keeps
+    /// scenes without objects, so every process sees the same scenes.
+    ///
+    /// # Panics
+    /// If an index is out of range or listed twice (a programmer error).
+    #[track_caller]
+    pub fn shard(&self, objects: &[usize]) -> Dataset {
+        let mut picked = objects.to_vec();
+        picked.sort_unstable();
+        assert!(picked.windows(2).all(|w| w[0] != w[1]), "Dataset::shard: an object is listed twice");
+        assert!(picked.last().is_none_or(|&o| o < self.objects.len()), "Dataset::shard: index out of range");
+        let scenes: Vec<usize> = (0..self.scenes.len()).collect();
+        self.select(&scenes, &picked)
     }
 
     /// The scenes `order` (sorted by id) with the objects `picked` (grouped by
