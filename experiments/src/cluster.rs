@@ -2,9 +2,10 @@
 //! as an [`ssm::reduce::Collective`], the rule that only the first process
 //! writes, and a failing process ending the whole job.
 //!
-//! Launch: `mpiexec -n 4 sefi train ...` with a binary built with
-//! `--features mpi`. Every process reads the data, keeps its blocks of objects
-//! ([`ssm::objective::SceneObjective::distributed`]) and steps in lock-step; the
+//! Launch: `mpiexec -n 4 sefi train ...` (or `reproduce`, `experiment-c`,
+//! `diagnose`) with a binary built with `--features mpi`. Every process reads
+//! only its blocks of the training objects ([`ssm::objective::owned_objects`],
+//! [`ssm::data::Dataset::read_shard`]) and steps in lock-step; the
 //! exact reduction of [`ssm::reduce`] gives every process, for any number of
 //! processes, the parameters a single process computes, bit for bit. A panic on
 //! any process aborts the communicator (no process waits forever in a
@@ -63,6 +64,31 @@ impl Cluster {
     /// Whether this process writes files and shows progress.
     pub fn is_root(&self) -> bool {
         self.rank() == 0
+    }
+
+    /// Waits until every process of the job has reached this call (a one-value
+    /// reduction); returns at once in a job of one.
+    pub fn barrier(&self) {
+        if self.size() > 1 {
+            self.comm.max_f64(&mut [0.0]);
+        }
+    }
+
+    /// Every process waits here until the first has done work only it does
+    /// (preparing the data, say) and learns whether it succeeded (`first_ok`, as
+    /// the first process passes it; the others' argument is ignored). When it
+    /// failed, the other processes block until the first reports its error and
+    /// ends the job ([`Cluster::fail`]), so that its message is the one shown.
+    pub fn wait_for_first(&self, first_ok: bool) {
+        if self.size() == 1 {
+            return;
+        }
+        let mut failed = [if self.is_root() && !first_ok { 1.0 } else { 0.0 }];
+        self.comm.max_f64(&mut failed);
+        if failed[0] > 0.0 && !self.is_root() {
+            // Never completes: the first process aborts the job.
+            self.barrier();
+        }
     }
 
     /// Ends the whole job after a command failed on this process (the others may

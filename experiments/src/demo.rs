@@ -355,7 +355,13 @@ fn criticism_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Val
         data.objects().len()
     );
     let bar = crate::train::bar("diagnose");
-    let report = diagnose(&data, &config, &dir.join("runs"), &mut crate::diagnose::stage_progress(&bar))?;
+    let report = diagnose(
+        &data,
+        &config,
+        &dir.join("runs"),
+        &Cluster::single().collective(),
+        &mut crate::diagnose::stage_progress(&bar),
+    )?;
     bar.finish_and_clear();
     crate::diagnose::write_report(&dir, &report, &data_dir)?;
     crate::diagnose::print_outcome(&report, &dir);

@@ -13,6 +13,7 @@ use ssm::criticism::diagnose::{
 };
 use ssm::data::Dataset;
 
+use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_atomic, write_json, write_with};
 use crate::train::bar;
 
@@ -107,22 +108,33 @@ impl DiagnoseArgs {
     }
 }
 
-/// Runs `sefi diagnose`.
-pub fn run(args: &DiagnoseArgs) -> Result<(), String> {
+/// Runs `sefi diagnose` as one process of `cluster`: on a job of many
+/// (`mpiexec`), every process runs the diagnosis, the training steps of its
+/// fits are shared between them, and only the first writes (see
+/// [`diagnose`]).
+pub fn run(args: &DiagnoseArgs, cluster: &Cluster) -> Result<(), String> {
     let data = Dataset::read(&args.data).map_err(|e| e.to_string())?;
     let config = args.config();
     config.validate()?;
-    ensure_dir(&args.out)?;
-    let progress = bar("diagnose");
+    let root = cluster.is_root();
+    if root {
+        ensure_dir(&args.out)?;
+    }
+    cluster.wait_for_first(true);
+    let progress = if root { bar("diagnose") } else { ProgressBar::hidden() };
     let mut on_stage = stage_progress(&progress);
+    let comm = cluster.collective();
     let report = match &args.heldout {
         Some(path) => {
             let heldout = Dataset::read(path).map_err(|e| e.to_string())?;
-            diagnose_split(&data, &heldout, &config, &args.out, &mut on_stage)?
+            diagnose_split(&data, &heldout, &config, &args.out, &comm, &mut on_stage)?
         }
-        None => diagnose(&data, &config, &args.out, &mut on_stage)?,
+        None => diagnose(&data, &config, &args.out, &comm, &mut on_stage)?,
     };
     progress.finish_and_clear();
+    if !root {
+        return Ok(());
+    }
     write_report(&args.out, &report, &args.data)?;
     print_outcome(&report, &args.out);
     Ok(())

@@ -327,24 +327,81 @@ fn train_log_totals(dir: &Path) -> Result<(usize, usize), String> {
     Ok((s, c))
 }
 
-/// Runs `sefi experiment-c`.
-pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
+/// The training data's batches per epoch and the steps between evaluations.
+fn schedule(scale: &Scale, train_scenes: usize) -> (usize, usize) {
+    let batches = train_scenes.div_ceil(scale.scenes_per_step);
+    (batches, (scale.epochs * batches / scale.evals_per_run.max(1)).max(1))
+}
+
+/// The `sefi train` arguments of `method`'s run in `dir`, resuming from a
+/// checkpoint found there.
+fn run_args(
+    args: &ExperimentCArgs,
+    scale: &Scale,
+    data: (&Path, &Path),
+    eval_every: usize,
+    method: &str,
+    dir: &Path,
+) -> TrainArgs {
+    let (estimator, filter) = method_settings(method);
+    TrainArgs {
+        policy: "neural".into(),
+        estimator: estimator.to_string(),
+        lag: scale.lag,
+        filter: FilterArgs { filter, ..args.table.filter.clone() },
+        eval_filter: args.table.filter.filter,
+        alpha: scale.alpha,
+        particles: scale.particles,
+        eval_particles: scale.eval_particles,
+        epochs: scale.epochs,
+        lr: scale.lr,
+        clip: Some(scale.clip),
+        eval_every,
+        checkpoint_every: eval_every,
+        scenes_per_step: scale.scenes_per_step,
+        chunk_objects: scale.chunk_objects,
+        seed: args.seed,
+        resume: dir.join(CHECKPOINT_FILE).is_file(),
+        ..TrainArgs::with_defaults(data.0.to_path_buf(), data.1.to_path_buf(), dir.to_path_buf())
+    }
+}
+
+/// Runs `sefi experiment-c` as one process of `cluster`. On a job of many
+/// processes (`mpiexec`), the first imports the data while the others wait,
+/// every process trains every method's run together (each holding its share of
+/// the training objects, [`train::train_run`]), and only the first evaluates,
+/// fits the supervised model and writes the table.
+pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     scale.check()?;
     for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
-    ensure_dir(&args.out)?;
-    let (train_dir, val_dir) = prepare_data(args, &scale)?;
+    if !cluster.is_root() {
+        // Wait for the first process's import, then find it where it was written.
+        cluster.wait_for_first(true);
+        let (train_dir, val_dir) = prepare_data(args, &scale)?;
+        let scenes = Dataset::read_layout(&train_dir).map_err(|e| e.to_string())?.scenes.len();
+        let (_, eval_every) = schedule(&scale, scenes);
+        let hidden = indicatif::ProgressBar::hidden();
+        for method in &args.table.methods {
+            let dir = args.out.join("runs").join(method);
+            let run = run_args(args, &scale, (&train_dir, &val_dir), eval_every, method, &dir);
+            train::train_run(&run, &hidden, cluster)?;
+        }
+        return Ok(());
+    }
+    let prepared = ensure_dir(&args.out).and_then(|_| prepare_data(args, &scale));
+    cluster.wait_for_first(prepared.is_ok());
+    let (train_dir, val_dir) = prepared?;
     let train_data = Dataset::read(&train_dir).map_err(|e| e.to_string())?;
     let val = Dataset::read(&val_dir).map_err(|e| e.to_string())?;
     if train_data.kind() != ObservationKind::Boxes || train_data.states().is_none() {
         return Err(format!("{}: expected box detections with labelled states", train_dir.display()));
     }
-    let batches = train_data.scenes().len().div_ceil(scale.scenes_per_step);
+    let (batches, eval_every) = schedule(&scale, train_data.scenes().len());
     let total_steps = scale.epochs * batches;
-    let eval_every = (total_steps / scale.evals_per_run.max(1)).max(1);
     eprintln!(
         "experiment C ({} scale): train {} scenes / {} objects, val {} scenes / {} objects; {} steps per run \
          ({} epochs x {batches}), {} particles, {} scenes per step",
@@ -382,29 +439,9 @@ pub fn run(args: &ExperimentCArgs) -> Result<(), String> {
     let mut learned: Vec<(String, Models)> = Vec::new();
     for method in &args.table.methods {
         let dir = args.out.join("runs").join(method);
-        let (estimator, filter) = method_settings(method);
-        let train_args = TrainArgs {
-            policy: "neural".into(),
-            estimator: estimator.to_string(),
-            lag: scale.lag,
-            filter: FilterArgs { filter, ..args.table.filter.clone() },
-            eval_filter: args.table.filter.filter,
-            alpha: scale.alpha,
-            particles: scale.particles,
-            eval_particles: scale.eval_particles,
-            epochs: scale.epochs,
-            lr: scale.lr,
-            clip: Some(scale.clip),
-            eval_every,
-            checkpoint_every: eval_every,
-            scenes_per_step: scale.scenes_per_step,
-            chunk_objects: scale.chunk_objects,
-            seed: args.seed,
-            resume: dir.join(CHECKPOINT_FILE).is_file(),
-            ..TrainArgs::with_defaults(train_dir.clone(), val_dir.clone(), dir.clone())
-        };
+        let train_args = run_args(args, &scale, (&train_dir, &val_dir), eval_every, method, &dir);
         let bar = train::bar(method);
-        let outcome = train::train_run(&train_args, &bar, &Cluster::single())?;
+        let outcome = train::train_run(&train_args, &bar, cluster)?;
         bar.finish_and_clear();
         let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
         let models = Models::from_store(&store, val.kind()).map_err(|e| e.to_string())?;

@@ -99,13 +99,20 @@ enum Command {
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let cluster = cluster::Cluster::join();
-    if cluster.size() > 1 && !matches!(cli.command, Command::Train(_)) {
+    let distributed = matches!(
+        cli.command,
+        Command::Train(_) | Command::Reproduce(_) | Command::ExperimentC(_) | Command::Diagnose(_)
+    );
+    if cluster.size() > 1 && !distributed {
         if cluster.is_root() {
-            eprintln!("error: only `sefi train` runs as an MPI job; start other commands without mpiexec");
+            eprintln!(
+                "error: only `sefi train`, `reproduce`, `experiment-c` and `diagnose` run as an MPI job; start \
+                 other commands without mpiexec"
+            );
         } else {
             // Wait for the first process to print its message and abort the job: an
             // abort from here could end it before the message is out.
-            cluster.collective().max_f64(&mut [0.0]);
+            cluster.barrier();
         }
         cluster.fail(2);
         return ExitCode::FAILURE;
@@ -119,10 +126,10 @@ fn main() -> ExitCode {
         Command::Eval(args) => evaluate::eval(&args),
         Command::Track(args) => evaluate::track(&args),
         Command::Train(args) => train::run(&args, &cluster),
-        Command::Reproduce(args) => reproduce::run(&args),
+        Command::Reproduce(args) => reproduce::run(&args, &cluster),
         Command::ScoreCheck(args) => score_check::run(&args),
-        Command::ExperimentC(args) => experiment_c::run(&args),
-        Command::Diagnose(args) => diagnose::run(&args),
+        Command::ExperimentC(args) => experiment_c::run(&args, &cluster),
+        Command::Diagnose(args) => diagnose::run(&args, &cluster),
         Command::ScoreAt(args) => calibrate::run_score_at(&args),
         Command::Precision(args) => calibrate::run_precision(&args),
         Command::PowerStudy(args) => power::run(&args),

@@ -16,6 +16,7 @@ use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, UNEXP
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 
+use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_atomic, write_json};
 
 /// Arguments of `sefi power-study`.
@@ -157,7 +158,7 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cel
             let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
             let diagnose_config = DiagnoseConfig { seed, ..DiagnoseConfig::quick() };
-            let report = diagnose(&data, &diagnose_config, &dir, &mut |_| {})?;
+            let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
             // The report is what the study keeps: the training runs (checkpoints,

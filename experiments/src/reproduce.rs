@@ -197,8 +197,35 @@ fn evaluate_cached(
     Ok(metrics)
 }
 
-/// Runs `sefi reproduce`.
-pub fn run(args: &ReproduceArgs) -> Result<(), String> {
+/// The `sefi train` arguments of `method`'s run with `seed`, in `dir`: the
+/// command line's defaults (the hand-crafted policy from sds 1.0 and 0.1, Adam at
+/// 0.01 without clipping, one scene per step) at the scale's settings, resuming
+/// from a checkpoint found in `dir`.
+fn run_args(args: &ReproduceArgs, scale: &Scale, data_dir: &Path, method: &str, seed: u64, dir: &Path) -> TrainArgs {
+    let (estimator, filter) = method_settings(method);
+    TrainArgs {
+        estimator: estimator.to_string(),
+        lag: scale.lag,
+        filter: FilterArgs { filter, ..args.table.filter.clone() },
+        eval_filter: args.table.filter.filter,
+        alpha: scale.alpha,
+        particles: scale.particles,
+        eval_particles: scale.eval_particles,
+        epochs: scale.epochs,
+        eval_every: scale.eval_every,
+        checkpoint_every: scale.eval_every,
+        seed,
+        resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
+        ..TrainArgs::with_defaults(data_dir.join("train"), data_dir.join("test"), dir.to_path_buf())
+    }
+}
+
+/// Runs `sefi reproduce` as one process of `cluster`. On a job of many processes
+/// (`mpiexec`), the first generates the data while the others wait, every
+/// process trains every run together (each holding its share of the training
+/// objects, [`train::train_run`]), and only the first evaluates and writes the
+/// table.
+pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     let out = out_dir(args);
@@ -211,9 +238,13 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
     let eval_key = |seed: u64, runs: usize| -> Result<serde_json::Value, String> {
         Ok(json!({ "filter": eval_filter(seed)?, "runs": runs }))
     };
-    ensure_dir(&out)?;
     let data_dir = out.join("data");
-    if !data_dir.join("generate.json").is_file() {
+    if !cluster.is_root() {
+        cluster.wait_for_first(true);
+        return train_runs(args, &scale, &data_dir, cluster);
+    }
+    ensure_dir(&out)?;
+    let generated = if !data_dir.join("generate.json").is_file() {
         generate::run(&GenerateArgs {
             strength: 1.0,
             exp: args.exp.clone(),
@@ -227,10 +258,13 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             steps: 0,
             like: None,
             params: None,
-        })?;
+        })
     } else {
         eprintln!("reusing the data in {} (regenerated bit for bit from its seed when absent)", data_dir.display());
-    }
+        Ok(())
+    };
+    cluster.wait_for_first(generated.is_ok());
+    generated?;
     let test = Dataset::read(data_dir.join("test")).map_err(|e| e.to_string())?;
     let train_data = Dataset::read(data_dir.join("train")).map_err(|e| e.to_string())?;
 
@@ -277,26 +311,8 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
             }
             let clock = Instant::now();
             if !args.table_only {
-                let (estimator, filter) = method_settings(method);
-                // The command line's defaults: the hand-crafted policy from sds 1.0
-                // and 0.1, Adam at 0.01 without clipping, one scene per step.
-                let train_args = TrainArgs {
-                    estimator: estimator.to_string(),
-                    lag: scale.lag,
-                    filter: FilterArgs { filter, ..args.table.filter.clone() },
-                    eval_filter: args.table.filter.filter,
-                    alpha: scale.alpha,
-                    particles: scale.particles,
-                    eval_particles: scale.eval_particles,
-                    epochs: scale.epochs,
-                    eval_every: scale.eval_every,
-                    checkpoint_every: scale.eval_every,
-                    seed,
-                    resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
-                    ..TrainArgs::with_defaults(data_dir.join("train"), data_dir.join("test"), dir.clone())
-                };
                 let bar = train::bar(&format!("{method} s{seed}"));
-                train::train_run(&train_args, &bar, &Cluster::single())?;
+                train::train_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;
                 bar.finish_and_clear();
             }
             let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
@@ -320,6 +336,23 @@ pub fn run(args: &ReproduceArgs) -> Result<(), String> {
         let mut all = vec![truth.clone()];
         all.extend(results.iter().filter(|r| !r.runs.is_empty()).cloned());
         write_outputs(args, &out, &scale, &all, started.elapsed().as_secs_f64())?;
+    }
+    Ok(())
+}
+
+/// What a process other than the first does in `sefi reproduce`: train every
+/// run with the first, in the same order (seed-major), holding its share of the
+/// objects; the first process evaluates and writes.
+fn train_runs(args: &ReproduceArgs, scale: &Scale, data_dir: &Path, cluster: &Cluster) -> Result<(), String> {
+    if args.table_only {
+        return Ok(());
+    }
+    let hidden = indicatif::ProgressBar::hidden();
+    for seed in 0..scale.seeds as u64 {
+        for method in &args.table.methods {
+            let dir = out_dir(args).join("runs").join(format!("{method}-seed{seed}"));
+            train::train_run(&run_args(args, scale, data_dir, method, seed, &dir), &hidden, cluster)?;
+        }
     }
     Ok(())
 }

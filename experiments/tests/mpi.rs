@@ -38,6 +38,14 @@ fn run_with_limit(mut command: Command, limit: Duration) -> Output {
 /// `sefi train` on `processes` MPI processes (`None`: one process without MPI,
 /// the rayon path), with `extra` arguments and environment.
 fn train(processes: Option<usize>, args: &[String], env: &[(&str, &str)]) -> Output {
+    let mut all = vec!["train".to_string()];
+    all.extend_from_slice(args);
+    job(processes, &all, env)
+}
+
+/// The `sefi` command `args` on `processes` MPI processes (`None`: one process
+/// without MPI), with the environment `env`.
+fn job(processes: Option<usize>, args: &[String], env: &[(&str, &str)]) -> Output {
     let mut command = match processes {
         Some(n) => {
             let mut c = Command::new("mpiexec");
@@ -52,7 +60,7 @@ fn train(processes: Option<usize>, args: &[String], env: &[(&str, &str)]) -> Out
             c
         }
     };
-    command.arg("train").args(args);
+    command.args(args);
     for (k, v) in env {
         command.env(k, v);
     }
@@ -165,12 +173,87 @@ fn a_killed_process_ends_the_job() {
 }
 
 #[test]
-fn commands_other_than_train_refuse_to_run_as_a_job() {
+fn commands_that_do_not_train_refuse_to_run_as_a_job() {
     let dir = temp("refuse");
     let mut c = Command::new("mpiexec");
     c.args(["-n", "2", env!("CARGO_BIN_EXE_sefi"), "generate", "--quick", "--exp", "A", "--out", s(&dir)]);
     let out = run_with_limit(c, Duration::from_secs(120));
     assert!(!out.status.success());
-    assert!(String::from_utf8_lossy(&out.stderr).contains("only `sefi train` runs as an MPI job"));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("`diagnose` run as an MPI job"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `value` without the fields that time the run.
+fn untimed(value: &mut serde_json::Value) {
+    match value {
+        serde_json::Value::Object(map) => {
+            map.retain(|k, _| !k.contains("seconds"));
+            map.values_mut().for_each(untimed);
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(untimed),
+        _ => {}
+    }
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let mut value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    untimed(&mut value);
+    value
+}
+
+/// Every parameter file under `dir`, by path relative to it.
+fn parameter_files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut found = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).unwrap().map(Result::unwrap) {
+            let path = entry.path();
+            if path.is_dir() {
+                stack.push(path);
+            } else if path.file_name().is_some_and(|n| n == "params.bin") {
+                found.push((path.strip_prefix(dir).unwrap().to_path_buf(), std::fs::read(&path).unwrap()));
+            }
+        }
+    }
+    found.sort();
+    found
+}
+
+#[test]
+fn reproduce_diagnose_and_experiment_c_as_a_job_write_what_one_process_writes() {
+    let (dir, data) = generated("commands");
+    let kitti = Some(Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/kitti-tracking"))
+        .filter(|p| p.join("label_02").is_dir());
+    let one = dir.join("one");
+    let two = dir.join("two");
+    for (out, processes) in [(&one, None), (&two, Some(2))] {
+        let reproduce = ["reproduce", "--exp", "A", "--quick", "--methods", "pf-sefi,dpf-sgr", "--seeds", "1"];
+        let mut args: Vec<String> = reproduce.iter().map(|a| a.to_string()).collect();
+        args.extend(["--out".to_string(), out.join("reproduce").display().to_string()]);
+        ok(&job(processes, &args, &[]));
+        let (train_data, report) = (data.join("train"), out.join("diagnose"));
+        let diagnose = ["diagnose", "--quick", "--data", s(&train_data), "--out", s(&report)];
+        ok(&job(processes, &diagnose.map(String::from), &[]));
+        if let Some(kitti) = &kitti {
+            let c = out.join("experiment-c");
+            let args = ["experiment-c", "--quick", "--kitti", s(kitti), "--methods", "pf-sefi,dpf-sgr", "--out", s(&c)];
+            ok(&job(processes, &args.map(String::from), &[]));
+        }
+    }
+    let mut parts = vec!["reproduce", "diagnose"];
+    if kitti.is_some() {
+        parts.push("experiment-c");
+        assert_eq!(json(&two.join("experiment-c/experiment_c.json")), json(&one.join("experiment-c/experiment_c.json")));
+    } else {
+        eprintln!("experiment-c not checked: the KITTI data (../shared/data/kitti-tracking) is not present");
+    }
+    for part in parts {
+        let expected = parameter_files(&one.join(part));
+        assert!(expected.len() >= 2, "{part}: {expected:?}");
+        assert!(parameter_files(&two.join(part)) == expected, "{part}: the parameters differ");
+    }
+    assert_eq!(json(&two.join("reproduce/reproduce.json")), json(&one.join("reproduce/reproduce.json")));
+    assert_eq!(json(&two.join("diagnose/report.json")), json(&one.join("diagnose/report.json")));
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -92,7 +92,9 @@ fn any_number_of_processes_gives_the_bits_of_one() {
         .unwrap();
         let policy = match kind {
             ObservationKind::Points => AnyPolicy::HandCrafted(HandCraftedPolicy::new(0.0, 0.1f64.ln()).unwrap()),
-            ObservationKind::Boxes => AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(seed))),
+            ObservationKind::Boxes => {
+                AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(seed)))
+            }
         };
         let params = Models::initial(kind, policy, seed).to_store();
         for (estimator, chunk, per_step) in [(Estimator::pf_sefi(2), 2, 2), (Estimator::dpf_sgr(), 3, 1)] {

@@ -273,11 +273,7 @@ fn read_objects(dir: &Path, keep: Option<&HashSet<(i64, i64)>>) -> Result<Datase
         objects.retain(|r| !shard.elsewhere(r.scene, r.object));
     }
     let shard = shard.as_ref();
-    let mut records = Records {
-        av,
-        objects,
-        ..Records::default()
-    };
+    let mut records = Records { av, objects, ..Records::default() };
     match kind {
         ObservationKind::Points => {
             records.points = read_keyed(dir, POINTS_FILE, &POINT_COLUMNS, shard, |r| Ok([r.num(3)?, r.num(4)?]))?

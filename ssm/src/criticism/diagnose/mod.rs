@@ -51,6 +51,7 @@ pub use heldout::{paired_gain, sign_flip_p};
 use replicated::{posterior_predictive_checks, ModelChecks};
 
 use std::path::Path;
+use std::sync::Arc;
 
 use autodiff::nn::ParamStore;
 use rand::rngs::StdRng;
@@ -66,7 +67,8 @@ use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::NeuralPolicy;
-use crate::objective::{ObjectiveConfig, SceneObjective};
+use crate::objective::{owned_objects, ObjectiveConfig, SceneObjective};
+use crate::reduce::Collective;
 use crate::setting::SettingError;
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
 
@@ -382,11 +384,18 @@ pub fn split_objects(
 }
 
 /// Runs the diagnosis of `data`, writing training runs under `out_dir`
-/// (`base/`, `candidates/<id>/`).
+/// (`base/`, `candidates/<id>/`), as one process of the job `comm`
+/// ([`SingleProcess`](crate::reduce::SingleProcess) alone). In a job of many,
+/// every process runs the whole diagnosis on the whole data; each fit's
+/// training steps are shared between the processes (each holds its share of
+/// the fit part's objects, [`owned_objects`]), the checks and held-out
+/// evaluations are repeated on every process (they are deterministic, so every
+/// process takes the same decisions), and only the first writes files.
 pub fn diagnose(
     data: &Dataset,
     config: &DiagnoseConfig,
     out_dir: &Path,
+    comm: &Arc<dyn Collective>,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Report, String> {
     config.validate()?;
@@ -396,7 +405,7 @@ pub fn diagnose(
         check: &data.select_objects(&check),
         eval: &data.select_objects(&eval),
     };
-    run(parts, config, out_dir, progress)
+    run(parts, config, out_dir, comm, progress)
 }
 
 /// [`diagnose`] with a given fit part, `train_data` (e.g. KITTI's training
@@ -407,6 +416,7 @@ pub fn diagnose_split(
     heldout: &Dataset,
     config: &DiagnoseConfig,
     out_dir: &Path,
+    comm: &Arc<dyn Collective>,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Report, String> {
     config.validate()?;
@@ -436,7 +446,7 @@ pub fn diagnose_split(
     check.sort_unstable();
     eval.sort_unstable();
     let parts = Parts { fit: train_data, check: &heldout.select_objects(&check), eval: &heldout.select_objects(&eval) };
-    run(parts, config, out_dir, progress)
+    run(parts, config, out_dir, comm, progress)
 }
 
 /// The three disjoint parts of a diagnosis.
@@ -461,6 +471,7 @@ fn run(
     parts: Parts<'_>,
     config: &DiagnoseConfig,
     out_dir: &Path,
+    comm: &Arc<dyn Collective>,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Report, String> {
     let started = std::time::Instant::now();
@@ -471,7 +482,7 @@ fn run(
         let policy = NeuralPolicy::new(&mut rng);
         Models::initial(kind, AnyPolicy::Neural(policy), rng.random()).to_store()
     };
-    let base = fit(parts, None, initial, config.base_steps, config.lr, config, &out_dir.join("base"), progress)?;
+    let base = fit(parts, None, initial, config.base_steps, config.lr, config, &out_dir.join("base"), comm, progress)?;
 
     // 3. Checks of the base on the check part.
     progress(&Stage::Checking { model: "base".into() });
@@ -499,7 +510,7 @@ fn run(
         start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
         let dir = out_dir.join("candidates").join(extension.id());
         let (steps, lr) = (config.candidate_steps, config.candidate_lr);
-        let run = fit(parts, Some(extension), start, steps, lr, config, &dir, progress)?;
+        let run = fit(parts, Some(extension), start, steps, lr, config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
@@ -631,7 +642,8 @@ struct Fitted {
 }
 
 /// Trains `initial` (with `extension`, if any) by PF-SEFI for `steps` at learning
-/// rate `lr` decaying to a tenth, in `dir`, resuming a run found there.
+/// rate `lr` decaying to a tenth, in `dir`, resuming a run found there, as one
+/// process of `comm` holding its share of the fit part's objects.
 #[allow(clippy::too_many_arguments)]
 fn fit(
     parts: Parts<'_>,
@@ -641,6 +653,7 @@ fn fit(
     lr: f64,
     config: &DiagnoseConfig,
     dir: &Path,
+    comm: &Arc<dyn Collective>,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Fitted, String> {
     let objective_config = ObjectiveConfig {
@@ -656,7 +669,11 @@ fn fit(
         proposal: None,
         eval_tempering: Some(config.tempering),
     };
-    let mut objective = SceneObjective::new(parts.fit, parts.check.clone(), objective_config)?;
+    let share = (comm.size() > 1)
+        .then(|| parts.fit.shard(&owned_objects(&parts.fit.layout(), &objective_config, comm.rank(), comm.size())));
+    let mut objective =
+        SceneObjective::new(share.as_ref().unwrap_or(parts.fit), parts.check.clone(), objective_config)?
+            .with_collective(comm.clone());
     let batches = crate::training::Objective::batches(&objective).max(1);
     let train_config = TrainConfig {
         lr,
