@@ -64,16 +64,16 @@ use ssm::models::extended::ExtensibleObservation;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
 use ssm::models::params::{Models, ObservationVisitor};
 use ssm::supervised::{fit_observation, SupervisedReport};
-use ssm::training::{CHECKPOINT_FILE, PARAMS_FILE, TRAIN_LOG};
+use ssm::training::{PARAMS_FILE, TRAIN_LOG};
 
-use crate::calibrate::{check_method, method_settings, FilterArgs};
+use crate::calibrate::check_method;
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
 use crate::table::{csv_row, header, metric_cells, TableArgs, CSV_HEADER};
-use crate::train::{self, read_eval_curve, TrainArgs};
+use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi experiment-c`.
 #[derive(clap::Args)]
@@ -343,17 +343,9 @@ fn run_args(
     method: &str,
     dir: &Path,
 ) -> TrainArgs {
-    let (estimator, filter) = method_settings(method);
+    let run = RunScale::new(scale.lag, scale.alpha, scale.particles, scale.eval_particles, scale.epochs);
     TrainArgs {
         policy: "neural".into(),
-        estimator: estimator.to_string(),
-        lag: scale.lag,
-        filter: FilterArgs { filter, ..args.table.filter.clone() },
-        eval_filter: args.table.filter.filter,
-        alpha: scale.alpha,
-        particles: scale.particles,
-        eval_particles: scale.eval_particles,
-        epochs: scale.epochs,
         lr: scale.lr,
         clip: Some(scale.clip),
         eval_every,
@@ -361,8 +353,7 @@ fn run_args(
         scenes_per_step: scale.scenes_per_step,
         chunk_objects: scale.chunk_objects,
         seed: args.seed,
-        resume: dir.join(CHECKPOINT_FILE).is_file(),
-        ..TrainArgs::with_defaults(data.0.to_path_buf(), data.1.to_path_buf(), dir.to_path_buf())
+        ..TrainArgs::for_method(method, &args.table.filter, run, data.0, data.1, dir)
     }
 }
 

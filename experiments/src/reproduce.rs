@@ -29,14 +29,14 @@ use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 use ssm::training::PARAMS_FILE;
 
-use crate::calibrate::{check_method, method_settings, FilterArgs};
+use crate::calibrate::check_method;
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER};
-use crate::train::{self, read_eval_curve, TrainArgs};
+use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
 #[derive(clap::Args)]
@@ -202,21 +202,13 @@ fn evaluate_cached(
 /// 0.01 without clipping, one scene per step) at the scale's settings, resuming
 /// from a checkpoint found in `dir`.
 fn run_args(args: &ReproduceArgs, scale: &Scale, data_dir: &Path, method: &str, seed: u64, dir: &Path) -> TrainArgs {
-    let (estimator, filter) = method_settings(method);
+    let run = RunScale::new(scale.lag, scale.alpha, scale.particles, scale.eval_particles, scale.epochs);
+    let (train, test) = (data_dir.join("train"), data_dir.join("test"));
     TrainArgs {
-        estimator: estimator.to_string(),
-        lag: scale.lag,
-        filter: FilterArgs { filter, ..args.table.filter.clone() },
-        eval_filter: args.table.filter.filter,
-        alpha: scale.alpha,
-        particles: scale.particles,
-        eval_particles: scale.eval_particles,
-        epochs: scale.epochs,
         eval_every: scale.eval_every,
         checkpoint_every: scale.eval_every,
         seed,
-        resume: dir.join(ssm::training::CHECKPOINT_FILE).is_file(),
-        ..TrainArgs::with_defaults(data_dir.join("train"), data_dir.join("test"), dir.to_path_buf())
+        ..TrainArgs::for_method(method, &args.table.filter, run, &train, &test, dir)
     }
 }
 

@@ -21,7 +21,7 @@ use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
-use crate::calibrate::{FilterArgs, FilterKind};
+use crate::calibrate::{method_settings, FilterArgs, FilterKind};
 use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_json};
 use crate::plot::{line_chart, Series};
@@ -111,6 +111,55 @@ impl TrainArgs {
         let argv: [std::ffi::OsString; 7] =
             ["train".into(), "--data".into(), data.into(), "--test".into(), test.into(), "--out".into(), out.into()];
         <Defaults as clap::Parser>::try_parse_from(argv).expect("the required arguments are given").args
+    }
+
+    /// The run of a table's `method` ([`method_settings`]: its estimator and
+    /// filter, with the table's `filter` settings, evaluated on the table's
+    /// filter) at `scale`, on `data`, evaluated on `test`, in `out`, resuming
+    /// from a checkpoint found there; the rest as [`TrainArgs::with_defaults`].
+    pub fn for_method(
+        method: &str,
+        filter: &FilterArgs,
+        scale: RunScale,
+        data: &Path,
+        test: &Path,
+        out: &Path,
+    ) -> Self {
+        let (estimator, kind) = method_settings(method);
+        TrainArgs {
+            estimator: estimator.to_string(),
+            lag: scale.lag,
+            filter: FilterArgs { filter: kind, ..filter.clone() },
+            eval_filter: filter.filter,
+            alpha: scale.alpha,
+            particles: scale.particles,
+            eval_particles: scale.eval_particles,
+            epochs: scale.epochs,
+            resume: out.join(ssm::training::CHECKPOINT_FILE).is_file(),
+            ..TrainArgs::with_defaults(data.to_path_buf(), test.to_path_buf(), out.to_path_buf())
+        }
+    }
+}
+
+/// The settings a table's scale gives every method's run ([`TrainArgs::for_method`]).
+#[derive(Clone, Copy, Debug)]
+pub struct RunScale {
+    /// Fixed lag L.
+    pub lag: usize,
+    /// PFNET's alpha.
+    pub alpha: f64,
+    /// Training particles.
+    pub particles: usize,
+    /// Evaluation particles.
+    pub eval_particles: usize,
+    /// Epochs.
+    pub epochs: usize,
+}
+
+impl RunScale {
+    /// The settings, in the order of the fields.
+    pub fn new(lag: usize, alpha: f64, particles: usize, eval_particles: usize, epochs: usize) -> Self {
+        RunScale { lag, alpha, particles, eval_particles, epochs }
     }
 }
 

@@ -244,7 +244,10 @@ fn reproduce_diagnose_and_experiment_c_as_a_job_write_what_one_process_writes() 
     let mut parts = vec!["reproduce", "diagnose"];
     if kitti.is_some() {
         parts.push("experiment-c");
-        assert_eq!(json(&two.join("experiment-c/experiment_c.json")), json(&one.join("experiment-c/experiment_c.json")));
+        assert_eq!(
+            json(&two.join("experiment-c/experiment_c.json")),
+            json(&one.join("experiment-c/experiment_c.json"))
+        );
     } else {
         eprintln!("experiment-c not checked: the KITTI data (../shared/data/kitti-tracking) is not present");
     }

@@ -477,10 +477,7 @@ impl Dataset {
     /// If an index is out of range or listed twice (a programmer error).
     #[track_caller]
     pub fn select_objects(&self, objects: &[usize]) -> Dataset {
-        let mut picked = objects.to_vec();
-        picked.sort_unstable();
-        assert!(picked.windows(2).all(|w| w[0] != w[1]), "Dataset::select_objects: an object is listed twice");
-        assert!(picked.last().is_none_or(|&o| o < self.objects.len()), "Dataset::select_objects: index out of range");
+        let picked = self.sorted_objects(objects, "select_objects");
         let mut scenes: Vec<usize> = picked.iter().map(|&o| self.object_scene[o]).collect();
         scenes.dedup();
         scenes.sort_unstable_by_key(|&s| self.scenes[s].id);
@@ -502,12 +499,20 @@ impl Dataset {
     /// If an index is out of range or listed twice (a programmer error).
     #[track_caller]
     pub fn shard(&self, objects: &[usize]) -> Dataset {
-        let mut picked = objects.to_vec();
-        picked.sort_unstable();
-        assert!(picked.windows(2).all(|w| w[0] != w[1]), "Dataset::shard: an object is listed twice");
-        assert!(picked.last().is_none_or(|&o| o < self.objects.len()), "Dataset::shard: index out of range");
+        let picked = self.sorted_objects(objects, "shard");
         let scenes: Vec<usize> = (0..self.scenes.len()).collect();
         self.select(&scenes, &picked)
+    }
+
+    /// `objects` sorted, checked to be distinct indices into
+    /// [`Dataset::objects`]; `caller` names the method in the panic.
+    #[track_caller]
+    fn sorted_objects(&self, objects: &[usize], caller: &str) -> Vec<usize> {
+        let mut picked = objects.to_vec();
+        picked.sort_unstable();
+        assert!(picked.windows(2).all(|w| w[0] != w[1]), "Dataset::{caller}: an object is listed twice");
+        assert!(picked.last().is_none_or(|&o| o < self.objects.len()), "Dataset::{caller}: index out of range");
+        picked
     }
 
     /// The scenes `order` (sorted by id) with the objects `picked` (grouped by
