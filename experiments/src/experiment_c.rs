@@ -557,7 +557,7 @@ fn validity_notes(rows: &[Row]) -> String {
     notes
 }
 
-/// A count's median [IQR] over runs, as whole numbers.
+/// A count's median \[IQR\] over runs, as whole numbers.
 fn count_summary_cell(s: Option<&Summary>) -> String {
     match s {
         Some(s) if s.n > 1 && s.iqr > 0.0 => format!("{:.0} [{:.0}, {:.0}]", s.median, s.q1, s.q3),

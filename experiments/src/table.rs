@@ -1,6 +1,6 @@
 //! What `reproduce` and `experiment-c` share: their command-line scale, methods
 //! and filters ([`TableArgs`]) and their result tables, the SPEC §5 metrics of
-//! each method as median [IQR] over runs, in Markdown and as CSV rows.
+//! each method as median \[IQR\] over runs, in Markdown and as CSV rows.
 
 use std::fmt::Write as _;
 
@@ -79,7 +79,7 @@ pub fn csv_row(csv: &mut String, method: &str, metric: &str, s: &Summary) {
     let _ = writeln!(csv, "{method},{metric},{},{},{},{}", s.median, s.q1, s.q3, s.n);
 }
 
-/// Starts `method`'s Markdown row with its metric cells (median [IQR] over `runs`)
+/// Starts `method`'s Markdown row with its metric cells (median \[IQR\] over `runs`)
 /// and adds their CSV rows; returns every metric's summary for further columns.
 /// The caller appends its extra cells and the line end.
 pub fn metric_cells(
