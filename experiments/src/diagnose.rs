@@ -9,9 +9,9 @@ use clap::Args;
 use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
+    diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
-use ssm::data::Dataset;
+use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
 
 use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_atomic, write_json, write_with};
@@ -190,6 +190,50 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
     write_atomic(&out.join("report.md"), markdown(report, data, &plots).as_bytes())
 }
 
+/// The held-out gain of the cause (or, without one, of the candidate with the
+/// largest gain) split by part of the evaluation data: by KITTI sequence when
+/// every scene id is a KITTI one ([`KITTI_SCENE_ID_BASE`]), else by scene. A
+/// Markdown section, empty when the report has no per-object record.
+fn gains_by_part(r: &Report) -> String {
+    let best = r
+        .candidates
+        .iter()
+        .filter(|c| c.cause == r.cause)
+        .chain(r.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain)));
+    let Some(candidate) = best.into_iter().next() else { return String::new() };
+    if r.eval_object_keys.len() != candidate.object_gains.len() || r.eval_object_units.len() != r.eval_object_keys.len()
+    {
+        return String::new();
+    }
+    let kitti = r.eval_object_keys.iter().all(|o| o.0 >= KITTI_SCENE_ID_BASE);
+    let (label, group): (&str, fn(i64) -> i64) =
+        if kitti { ("KITTI sequence", |scene| scene / KITTI_SCENE_ID_BASE) } else { ("scene", |scene| scene) };
+    let groups = gains_by_group(&candidate.object_gains, &r.eval_object_keys, &r.eval_object_units, group);
+    let mut s = String::new();
+    let _ = writeln!(s, "## Held-out gain of `{}` by {label}\n", candidate.cause);
+    let _ = writeln!(
+        s,
+        "Whether the gain is carried by the whole evaluation part or by one of its parts: per {label}, the paired \
+         gain over its objects (nats per observed unit, SE over objects) and the share of its objects that gain.\n"
+    );
+    let _ = writeln!(s, "| {label} | objects | units | gain ± SE | objects gaining |");
+    let _ = writeln!(s, "|---|---|---|---|---|");
+    for g in &groups {
+        let _ = writeln!(
+            s,
+            "| {} | {} | {} | {:+.4} ± {:.4} | {:.0}% |",
+            g.group,
+            g.objects,
+            g.units,
+            g.gain,
+            g.gain_se,
+            100.0 * g.positive
+        );
+    }
+    s.push('\n');
+    s
+}
+
 /// `refined / imprecise (max particles)` of one model's held-out evaluation.
 fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     let c = &r.config;
@@ -230,6 +274,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             );
         }
     }
+    s.push_str(&gains_by_part(r));
     let _ = writeln!(s, "## What the simulation gets wrong\n");
     let _ = writeln!(
         s,

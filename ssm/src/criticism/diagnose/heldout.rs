@@ -5,6 +5,7 @@
 
 use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
 
 use super::DiagnoseConfig;
 use crate::filter::run_filter;
@@ -91,11 +92,60 @@ pub fn sign_flip_p(d: &[f64], permutations: usize, seed: u64) -> f64 {
 /// `(sum_i (a_i - b_i) / units, sqrt(n var(a - b)) / units)`: the gain per unit
 /// and its normal-approximation standard error, objects independent.
 pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
-    let d = differences(a, b);
+    gain_of(&differences(a, b), units)
+}
+
+/// [`paired_gain`] of the per-object differences `d`.
+fn gain_of(d: &[f64], units: usize) -> (f64, f64) {
     let n = d.len() as f64;
     let units = units.max(1) as f64;
     if d.len() < 2 {
         return (d.iter().sum::<f64>() / units, f64::INFINITY);
     }
     (d.iter().sum::<f64>() / units, n.sqrt() * sd(d.iter().copied()) / units)
+}
+
+/// One group of evaluation objects (a KITTI sequence, a scene) and its part of a
+/// candidate's held-out gain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct GroupGain {
+    /// The group's label (see [`gains_by_group`]).
+    pub group: i64,
+    /// Evaluation objects in the group.
+    pub objects: usize,
+    /// Their observed units.
+    pub units: usize,
+    /// The gain over the group's objects (nats per observed unit) and its
+    /// standard error, as [`paired_gain`] computes them.
+    pub gain: f64,
+    /// See `gain`.
+    pub gain_se: f64,
+    /// The share of the group's objects whose gain is positive.
+    pub positive: f64,
+}
+
+/// A candidate's per-object held-out gains (`object_gains`, nats) split by the
+/// group `group` gives each object's scene id (`objects[i].0`), each with its
+/// objects' `units`; groups in ascending order. What shows whether a gain is
+/// carried by the whole held-out set or by one of its parts.
+pub fn gains_by_group(
+    object_gains: &[f64],
+    objects: &[(i64, i64)],
+    units: &[usize],
+    group: impl Fn(i64) -> i64,
+) -> Vec<GroupGain> {
+    let mut groups: Vec<i64> = objects.iter().map(|o| group(o.0)).collect();
+    groups.sort_unstable();
+    groups.dedup();
+    groups
+        .into_iter()
+        .map(|g| {
+            let members: Vec<usize> = (0..objects.len()).filter(|&i| group(objects[i].0) == g).collect();
+            let d: Vec<f64> = members.iter().map(|&i| object_gains[i]).collect();
+            let units = members.iter().map(|&i| units[i]).sum();
+            let (gain, gain_se) = gain_of(&d, units);
+            let positive = d.iter().filter(|&&x| x > 0.0).count() as f64 / d.len().max(1) as f64;
+            GroupGain { group: g, objects: members.len(), units, gain, gain_se, positive }
+        })
+        .collect()
 }

@@ -47,7 +47,7 @@ mod heldout;
 mod replicated;
 
 use heldout::{differences, likelihoods, top_two_share, EvalLikelihoods};
-pub use heldout::{paired_gain, sign_flip_p};
+pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 use replicated::{posterior_predictive_checks, ModelChecks};
 
 use std::path::Path;
@@ -343,6 +343,14 @@ pub struct Report {
     pub check_objects: usize,
     /// Objects that measured the gain.
     pub eval_objects: usize,
+    /// The evaluation part's objects `(scene id, object id)`, in the order of
+    /// every candidate's `object_gains` (empty in reports written before it was
+    /// recorded).
+    #[serde(default)]
+    pub eval_object_keys: Vec<(i64, i64)>,
+    /// Each evaluation object's observed units, in the same order.
+    #[serde(default)]
+    pub eval_object_units: Vec<usize>,
     /// Observed units (points, detections) of the evaluation part.
     pub eval_units: usize,
     /// Log-likelihood of the base on the evaluation part (nats per observed unit).
@@ -622,6 +630,8 @@ fn run(
         train_objects: parts.fit.objects().len(),
         check_objects: parts.check.objects().len(),
         eval_objects: parts.eval.objects().len(),
+        eval_object_keys: parts.eval.objects().iter().map(|o| (o.scene, o.id)).collect(),
+        eval_object_units: (0..parts.eval.objects().len()).map(|o| parts.eval.object_units(o)).collect(),
         eval_units: base_eval.units,
         base_mll,
         base_skipped_steps: base.skipped,
@@ -776,6 +786,28 @@ mod tests {
     use crate::filter::paths::PathRecorder;
     use crate::filter::run_filter;
     use crate::models::ParticleModel;
+
+    /// Gains split by group: each group's gain is its objects' differences over
+    /// its units, the groups' gains weighted by their units add up to the whole
+    /// gain, and the groups come in ascending order with their objects counted.
+    #[test]
+    fn gains_by_group_split_the_whole_gain() {
+        let keys = [(20_003, 1), (10_007, 1), (20_050, 2), (10_007, 4), (30_000, 1)];
+        let gains = [1.0, -0.5, 3.0, 0.25, -2.0];
+        let units = [10, 5, 20, 5, 8];
+        let groups = gains_by_group(&gains, &keys, &units, |scene| scene / 10_000);
+        let labels: Vec<i64> = groups.iter().map(|g| g.group).collect();
+        assert_eq!(labels, vec![1, 2, 3]);
+        assert_eq!(groups[0].objects, 2);
+        assert_eq!(groups[0].units, 10);
+        assert!((groups[0].gain + 0.025).abs() < 1e-12);
+        assert!((groups[0].positive - 0.5).abs() < 1e-12);
+        assert!((groups[1].gain - 4.0 / 30.0).abs() < 1e-12);
+        assert!(groups[2].gain_se.is_infinite(), "one object has no spread");
+        let total: f64 = groups.iter().map(|g| g.gain * g.units as f64).sum();
+        let (whole, _) = paired_gain(&gains, &[0.0; 5], units.iter().sum());
+        assert!((total / 48.0 - whole).abs() < 1e-12);
+    }
 
     /// The sign-flip p-value: exact enumeration for few objects, uniform-ish
     /// under a symmetric null, small for a clear shift, and not fooled by one
