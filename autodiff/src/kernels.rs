@@ -743,6 +743,28 @@ mod tests {
         }
     }
 
+    /// The weight-gradient product `c += a^T b` on both paths (narrow tiles, the
+    /// GEMM kernel), over one and several reduction blocks, against the naive sum.
+    #[test]
+    fn weight_gradient_products_match_the_naive_sum() {
+        for &(m, k, n) in &[(1, 1, 1), (37, 5, 3), (9000, 16, 12), (5000, 7, 16), (300, 65, 9), (4100, 3, 70)] {
+            let a: Vec<f64> = (0..m * k).map(|i| (i as f64 * 0.37).sin()).collect();
+            let b: Vec<f64> = (0..m * n).map(|i| (i as f64 * 0.11).cos()).collect();
+            let c0: Vec<f64> = (0..k * n).map(|i| i as f64 * 0.01).collect();
+            for par in [Parallelism::Serial, Parallelism::Rayon] {
+                let mut c = c0.clone();
+                gemm_at_b_acc(par, &a, &b, m, k, n, &mut c);
+                for p in 0..k {
+                    for j in 0..n {
+                        let e: f64 = (0..m).map(|i| a[i * k + p] * b[i * n + j]).sum::<f64>() + c0[p * n + j];
+                        let got = c[p * n + j];
+                        assert!((got - e).abs() < 1e-10 * (1.0 + e.abs()), "{m}x{k}x{n}: {got} vs {e}");
+                    }
+                }
+            }
+        }
+    }
+
     #[test]
     fn gemm_matches_naive_with_transposes() {
         let (m, k, n) = (37, 5, 3);
