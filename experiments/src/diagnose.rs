@@ -191,9 +191,10 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
 }
 
 /// The held-out gain of the cause (or, without one, of the candidate with the
-/// largest gain) split by part of the evaluation data: by KITTI sequence when
-/// every scene id is a KITTI one ([`KITTI_SCENE_ID_BASE`]), else by scene. A
-/// Markdown section, empty when the report has no per-object record.
+/// largest gain) split by part of the evaluation data: by KITTI sequence (the
+/// importer's scene ids are [`KITTI_SCENE_ID_BASE`] × sequence + first frame)
+/// when that gives more than one group, else by scene. A Markdown section, empty
+/// when the report has no per-object record.
 fn gains_by_part(r: &Report) -> String {
     let best = r
         .candidates
@@ -205,7 +206,10 @@ fn gains_by_part(r: &Report) -> String {
     {
         return String::new();
     }
-    let kitti = r.eval_object_keys.iter().all(|o| o.0 >= KITTI_SCENE_ID_BASE);
+    let mut sequences: Vec<i64> = r.eval_object_keys.iter().map(|o| o.0 / KITTI_SCENE_ID_BASE).collect();
+    sequences.sort_unstable();
+    sequences.dedup();
+    let kitti = sequences.len() > 1;
     let (label, group): (&str, fn(i64) -> i64) =
         if kitti { ("KITTI sequence", |scene| scene / KITTI_SCENE_ID_BASE) } else { ("scene", |scene| scene) };
     let groups = gains_by_group(&candidate.object_gains, &r.eval_object_keys, &r.eval_object_units, group);
