@@ -549,14 +549,7 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
     }
     let (rsa, csa) = a.strides();
     let (rsb, csb) = b.strides();
-    // Narrow products (the particle networks' layers) skip the GEMM kernel's packing:
-    // `b` is laid out once in panels of SMALL_GEMM_LANES columns.
-    let panels = (k <= SMALL_GEMM_MAX && n <= SMALL_GEMM_MAX).then(|| small_gemm_panels(b, k, n));
     let run = |r0: usize, nr: usize, cblock: &mut [F]| {
-        if let Some(panels) = &panels {
-            small_gemm(a, r0, nr, k, n, panels, beta, cblock);
-            return;
-        }
         let (pa, _) = a.row_block(r0, nr);
         // SAFETY: strides describe the valid matrices built by MatRef; c does not alias.
         unsafe {
@@ -574,77 +567,6 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
         });
     } else {
         run(0, m, c);
-    }
-}
-
-/// Largest inner and output width sent to [`small_gemm`] instead of the GEMM
-/// kernel.
-const SMALL_GEMM_MAX: usize = 64;
-/// Output columns one register tile of [`small_gemm`] holds (a 512-bit vector of
-/// f32; two 256-bit ones).
-const SMALL_GEMM_LANES: usize = 16;
-/// Rows of `a` one tile of [`small_gemm`] advances together (they share each load
-/// of `b`).
-const SMALL_GEMM_ROWS: usize = 4;
-
-/// `b` (`k x n`, read through its strides) in panels of [`SMALL_GEMM_LANES`]
-/// columns, each `k x SMALL_GEMM_LANES` row-major and zero-padded.
-fn small_gemm_panels<F: Float>(b: MatRef<F>, k: usize, n: usize) -> Vec<F> {
-    let (rs, cs) = b.strides();
-    let panels = n.div_ceil(SMALL_GEMM_LANES);
-    let mut out = vec![F::ZERO; panels * k * SMALL_GEMM_LANES];
-    for p in 0..k {
-        for j in 0..n {
-            let (panel, lane) = (j / SMALL_GEMM_LANES, j % SMALL_GEMM_LANES);
-            out[(panel * k + p) * SMALL_GEMM_LANES + lane] = b.data[p * rs as usize + j * cs as usize];
-        }
-    }
-    out
-}
-
-/// `c = a[r0..r0 + nr] b + beta c` for narrow `b` laid out by
-/// [`small_gemm_panels`]: tiles of [`SMALL_GEMM_ROWS`] rows by
-/// [`SMALL_GEMM_LANES`] columns accumulate in registers over the inner dimension
-/// in order (`c_ij = sum_p a_ip b_pj`, one fused multiply-add per term).
-#[allow(clippy::too_many_arguments)]
-fn small_gemm<F: Float>(a: MatRef<F>, r0: usize, nr: usize, k: usize, n: usize, panels: &[F], beta: F, c: &mut [F]) {
-    let (rsa, csa) = a.strides();
-    let (rsa, csa) = (rsa as usize, csa as usize);
-    let at = |i: usize, p: usize| a.data[(r0 + i) * rsa + p * csa];
-    for (panel, b) in panels.chunks_exact(k * SMALL_GEMM_LANES).enumerate() {
-        let j0 = panel * SMALL_GEMM_LANES;
-        let width = SMALL_GEMM_LANES.min(n - j0);
-        let mut i = 0;
-        while i < nr {
-            let rows = SMALL_GEMM_ROWS.min(nr - i);
-            let mut acc = [[F::ZERO; SMALL_GEMM_LANES]; SMALL_GEMM_ROWS];
-            for p in 0..k {
-                let bp: &[F; SMALL_GEMM_LANES] =
-                    b[p * SMALL_GEMM_LANES..(p + 1) * SMALL_GEMM_LANES].try_into().expect("a full panel row");
-                for (r, row) in acc.iter_mut().enumerate().take(rows) {
-                    let aip = at(i + r, p);
-                    for (x, &y) in row.iter_mut().zip(bp) {
-                        *x = aip.mul_add(y, *x);
-                    }
-                }
-            }
-            for (r, row) in acc.iter().enumerate().take(rows) {
-                let out = &mut c[(i + r) * n + j0..(i + r) * n + j0 + width];
-                if beta == F::ZERO {
-                    // A whole tile row as one fixed-size copy (vector moves, not a
-                    // call to memcpy for 64 bytes).
-                    match <&mut [F; SMALL_GEMM_LANES]>::try_from(&mut *out) {
-                        Ok(full) => *full = *row,
-                        Err(_) => out.iter_mut().zip(row).for_each(|(o, &x)| *o = x),
-                    }
-                } else {
-                    for (o, &x) in out.iter_mut().zip(row) {
-                        *o = beta.mul_add(*o, x);
-                    }
-                }
-            }
-            i += rows;
-        }
     }
 }
 
@@ -696,9 +618,8 @@ pub(crate) fn gemm_at_b_acc<F: Float>(par: Parallelism, a: &[F], b: &[F], m: usi
 mod tests {
     use super::*;
 
-    /// Both paths of `gemm` (the narrow kernel for inner and output widths up to
-    /// 64, the GEMM kernel beyond) against the naive product, with either operand
-    /// transposed, `beta` 0 and not, serial and split across threads.
+    /// `gemm` on narrow and wide shapes against the naive product, with either
+    /// operand transposed, `beta` 0 and not, serial and split across threads.
     #[test]
     fn narrow_and_wide_products_match_the_naive_product() {
         for &(m, k, n) in &[
@@ -743,8 +664,8 @@ mod tests {
         }
     }
 
-    /// The weight-gradient product `c += a^T b` on both paths (narrow tiles, the
-    /// GEMM kernel), over one and several reduction blocks, against the naive sum.
+    /// The weight-gradient product `c += a^T b` on narrow and wide shapes, over one
+    /// and several reduction blocks, against the naive sum.
     #[test]
     fn weight_gradient_products_match_the_naive_sum() {
         for &(m, k, n) in &[(1, 1, 1), (37, 5, 3), (9000, 16, 12), (5000, 7, 16), (300, 65, 9), (4100, 3, 70)] {
