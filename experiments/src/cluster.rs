@@ -91,6 +91,19 @@ impl Cluster {
         }
     }
 
+    /// On a job of many processes, prints how many there are and how many bytes
+    /// this process has sent in the reductions (the line a command ends with,
+    /// which also shows that its work was shared); nothing on a job of one.
+    pub fn print_traffic(&self) {
+        if self.size() > 1 {
+            println!(
+                "{} processes; {} bytes sent by this process in the reductions",
+                self.size(),
+                self.comm.bytes_sent()
+            );
+        }
+    }
+
     /// Ends the whole job after a command failed on this process (the others may
     /// be waiting in a collective); returns only in a job of one.
     pub fn fail(&self, code: i32) {

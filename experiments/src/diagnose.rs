@@ -120,7 +120,6 @@ pub fn run(args: &DiagnoseArgs, cluster: &Cluster) -> Result<(), String> {
     if root {
         ensure_dir(&args.out)?;
     }
-    cluster.wait_for_first(true);
     let progress = if root { bar("diagnose") } else { ProgressBar::hidden() };
     let mut on_stage = stage_progress(&progress);
     let comm = cluster.collective();
@@ -135,6 +134,7 @@ pub fn run(args: &DiagnoseArgs, cluster: &Cluster) -> Result<(), String> {
     if !root {
         return Ok(());
     }
+    cluster.print_traffic();
     write_report(&args.out, &report, &args.data)?;
     print_outcome(&report, &args.out);
     Ok(())
@@ -196,12 +196,10 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
 /// when that gives more than one group, else by scene. A Markdown section, empty
 /// when the report has no per-object record.
 fn gains_by_part(r: &Report) -> String {
-    let best = r
-        .candidates
-        .iter()
-        .filter(|c| c.cause == r.cause)
-        .chain(r.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain)));
-    let Some(candidate) = best.into_iter().next() else { return String::new() };
+    let best = r.candidates.iter().find(|c| c.cause == r.cause);
+    let Some(candidate) = best.or_else(|| r.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain))) else {
+        return String::new();
+    };
     if r.eval_object_keys.len() != candidate.object_gains.len() || r.eval_object_units.len() != r.eval_object_keys.len()
     {
         return String::new();

@@ -242,7 +242,7 @@ fn prepare_data(args: &ExperimentCArgs, scale: &Scale) -> Result<(PathBuf, PathB
     let (train, val) = (data_dir.join("train"), data_dir.join("val"));
     if data_dir.join("import_report.md").is_file() {
         // An earlier import is reused only if it has the windows asked for.
-        let meta = Dataset::read(&train).map_err(|e| format!("dataset {}: {e}", train.display()))?.meta();
+        let meta = Dataset::read_layout(&train).map_err(|e| format!("dataset {}: {e}", train.display()))?.meta;
         let dt = KITTI_FRAME_DT * args.stride as f64;
         if meta.steps != args.steps || (meta.dt - dt).abs() > 1e-9 {
             return Err(format!(
@@ -510,7 +510,9 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         supervised_seconds: fit_seconds,
         policy_from: &policy_from,
     };
-    write_outputs(&context, &rows, started.elapsed().as_secs_f64())
+    write_outputs(&context, &rows, started.elapsed().as_secs_f64())?;
+    cluster.print_traffic();
+    Ok(())
 }
 
 /// What the outputs describe besides the rows.

@@ -329,6 +329,7 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
         all.extend(results.iter().filter(|r| !r.runs.is_empty()).cloned());
         write_outputs(args, &out, &scale, &all, started.elapsed().as_secs_f64())?;
     }
+    cluster.print_traffic();
     Ok(())
 }
 

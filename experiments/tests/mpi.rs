@@ -220,6 +220,21 @@ fn parameter_files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
     found
 }
 
+/// On a job of many processes, that the command's training steps went through
+/// the job's reductions: identical files alone would also come from every
+/// process doing all the work by itself. A lone barrier sends 8 bytes; a
+/// training step sends two reductions of one value per parameter.
+fn shared_training(stdout: &str, processes: Option<usize>, command: &str) {
+    if processes.is_none() {
+        return;
+    }
+    let bytes: u64 = stdout
+        .lines()
+        .find_map(|l| l.split(" processes; ").nth(1)?.split(' ').next()?.parse().ok())
+        .unwrap_or_else(|| panic!("{command}: no traffic line in {stdout}"));
+    assert!(bytes > 10_000, "{command}: the first process sent only {bytes} bytes");
+}
+
 #[test]
 fn reproduce_diagnose_and_experiment_c_as_a_job_write_what_one_process_writes() {
     let (dir, data) = generated("commands");
@@ -231,14 +246,14 @@ fn reproduce_diagnose_and_experiment_c_as_a_job_write_what_one_process_writes() 
         let reproduce = ["reproduce", "--exp", "A", "--quick", "--methods", "pf-sefi,dpf-sgr", "--seeds", "1"];
         let mut args: Vec<String> = reproduce.iter().map(|a| a.to_string()).collect();
         args.extend(["--out".to_string(), out.join("reproduce").display().to_string()]);
-        ok(&job(processes, &args, &[]));
+        shared_training(&ok(&job(processes, &args, &[])), processes, "reproduce");
         let (train_data, report) = (data.join("train"), out.join("diagnose"));
         let diagnose = ["diagnose", "--quick", "--data", s(&train_data), "--out", s(&report)];
-        ok(&job(processes, &diagnose.map(String::from), &[]));
+        shared_training(&ok(&job(processes, &diagnose.map(String::from), &[])), processes, "diagnose");
         if let Some(kitti) = &kitti {
             let c = out.join("experiment-c");
             let args = ["experiment-c", "--quick", "--kitti", s(kitti), "--methods", "pf-sefi,dpf-sgr", "--out", s(&c)];
-            ok(&job(processes, &args.map(String::from), &[]));
+            shared_training(&ok(&job(processes, &args.map(String::from), &[])), processes, "experiment-c");
         }
     }
     let mut parts = vec!["reproduce", "diagnose"];

@@ -88,6 +88,21 @@ impl SceneObjective {
         Ok(SceneObjective { batches, test, config, comm: Arc::new(SingleProcess) })
     }
 
+    /// The objective of one process of the job `comm` on the whole training data
+    /// `train` in memory: that process's share ([`owned_objects`], cut with
+    /// [`Dataset::shard`]) with [`SceneObjective::with_collective`]. On a job of
+    /// one, the objective of [`SceneObjective::new`].
+    pub fn for_process(
+        train: &Dataset,
+        test: Dataset,
+        config: ObjectiveConfig,
+        comm: Arc<dyn Collective>,
+    ) -> Result<Self, String> {
+        let share =
+            (comm.size() > 1).then(|| train.shard(&owned_objects(&train.layout(), &config, comm.rank(), comm.size())));
+        Ok(SceneObjective::new(share.as_ref().unwrap_or(train), test, config)?.with_collective(comm))
+    }
+
     /// The objective of one process of the job `comm`, on `train` holding that
     /// process's share of the training objects ([`owned_objects`]: read with
     /// [`Dataset::read_shard`], or cut from the whole data with
@@ -131,7 +146,7 @@ pub fn owned_objects(layout: &DataLayout, config: &ObjectiveConfig, rank: usize,
 /// Relative cost of a block of objects for the load balance of a distributed
 /// job: its observed items plus [`STEP_COST_IN_UNITS`] per object-step.
 pub fn block_cost(layout: &DataLayout, objects: std::ops::Range<usize>) -> f64 {
-    objects.map(|o| layout.units[o] as f64 + STEP_COST_IN_UNITS * layout.steps as f64).sum()
+    objects.map(|o| layout.units[o] as f64 + STEP_COST_IN_UNITS * layout.meta.steps as f64).sum()
 }
 
 /// The cost of propagating one object's particles through one step, in observed

@@ -47,8 +47,10 @@ fn config(estimator: Estimator, chunk_objects: usize, scenes_per_step: usize) ->
     }
 }
 
-/// Runs every batch on `size` simulated processes, each holding its share, and
-/// checks that every process gets `expected`.
+/// Checks that the processes' shares split the objects, then runs every batch on
+/// `size` simulated processes, each holding its share
+/// ([`SceneObjective::for_process`]), and checks that every process gets
+/// `expected`.
 fn check_processes(data: &Dataset, params: &ParamStore<f64>, config: &ObjectiveConfig, expected: &[Vec<u64>]) {
     let layout = data.layout();
     for size in [2, 3, 5] {
@@ -58,16 +60,12 @@ fn check_processes(data: &Dataset, params: &ParamStore<f64>, config: &ObjectiveC
         assert_eq!(all, (0..data.objects().len()).collect::<Vec<_>>(), "{size} processes split the objects");
         let group = ThreadGroup::new(size);
         let answers: Vec<Vec<Vec<u64>>> = std::thread::scope(|scope| {
-            let handles: Vec<_> = shares
-                .iter()
-                .enumerate()
-                .map(|(rank, share)| {
+            let handles: Vec<_> = (0..size)
+                .map(|rank| {
                     let comm = Arc::new(group.member(rank));
-                    let shard = data.shard(share);
                     let config = config.clone();
                     scope.spawn(move || {
-                        let mut objective =
-                            SceneObjective::new(&shard, shard.clone(), config).unwrap().with_collective(comm);
+                        let mut objective = SceneObjective::for_process(data, data.clone(), config, comm).unwrap();
                         step_bits(&mut objective, params)
                     })
                 })

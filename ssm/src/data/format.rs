@@ -350,7 +350,7 @@ pub(crate) fn read_layout(dir: &Path) -> Result<DataLayout, DataError> {
         }
         Ok(())
     })?;
-    Ok(DataLayout::new(meta.steps, &scene_ids, objects, units))
+    Ok(DataLayout::new(meta, &scene_ids, objects, units))
 }
 
 /// Distinguishes temporary files of concurrent writers in one process.

@@ -286,10 +286,10 @@ pub struct Dataset {
 /// values: what a data-parallel job needs to split the objects between its
 /// processes before any of them reads one ([`Dataset::read_layout`],
 /// [`Dataset::layout`]).
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct DataLayout {
-    /// Steps per object (`steps` of `meta.json`).
-    pub steps: usize,
+    /// The dataset's `meta.json`.
+    pub meta: Meta,
     /// Every object's key `(scene id, object id)`, sorted: the order of
     /// [`Dataset::objects`].
     pub objects: Vec<(i64, i64)>,
@@ -303,12 +303,12 @@ pub struct DataLayout {
 impl DataLayout {
     /// The layout of sorted `objects` (with `units`) in the sorted scenes
     /// `scene_ids`; every object's scene must be among them.
-    pub(crate) fn new(steps: usize, scene_ids: &[i64], objects: Vec<(i64, i64)>, units: Vec<usize>) -> Self {
+    pub(crate) fn new(meta: Meta, scene_ids: &[i64], objects: Vec<(i64, i64)>, units: Vec<usize>) -> Self {
         let scenes = scene_ids
             .iter()
             .map(|&id| objects.partition_point(|o| o.0 < id)..objects.partition_point(|o| o.0 <= id))
             .collect();
-        DataLayout { steps, objects, scenes, units }
+        DataLayout { meta, objects, scenes, units }
     }
 }
 
@@ -336,9 +336,10 @@ impl Dataset {
         format::read_shard(dir.as_ref(), keep)
     }
 
-    /// The layout of the dataset in `dir` (objects, scenes, observed items per
-    /// object), read without parsing any value: the first pass of a sharded
-    /// read. Equal to [`Dataset::layout`] of the dataset read whole.
+    /// The layout of the dataset in `dir` (its metadata, objects, scenes and
+    /// observed items per object), read without parsing any value: the first
+    /// pass of a sharded read, and a cheap way to learn a dataset's shape. Equal
+    /// to [`Dataset::layout`] of the dataset read whole.
     pub fn read_layout(dir: impl AsRef<std::path::Path>) -> Result<DataLayout, DataError> {
         format::read_layout(dir.as_ref())
     }
@@ -346,7 +347,7 @@ impl Dataset {
     /// The layout of this dataset (see [`DataLayout`]).
     pub fn layout(&self) -> DataLayout {
         DataLayout {
-            steps: self.steps(),
+            meta: self.meta,
             objects: self.objects.iter().map(|o| (o.scene, o.id)).collect(),
             scenes: self.scenes.iter().map(|s| s.objects.clone()).collect(),
             units: (0..self.objects.len()).map(|o| self.object_units(o)).collect(),

@@ -134,17 +134,17 @@ pub fn gains_by_group(
     units: &[usize],
     group: impl Fn(i64) -> i64,
 ) -> Vec<GroupGain> {
-    let mut groups: Vec<i64> = objects.iter().map(|o| group(o.0)).collect();
-    groups.sort_unstable();
-    groups.dedup();
-    groups
+    let mut members: std::collections::BTreeMap<i64, Vec<usize>> = Default::default();
+    for (i, o) in objects.iter().enumerate() {
+        members.entry(group(o.0)).or_default().push(i);
+    }
+    members
         .into_iter()
-        .map(|g| {
-            let members: Vec<usize> = (0..objects.len()).filter(|&i| group(objects[i].0) == g).collect();
+        .map(|(g, members)| {
             let d: Vec<f64> = members.iter().map(|&i| object_gains[i]).collect();
             let units = members.iter().map(|&i| units[i]).sum();
             let (gain, gain_se) = gain_of(&d, units);
-            let positive = d.iter().filter(|&&x| x > 0.0).count() as f64 / d.len().max(1) as f64;
+            let positive = d.iter().filter(|&&x| x > 0.0).count() as f64 / d.len() as f64;
             GroupGain { group: g, objects: members.len(), units, gain, gain_se, positive }
         })
         .collect()

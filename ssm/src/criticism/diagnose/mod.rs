@@ -67,7 +67,7 @@ use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::NeuralPolicy;
-use crate::objective::{owned_objects, ObjectiveConfig, SceneObjective};
+use crate::objective::{ObjectiveConfig, SceneObjective};
 use crate::reduce::Collective;
 use crate::setting::SettingError;
 use crate::training::{train, TrainConfig, TrainEvent, CHECKPOINT_FILE};
@@ -396,7 +396,7 @@ pub fn split_objects(
 /// ([`SingleProcess`](crate::reduce::SingleProcess) alone). In a job of many,
 /// every process runs the whole diagnosis on the whole data; each fit's
 /// training steps are shared between the processes (each holds its share of
-/// the fit part's objects, [`owned_objects`]), the checks and held-out
+/// the fit part's objects, [`SceneObjective::for_process`]), the checks and held-out
 /// evaluations are repeated on every process (they are deterministic, so every
 /// process takes the same decisions), and only the first writes files.
 pub fn diagnose(
@@ -679,11 +679,7 @@ fn fit(
         proposal: None,
         eval_tempering: Some(config.tempering),
     };
-    let share = (comm.size() > 1)
-        .then(|| parts.fit.shard(&owned_objects(&parts.fit.layout(), &objective_config, comm.rank(), comm.size())));
-    let mut objective =
-        SceneObjective::new(share.as_ref().unwrap_or(parts.fit), parts.check.clone(), objective_config)?
-            .with_collective(comm.clone());
+    let mut objective = SceneObjective::for_process(parts.fit, parts.check.clone(), objective_config, comm.clone())?;
     let batches = crate::training::Objective::batches(&objective).max(1);
     let train_config = TrainConfig {
         lr,
