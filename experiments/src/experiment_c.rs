@@ -61,6 +61,7 @@ use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{Metrics, Summary};
 use ssm::models::extended::ExtensibleObservation;
+use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
 use ssm::models::params::{Models, ObservationVisitor};
 use ssm::supervised::{fit_observation, SupervisedReport};
@@ -108,6 +109,11 @@ pub struct ExperimentCArgs {
     /// Keep every k-th KITTI frame in the import (dt = 0.1 s * k).
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
+    /// The box network's detection offsets, for every trained run, INIT and the
+    /// supervised fit alike: `learned` (the paper's model) or `zero` (centred on the
+    /// state, which pins where a track lies).
+    #[arg(long, default_value_t = DetectionOffsets::Learned)]
+    pub detection_offsets: DetectionOffsets,
 }
 
 /// The sizes of the experiment.
@@ -293,9 +299,9 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 
 /// The store every training run starts from (what `sefi train --policy neural
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
-/// `seed + 1`.
-fn initial_models(seed: u64) -> Models {
-    train::fresh_models("neural", "", ObservationKind::Boxes, seed).expect("the neural policy needs no settings")
+/// `seed + 1`, with `offsets` learned or fixed at zero.
+fn initial_models(seed: u64, offsets: DetectionOffsets) -> Models {
+    train::fresh_models("neural", "", ObservationKind::Boxes, offsets, seed).expect("the neural policy needs no settings")
 }
 
 /// AOTLL of `models`' observation network on `data`.
@@ -353,6 +359,7 @@ fn run_args(
         scenes_per_step: scale.scenes_per_step,
         chunk_objects: scale.chunk_objects,
         seed: args.seed,
+        detection_offsets: args.detection_offsets,
         ..TrainArgs::for_method(method, &args.table.filter, run, data.0, data.1, dir)
     }
 }
@@ -413,7 +420,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
 
     // INIT: where every run starts.
     let clock = Instant::now();
-    let init = initial_models(args.seed);
+    let init = initial_models(args.seed, args.detection_offsets);
     let init_runs = evaluate(&init)?;
     let mut rows = vec![Row {
         method: "INIT".into(),
@@ -468,7 +475,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         Some((m, models)) => (m.clone(), models.policy.clone()),
         None => ("INIT".to_string(), init.policy.clone()),
     };
-    let mut supervised = Models { policy, ..initial_models(args.seed) };
+    let mut supervised = Models { policy, ..initial_models(args.seed, args.detection_offsets) };
     let fit = FitConfig {
         steps: scale.supervised_steps,
         batch: scale.supervised_batch,

@@ -17,6 +17,7 @@ use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
 use ssm::models::params::{AnyPolicy, Models};
+use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
@@ -44,6 +45,12 @@ pub struct TrainArgs {
     /// Initial sds `accel,pinch` of a fresh hand-crafted policy.
     #[arg(long, default_value = "1.0,0.1")]
     pub init_sd: String,
+    /// Box data, fresh initialisation: the detection centre's mean offset from the
+    /// state `learned` (the paper's model) or `zero` (the detector taken as unbiased
+    /// in position, which pins where a track lies; README, experiment C).
+    #[arg(long, default_value_t = DetectionOffsets::Learned)]
+    #[serde(default)]
+    pub detection_offsets: DetectionOffsets,
     /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet.
     #[arg(long, default_value = "pf-sefi")]
     pub estimator: String,
@@ -174,8 +181,15 @@ fn parse_sds(text: &str) -> Result<(f64, f64), String> {
 
 /// The models a fresh run starts from: the policy named `policy` (`hand-crafted`
 /// with sds `init_sd` = `accel,pinch`, or `neural` drawn from `seed`) and an
-/// observation network for `kind` drawn from `seed + 1`.
-pub fn fresh_models(policy: &str, init_sd: &str, kind: ObservationKind, seed: u64) -> Result<Models, String> {
+/// observation network for `kind` drawn from `seed + 1` (a box network with
+/// `offsets` learned or fixed at zero).
+pub fn fresh_models(
+    policy: &str,
+    init_sd: &str,
+    kind: ObservationKind,
+    offsets: DetectionOffsets,
+    seed: u64,
+) -> Result<Models, String> {
     let policy = match policy {
         "hand-crafted" => {
             let (a, p) = parse_sds(init_sd)?;
@@ -187,7 +201,7 @@ pub fn fresh_models(policy: &str, init_sd: &str, kind: ObservationKind, seed: u6
         }
         other => return Err(format!("--policy: expected hand-crafted or neural, got `{other}`")),
     };
-    Ok(Models::initial(kind, policy, seed.wrapping_add(1)))
+    Ok(Models::initial_with_offsets(kind, policy, seed.wrapping_add(1), offsets))
 }
 
 /// The store training starts from.
@@ -197,7 +211,7 @@ fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, St
         Models::from_store(&store, data.kind()).map_err(|e| format!("{}: {e}", path.display()))?;
         return Ok(store);
     }
-    Ok(fresh_models(&args.policy, &args.init_sd, data.kind(), args.seed)?.to_store())
+    Ok(fresh_models(&args.policy, &args.init_sd, data.kind(), args.detection_offsets, args.seed)?.to_store())
 }
 
 /// Reads `eval.csv` in `dir`: the step column and the named metric.

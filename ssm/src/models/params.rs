@@ -14,7 +14,9 @@
 //! file that mixes the two is rejected rather than silently half-read. The
 //! observation network must have exactly the layout of the model for the dataset's
 //! kind (points or boxes); a network of the other kind is rejected with a message
-//! that says so. Names outside `policy.*` and `obs.*` (optimiser state, extension
+//! that says so. A box network whose last layer has the centred width (4
+//! outputs, [`DetectionOffsets::Zero`](crate::models::observation::boxes::DetectionOffsets))
+//! is read as the centred box model. Names outside `policy.*` and `obs.*` (optimiser state, extension
 //! parameters) are ignored.
 //!
 //! ```
@@ -43,6 +45,7 @@ use rand::SeedableRng;
 
 use crate::data::{Dataset, ObservationKind};
 use crate::models::extended::ExtensibleObservation;
+use crate::models::observation::boxes::DetectionOffsets;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
@@ -247,11 +250,24 @@ impl AnyObservation {
     /// A fresh model for a dataset of `kind`, its network added to `store` under
     /// [`OBS_PREFIX`] with standard initialisation drawn from `rng`.
     pub fn init(kind: ObservationKind, store: &mut ParamStore<f64>, rng: &mut StdRng) -> AnyObservation {
+        AnyObservation::init_with_offsets(kind, DetectionOffsets::Learned, store, rng)
+    }
+
+    /// [`AnyObservation::init`], with the box model's detection offsets learned or
+    /// fixed at zero (`offsets` is ignored for points).
+    pub fn init_with_offsets(
+        kind: ObservationKind,
+        offsets: DetectionOffsets,
+        store: &mut ParamStore<f64>,
+        rng: &mut StdRng,
+    ) -> AnyObservation {
         match kind {
             ObservationKind::Points => {
                 AnyObservation::Points(PointObservationModel::init_params(store, OBS_PREFIX, rng))
             }
-            ObservationKind::Boxes => AnyObservation::Boxes(BoxObservationModel::init_params(store, OBS_PREFIX, rng)),
+            ObservationKind::Boxes => {
+                AnyObservation::Boxes(BoxObservationModel::init_with_offsets(store, OBS_PREFIX, offsets, rng))
+            }
         }
     }
 
@@ -304,9 +320,15 @@ impl Models {
     /// Fresh models to learn from, for a dataset of `kind`: the given policy and an
     /// observation network with standard initialisation drawn from `seed`.
     pub fn initial(kind: ObservationKind, policy: AnyPolicy, seed: u64) -> Models {
+        Models::initial_with_offsets(kind, policy, seed, DetectionOffsets::Learned)
+    }
+
+    /// [`Models::initial`] with the box model's detection offsets learned or fixed
+    /// at zero ([`DetectionOffsets`]; ignored for points).
+    pub fn initial_with_offsets(kind: ObservationKind, policy: AnyPolicy, seed: u64, offsets: DetectionOffsets) -> Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
-        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
+        let observation = AnyObservation::init_with_offsets(kind, offsets, &mut observation_params, &mut rng);
         Models { policy, observation, observation_params }
     }
 
@@ -320,7 +342,8 @@ impl Models {
         }
         let mut observation_params = ParamStore::new();
         let mut rng = StdRng::seed_from_u64(0);
-        let observation = AnyObservation::init(kind, &mut observation_params, &mut rng);
+        let offsets = BoxObservationModel::offsets_in_store(store, OBS_PREFIX);
+        let observation = AnyObservation::init_with_offsets(kind, offsets, &mut observation_params, &mut rng);
         let model = match kind {
             ObservationKind::Points => "point observation model (this dataset holds points.csv)",
             ObservationKind::Boxes => "box-detection observation model (this dataset holds boxes.csv)",

@@ -13,6 +13,14 @@
 //! `b_a, b_c = BOX_SCALE_SCALE softplus(o2, o3) + BOX_MIN_SCALE`,
 //! `mu_y = BOX_YAW_OFFSET_SCALE o4`, `b_y = BOX_YAW_SCALE_SCALE softplus(o5) + BOX_MIN_YAW_SCALE`.
 //!
+//! A **centred** model ([`DetectionOffsets::Zero`], a network `7 -> 16 tanh x 2 -> 4`
+//! without the outputs `o0, o1`) fixes `mu_a = mu_c = 0`: the detector is taken to be
+//! unbiased in position. With learned offsets, shifting every state of a track by a
+//! constant along and across the line of sight and the offsets by the opposite leaves
+//! every detection's density unchanged, so from detections alone the offsets are
+//! pinned only by the prior on `x_0`; centring removes that direction. The layout
+//! tells the two apart in a parameter file (the last layer's width).
+//!
 //! `WL` is the wrapped Laplace on `(-pi, pi]`, in closed form
 //! `WL(d; b) = cosh((pi - |d|) / b) / (2 b sinh(pi / b))`, computed as
 //! `-|d|/b - ln(2b) + ln(1 + e^{-2(pi - |d|)/b}) - ln(1 - e^{-2 pi / b})` (a Laplace for
@@ -30,6 +38,7 @@ use std::f64::consts::{PI, TAU};
 use autodiff::nn::{Activation, BoundParams, Mlp, ParamStore};
 use autodiff::{Float, Tensor, Var};
 use rand::Rng;
+use serde::{Deserialize, Serialize};
 
 use super::edges::sample_laplace;
 use super::features::{av_features_on_tape, NUM_FEATURES};
@@ -38,6 +47,19 @@ use crate::data::{BoxDetection, Dataset, ObservationKind, Pose};
 
 /// Widths of the box network, input first.
 pub const BOX_NET_LAYERS: [usize; 4] = [NUM_FEATURES, 16, 16, 6];
+/// Widths of the centred box network ([`DetectionOffsets::Zero`]): no offset outputs.
+pub const CENTRED_BOX_NET_LAYERS: [usize; 4] = [NUM_FEATURES, 16, 16, 4];
+
+/// Whether the box model learns the detection centre's mean offset from the state.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum DetectionOffsets {
+    /// Mean offsets along and across the line of sight from the network (the paper's model).
+    #[default]
+    Learned,
+    /// Mean offsets fixed at zero: the detection is centred on the state (see the module docs).
+    Zero,
+}
 /// Centre-offset means are `BOX_OFFSET_SCALE * o` (m).
 pub const BOX_OFFSET_SCALE: f64 = 0.5;
 /// Centre-offset scales are `BOX_SCALE_SCALE * softplus(o) + BOX_MIN_SCALE` (m).
@@ -115,7 +137,35 @@ fn los_offsets<F: Float>(dx: F, dy: F, ddx: F, ddy: F) -> (F, F) {
 #[derive(Clone, Debug, PartialEq)]
 pub struct BoxObservationModel {
     mlp: Mlp,
+    offsets: DetectionOffsets,
 }
+
+impl std::fmt::Display for DetectionOffsets {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            DetectionOffsets::Learned => "learned",
+            DetectionOffsets::Zero => "zero",
+        })
+    }
+}
+
+impl std::str::FromStr for DetectionOffsets {
+    type Err = String;
+    /// `learned` or `zero`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "learned" => Ok(DetectionOffsets::Learned),
+            "zero" => Ok(DetectionOffsets::Zero),
+            other => Err(format!("detection offsets: expected `learned` or `zero`, got `{other}`")),
+        }
+    }
+}
+
+/// The network output of each head parameter, `mu_a, mu_c, b_a, b_c, mu_y, b_y` in
+/// that order (`None`: fixed at zero, the centred model's offsets).
+type OutputRows = [Option<usize>; 6];
+const LEARNED_ROWS: OutputRows = [Some(0), Some(1), Some(2), Some(3), Some(4), Some(5)];
+const CENTRED_ROWS: OutputRows = [None, None, Some(0), Some(1), Some(2), Some(3)];
 
 impl BoxObservationModel {
     /// The largest value `log g(det | x)` can take, whatever the parameters: both
@@ -131,19 +181,60 @@ impl BoxObservationModel {
         &self.mlp
     }
 
+    /// A fresh model with `offsets` learned or fixed at zero, its network added to
+    /// `store` under `prefix` with standard initialisation drawn from `rng`.
+    pub fn init_with_offsets<R: Rng + ?Sized>(
+        store: &mut ParamStore<f64>,
+        prefix: &str,
+        offsets: DetectionOffsets,
+        rng: &mut R,
+    ) -> Self {
+        let mut rng = rng;
+        let layers = match offsets {
+            DetectionOffsets::Learned => &BOX_NET_LAYERS,
+            DetectionOffsets::Zero => &CENTRED_BOX_NET_LAYERS,
+        };
+        let mlp = Mlp::new(store, prefix, layers, Activation::Tanh, Activation::Identity, &mut rng);
+        BoxObservationModel { mlp, offsets }
+    }
+
+    /// Whether the offsets are learned or fixed at zero.
+    pub fn offsets(&self) -> DetectionOffsets {
+        self.offsets
+    }
+
+    /// The layout a parameter store holds under `prefix`: centred when its last
+    /// layer has the centred network's width, else learned (whose layout the
+    /// caller then checks in full).
+    pub fn offsets_in_store(store: &ParamStore<f64>, prefix: &str) -> DetectionOffsets {
+        let last = format!("{prefix}.{}.b", CENTRED_BOX_NET_LAYERS.len() - 2);
+        match store.id(&last) {
+            Some(id) if store.get(id).shape() == [CENTRED_BOX_NET_LAYERS[3]] => DetectionOffsets::Zero,
+            _ => DetectionOffsets::Learned,
+        }
+    }
+
+    fn rows(&self) -> OutputRows {
+        match self.offsets {
+            DetectionOffsets::Learned => LEARNED_ROWS,
+            DetectionOffsets::Zero => CENTRED_ROWS,
+        }
+    }
+
     /// The detection distribution at one state (f64).
     pub fn distribution(&self, params: &ParamStore<f64>, ctx: &ObsContext, pose: Pose) -> DetectionDistribution {
         let mut s = Scratch::<f64>::new();
         let (x, y, yaw) = ([pose.x], [pose.y], [pose.yaw]);
         net::forward_plain(&self.mlp, params, ctx, PosesRef::new(&x, &y, &yaw), &mut s);
-        let o = &s.outputs;
+        let rows = self.rows();
+        let o = |k: usize| rows[k].map_or(0.0, |r| s.outputs[r]);
         DetectionDistribution {
-            mu_along: BOX_OFFSET_SCALE * o[0],
-            mu_across: BOX_OFFSET_SCALE * o[1],
-            b_along: BOX_SCALE_SCALE * o[2].softplus() + BOX_MIN_SCALE,
-            b_across: BOX_SCALE_SCALE * o[3].softplus() + BOX_MIN_SCALE,
-            mu_yaw: BOX_YAW_OFFSET_SCALE * o[4],
-            b_yaw: BOX_YAW_SCALE_SCALE * o[5].softplus() + BOX_MIN_YAW_SCALE,
+            mu_along: BOX_OFFSET_SCALE * o(0),
+            mu_across: BOX_OFFSET_SCALE * o(1),
+            b_along: BOX_SCALE_SCALE * o(2).softplus() + BOX_MIN_SCALE,
+            b_across: BOX_SCALE_SCALE * o(3).softplus() + BOX_MIN_SCALE,
+            mu_yaw: BOX_YAW_OFFSET_SCALE * o(4),
+            b_yaw: BOX_YAW_SCALE_SCALE * o(5).softplus() + BOX_MIN_YAW_SCALE,
         }
     }
 
@@ -157,9 +248,12 @@ impl BoxObservationModel {
         let (off, sc, mn) = (f(BOX_OFFSET_SCALE), f(BOX_SCALE_SCALE), f(BOX_MIN_SCALE));
         let (yoff, ysc, ymn) = (f(BOX_YAW_OFFSET_SCALE), f(BOX_YAW_SCALE_SCALE), f(BOX_MIN_YAW_SCALE));
         let (two, tau) = (f(2.0), f(TAU));
-        let o = &s.outputs[..6 * n];
-        let row = |k: usize| &o[k * n..(k + 1) * n];
-        let (o0, o1, o2, o3, o4, o5) = (row(0), row(1), row(2), row(3), row(4), row(5));
+        let rows = self.rows();
+        let outputs = rows.iter().flatten().count();
+        let o = &s.outputs[..outputs * n];
+        let row = |k: usize| rows[k].map(|r| &o[r * n..(r + 1) * n]);
+        let (o2, o3, o4, o5) = (row(2).unwrap(), row(3).unwrap(), row(4).unwrap(), row(5).unwrap());
+        let offset = |k: usize, i: usize| row(k).map_or(F::ZERO, |o| off * o[i]);
         let (h, rest) = s.head.split_at_mut(n);
         let (h1, rest) = rest.split_at_mut(n);
         let (h2, rest) = rest.split_at_mut(n);
@@ -170,8 +264,8 @@ impl BoxObservationModel {
             let ba = sc * o2[i].softplus() + mn;
             let bc = sc * o3[i].softplus() + mn;
             let by = ysc * o5[i].softplus() + ymn;
-            h[i] = off * o0[i];
-            h1[i] = off * o1[i];
+            h[i] = offset(0, i);
+            h1[i] = offset(1, i);
             h2[i] = F::ONE / ba;
             h3[i] = F::ONE / bc;
             h4[i] = yoff * o4[i];
@@ -212,9 +306,7 @@ impl ObservationModel for BoxObservationModel {
     const KIND: ObservationKind = ObservationKind::Boxes;
 
     fn init_params<R: Rng + ?Sized>(store: &mut ParamStore<f64>, prefix: &str, rng: &mut R) -> Self {
-        let mut rng = rng;
-        let mlp = Mlp::new(store, prefix, &BOX_NET_LAYERS, Activation::Tanh, Activation::Identity, &mut rng);
-        BoxObservationModel { mlp }
+        BoxObservationModel::init_with_offsets(store, prefix, DetectionOffsets::Learned, rng)
     }
 
     fn num_params(&self) -> usize {
@@ -301,7 +393,13 @@ impl ObservationModel for BoxObservationModel {
         let c = |g: &dyn Fn(usize) -> f64| tape.constant(Tensor::from_vec((0..q).map(|k| F::from_f64(g(k))).collect()));
         let feats = av_features_on_tape(rows, av);
         let o = self.mlp.forward(params, feats).gather(0, &idx);
-        let col = |j: usize| o.slice(1, j, 1).reshape(&[q]);
+        let outputs = self.rows();
+        let col = |k: usize| outputs[k].map(|j| o.slice(1, j, 1).reshape(&[q]));
+        let mean_offset = |k: usize| match col(k) {
+            Some(v) => v.mul_scalar(BOX_OFFSET_SCALE),
+            None => tape.constant(Tensor::zeros(&[q])),
+        };
+        let col = |k: usize| col(k).expect("every scale and the yaw offset have an output");
         let (x, y, yaw) = (rows.x.gather(0, &idx), rows.y.gather(0, &idx), rows.yaw.gather(0, &idx));
         let dx = x - c(&|k| av[idx[k]].x);
         let dy = y - c(&|k| av[idx[k]].y);
@@ -323,8 +421,8 @@ impl ObservationModel for BoxObservationModel {
         let wrapped = -(a * inv_by) - b_yaw.mul_scalar(2.0).ln()
             + (a.add_scalar(-PI) * inv_by).mul_scalar(2.0).softplus()
             - z.neg().exp().neg().add_scalar(1.0).ln();
-        let lq = laplace(along, col(0).mul_scalar(BOX_OFFSET_SCALE), b_along)
-            + laplace(across, col(1).mul_scalar(BOX_OFFSET_SCALE), b_across)
+        let lq = laplace(along, mean_offset(0), b_along)
+            + laplace(across, mean_offset(1), b_across)
             + wrapped;
         lq.scatter_add(0, &idx, r)
     }
