@@ -57,7 +57,7 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::kitti::KITTI_FRAME_DT;
-use ssm::data::{Dataset, ObservationKind};
+use ssm::data::{Dataset, KittiOptions, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{Metrics, Summary};
 use ssm::models::extended::ExtensibleObservation;
@@ -264,7 +264,8 @@ fn prepare_data(args: &ExperimentCArgs, scale: &Scale) -> Result<(PathBuf, PathB
         }
         eprintln!("reusing the KITTI import in {}", data_dir.display());
     } else {
-        import::kitti(&args.kitti, &data_dir, args.steps, args.stride, 2.0, None)?;
+        let options = KittiOptions { steps: args.steps, stride: args.stride, ..KittiOptions::default() };
+        import::kitti(&args.kitti, &data_dir, &options)?;
     }
     if scale.train_scenes.is_none() && scale.val_scenes.is_none() {
         return Ok((train, val));

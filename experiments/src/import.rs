@@ -7,23 +7,10 @@ use ssm::data::{import_kitti, KittiOptions};
 
 use crate::output::{ensure_dir, write_atomic};
 
-/// Imports `root` into `out/train` and `out/val`, and writes `out/import_report.md`.
-pub fn kitti(
-    root: &Path,
-    out: &Path,
-    steps: usize,
-    stride: usize,
-    gate: f64,
-    min_score: Option<f64>,
-) -> Result<(), String> {
-    let options = KittiOptions {
-        steps,
-        stride,
-        gate,
-        min_score: min_score.unwrap_or(f64::NEG_INFINITY),
-        ..KittiOptions::default()
-    };
-    let import = import_kitti(root, &options).map_err(|e| e.to_string())?;
+/// Imports `root` with `options` into `out/train` and `out/val`, and writes
+/// `out/import_report.md`.
+pub fn kitti(root: &Path, out: &Path, options: &KittiOptions) -> Result<(), String> {
+    let import = import_kitti(root, options).map_err(|e| e.to_string())?;
     ensure_dir(out)?;
     for (name, dataset) in [("train", &import.train), ("val", &import.val)] {
         let dir = out.join(name);

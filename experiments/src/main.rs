@@ -66,6 +66,14 @@ enum Command {
         /// Discard detections scoring below this.
         #[arg(long)]
         min_score: Option<f64>,
+        /// Import only these sequences (comma-separated; default: every one present).
+        #[arg(long, value_delimiter = ',')]
+        sequences: Option<Vec<u32>>,
+        /// The sequences of the val split (comma-separated; default: AB3DMOT's
+        /// 1,6,10,12,13,14,16,19). With --sequences, e.g. half of the training
+        /// sequences held out against the other half.
+        #[arg(long, value_delimiter = ',')]
+        val_sequences: Option<Vec<u32>>,
     },
     /// Generate the paper's synthetic datasets (experiment A or B).
     Generate(generate::GenerateArgs),
@@ -119,8 +127,17 @@ fn main() -> ExitCode {
     }
     let result = match cli.command {
         Command::Demo { out, seed, quick } => demo::run(&out, seed, quick),
-        Command::ImportKitti { root, out, steps, stride, gate, min_score } => {
-            import::kitti(&root, &out, steps, stride, gate, min_score)
+        Command::ImportKitti { root, out, steps, stride, gate, min_score, sequences, val_sequences } => {
+            let options = ssm::data::KittiOptions {
+                steps,
+                stride,
+                gate,
+                min_score: min_score.unwrap_or(f64::NEG_INFINITY),
+                sequences,
+                val_sequences,
+                ..ssm::data::KittiOptions::default()
+            };
+            import::kitti(&root, &out, &options)
         }
         Command::Generate(args) => generate::run(&args),
         Command::Eval(args) => evaluate::eval(&args),

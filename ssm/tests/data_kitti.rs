@@ -214,6 +214,15 @@ fn options_change_the_windows() {
     assert!(imp.train.actions().is_none());
     assert_eq!(imp.report.train.sequences, vec![2]);
     assert_eq!(imp.report.val.sequences, vec![1]);
+    // Any held-out set: two training sequences, one held out against the other.
+    let swapped = KittiOptions { sequences: Some(vec![0, 2]), val_sequences: Some(vec![2]), ..opts.clone() };
+    let imp2 = import_kitti(&root, &swapped).unwrap();
+    assert_eq!(imp2.report.train.sequences, vec![0]);
+    assert_eq!(imp2.report.val.sequences, vec![2]);
+    let seq = |d: &Dataset| d.scenes().iter().map(|s| s.id / KITTI_SCENE_ID_BASE).collect::<std::collections::BTreeSet<_>>();
+    assert_eq!(seq(&imp2.val), [2].into());
+    assert_eq!(seq(&imp2.train), [0].into());
+    assert_eq!(imp2.val.objects().len(), imp.train.objects().len(), "sequence 2 alone, as before");
     // With a score threshold most surviving detections belong to labels.
     assert!(imp.report.val.association_rate() > 0.75);
     let bad = KittiOptions { steps: 0, ..KittiOptions::default() };

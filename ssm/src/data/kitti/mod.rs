@@ -4,7 +4,8 @@
 //! # What the importer produces
 //!
 //! Two datasets, AB3DMOT's split: `val` holds sequences
-//! [`KITTI_VAL_SEQUENCES`], `train` every other sequence present.
+//! [`KITTI_VAL_SEQUENCES`] (or [`KittiOptions::val_sequences`]), `train` every
+//! other sequence imported.
 //!
 //! * **Frames and units.** Everything is in the world frame of each sequence
 //!   (the camera at frame 0, from the ego poses), as a bird's-eye view with
@@ -130,6 +131,11 @@ pub struct KittiOptions {
     pub actions: bool,
     /// Restrict the import to these sequences (None: every sequence present).
     pub sequences: Option<Vec<u32>>,
+    /// The sequences of the `val` split (None: [`KITTI_VAL_SEQUENCES`], AB3DMOT's);
+    /// every other imported sequence goes to `train`. With
+    /// [`KittiOptions::sequences`] this cuts any held-out set, e.g. half of the
+    /// training sequences against the other half.
+    pub val_sequences: Option<Vec<u32>>,
 }
 
 impl Default for KittiOptions {
@@ -150,6 +156,7 @@ impl Default for KittiOptions {
             prior_sd_kappa: 0.05,
             actions: true,
             sequences: None,
+            val_sequences: None,
         }
     }
 }
@@ -301,7 +308,8 @@ pub fn import_kitti(root: &Path, options: &KittiOptions) -> Result<KittiImport, 
     let mut train = Split::new(meta, options.actions);
     let mut val = Split::new(meta, options.actions);
     for seq in sequences {
-        let split = if KITTI_VAL_SEQUENCES.contains(&seq) { &mut val } else { &mut train };
+        let held_out = options.val_sequences.as_deref().unwrap_or(&KITTI_VAL_SEQUENCES).contains(&seq);
+        let split = if held_out { &mut val } else { &mut train };
         import_sequence(root, seq, options, split)?;
     }
     let report = KittiReport { options: options.clone(), train: train.report, val: val.report };
