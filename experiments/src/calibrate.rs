@@ -39,6 +39,11 @@ pub struct FilterArgs {
     /// Tempered filter: Metropolis sweeps after each intermediate resampling.
     #[arg(long, default_value_t = Tempering::default().moves)]
     pub temper_moves: usize,
+    /// Tempered filter: origin moves (the prior's noise, whole paths re-propagated)
+    /// at every step up to this one; 0 for none.
+    #[arg(long, default_value_t = Tempering::default().origin_steps)]
+    #[serde(default)]
+    pub temper_origin_steps: usize,
 }
 
 impl FilterArgs {
@@ -52,7 +57,12 @@ impl FilterArgs {
         match self.filter {
             FilterKind::Bootstrap => Ok(None),
             FilterKind::Tempered => {
-                let t = Tempering { ess_fraction: self.temper_ess, moves: self.temper_moves, ..Tempering::default() };
+                let t = Tempering {
+                    ess_fraction: self.temper_ess,
+                    moves: self.temper_moves,
+                    origin_steps: self.temper_origin_steps,
+                    ..Tempering::default()
+                };
                 t.validate()?;
                 Ok(Some(t))
             }

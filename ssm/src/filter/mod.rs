@@ -152,6 +152,11 @@ pub struct StepView<'a> {
     /// moves. An observer that keeps the genealogy replaces its record of `t - 1`
     /// with it.
     pub revised_parent: Option<RevisedParent<'a>>,
+    /// The steps `0..t-1` before it, as they stand after step `t`, when the
+    /// tempered filter's origin moves revised whole paths at `t` (empty
+    /// otherwise; see [`Tempering::origin_steps`]): each re-indexed one-to-one
+    /// with the particles of `t` like `revised_parent`.
+    pub revised_earlier: Vec<RevisedParent<'a>>,
 }
 
 /// Step `t - 1` of the tempered filter as revised while filtering step `t` (see
@@ -327,6 +332,31 @@ impl Ring {
         self.actions[slot] = actions;
     }
 
+    /// Re-indexes every step `0..t-1` by the particles of `t` (each particle's own
+    /// path, un-shared: the origin moves change whole paths). Every earlier step
+    /// must already be one-to-one with the particles of `t - 1` (this was done at
+    /// every step since 1); slot `t - 1`'s states come from `gathered` as in
+    /// [`Ring::reindex_parent_step`], and every parent index becomes the identity.
+    fn reindex_history(&mut self, t: usize, ancestors: &[usize], gathered: &mut Vec<f32>) {
+        let n = ancestors.len();
+        let mut buffer = Vec::new();
+        for s in 0..t - 1 {
+            let slot = self.slot(s);
+            for values in [&mut self.states[slot], &mut self.actions[slot]] {
+                buffer.clear();
+                for column in values.chunks_exact(n) {
+                    buffer.extend(ancestors.iter().map(|&i| column[i]));
+                }
+                std::mem::swap(values, &mut buffer);
+            }
+        }
+        self.reindex_parent_step(t, ancestors, gathered);
+        for s in 1..=t {
+            let slot = self.slot(s);
+            self.parents[slot].iter_mut().enumerate().for_each(|(i, p)| *p = i);
+        }
+    }
+
     /// Re-indexes step `t - 1` by the particles of `t` (particle `i` of `t - 1`
     /// becomes the one `ancestors[i]` was): the states come from `gathered`,
     /// which holds them already and receives the old ones; the parents of `t`
@@ -360,8 +390,12 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
     let steps = model.num_steps();
     let lag = config.lag;
     let mut rng = SmallRng::seed_from_u64(stream_seed(config.seed, model.stream_key(object)));
-    // The tempered filter's lookback moves reach back to x_{t-2}.
-    let slots = if config.sampling.tempering.is_some() { (lag + 2).max(3) } else { lag + 2 };
+    // The tempered filter's lookback moves reach back to x_{t-2}, its origin moves
+    // to x_0 up to step `origin_steps`.
+    let slots = match config.sampling.tempering {
+        Some(c) => (lag + 2).max(3).max(c.origin_steps + 1),
+        None => lag + 2,
+    };
     let mut ring = Ring::new(slots, n, d, a);
     let mut times = PhaseTimes::default();
     let mut summary = ObjectSummary { min_ess: f64::INFINITY, ..Default::default() };
@@ -433,9 +467,14 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
             ring.parents[slot].copy_from_slice(&ancestors);
             if let Some(tm) = &mut temperer {
                 // One parent per particle: slot t - 1 re-indexed by the particles
-                // of t, so that a lookback move changes one particle's parent.
-                ring.reindex_parent_step(t, &ancestors, &mut gathered);
-                tm.carry(&ancestors);
+                // of t, so that a lookback move changes one particle's parent
+                // (every earlier step too while origin moves change whole paths).
+                if tm.origin_at(t) {
+                    ring.reindex_history(t, &ancestors, &mut gathered);
+                } else {
+                    ring.reindex_parent_step(t, &ancestors, &mut gathered);
+                }
+                tm.carry(t, &ancestors);
             }
             let mid = Instant::now();
             times.resample += mid - clock;
@@ -468,7 +507,10 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 let parent_slot = ring.slot(t.wrapping_sub(1));
                 let [mut p_states, mut p_actions] = if t > 0 { ring.take(parent_slot) } else { Default::default() };
                 let mut p_parents = if t > 0 { std::mem::take(&mut ring.parents[parent_slot]) } else { Vec::new() };
-                let grandparents = (t >= 2).then(|| &ring.states[ring.slot(t - 2)][..]);
+                let origin = t >= 2 && tm.origin_at(t);
+                let mut history: Vec<[Vec<f32>; 2]> =
+                    if origin { (0..t - 1).map(|s| ring.take(ring.slot(s))).collect() } else { Vec::new() };
+                let grandparents = (t >= 2 && !origin).then(|| &ring.states[ring.slot(t - 2)][..]);
                 let parent = (t > 0).then(|| ParentStep {
                     states: &mut p_states,
                     actions: &mut p_actions,
@@ -480,6 +522,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     model,
                     Batch { object, t, n },
                     particles,
+                    origin.then_some(&mut history[..]),
                     &mut log_w,
                     config.sampling.resampling,
                     &mut rng,
@@ -489,6 +532,9 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 if t > 0 {
                     ring.put(parent_slot, [p_states, p_actions]);
                     ring.parents[parent_slot] = p_parents;
+                }
+                for (s, step) in history.into_iter().enumerate() {
+                    ring.put(ring.slot(s), step);
                 }
                 summary.tempering_stages += w.stages;
                 summary.moves_proposed += w.proposed;
@@ -561,6 +607,19 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     parents: if t == 1 { &[] } else { &ring.parents[prev] },
                 }
             }),
+            revised_earlier: match &temperer {
+                Some(tm) if t >= 2 && tm.origin_at(t) => (0..t - 1)
+                    .map(|s| {
+                        let slot = ring.slot(s);
+                        RevisedParent {
+                            states: &ring.states[slot],
+                            actions: if s == 0 { &[] } else { &ring.actions[slot] },
+                            parents: if s == 0 { &[] } else { &ring.parents[slot] },
+                        }
+                    })
+                    .collect(),
+                _ => Vec::new(),
+            },
         });
         observer.filtered(t, &ring.states[slot], &weights);
         if t >= lag {

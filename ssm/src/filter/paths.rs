@@ -43,6 +43,11 @@ impl PathRecorder {
 
 impl Observer for PathRecorder {
     fn step(&mut self, view: &StepView<'_>) {
+        for (s, step) in view.revised_earlier.iter().enumerate() {
+            self.states[s] = step.states.to_vec();
+            self.actions[s] = step.actions.to_vec();
+            self.parents[s] = step.parents.to_vec();
+        }
         if let Some(parent) = &view.revised_parent {
             let t = view.t;
             self.states[t - 1] = parent.states.to_vec();

@@ -52,13 +52,24 @@ pub struct Tempering {
     pub moves: usize,
     /// Most stages per step; the last takes whatever exponent is left.
     pub max_stages: usize,
+    /// Origin moves up to this step (0: none): at every step `2 <= t <= K` the
+    /// particles are resampled and moved at the full posterior even when the
+    /// observation is not sharp, and each move sweep also moves the prior's own
+    /// noise `z_0`, re-propagating the whole path `x_0..x_t` with the later noise
+    /// kept, accepted on every observation so far. This rejuvenates what the
+    /// first observations leave open and later ones pin only slowly (a speed
+    /// that one detection says nothing about), which moves of the last two
+    /// steps cannot reach once the actions carry it. Costs `O(K^2)` likelihood
+    /// evaluations per object; the filter's ring keeps `K + 1` steps.
+    #[serde(default)]
+    pub origin_steps: usize,
 }
 
 impl Default for Tempering {
     /// Half the particles' worth of ESS per stage (the usual choice in adaptive
     /// SMC samplers), two sweeps of moves, at most 64 stages.
     fn default() -> Self {
-        Tempering { ess_fraction: 0.5, moves: 2, max_stages: 64 }
+        Tempering { ess_fraction: 0.5, moves: 2, max_stages: 64, origin_steps: 0 }
     }
 }
 
@@ -111,6 +122,11 @@ pub(super) struct ParentStep<'a> {
     /// The particles of `t - 2` (`None` when `t - 1 = 0`).
     pub grandparents: Option<&'a [f32]>,
 }
+
+/// The steps `0..t-1` before a particle's parent (`t >= 2`), each one-to-one
+/// with the particles of `t` (the origin moves' un-shared history): step `s`'s
+/// states and actions, dimension-major.
+pub(super) type History<'a> = &'a mut [[Vec<f32>; 2]];
 
 /// What one tempered weighting did.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -176,6 +192,15 @@ pub(super) struct Temperer {
     /// The joint noise of a lookback move, particle-major, and its cloud's factor.
     joint: Vec<f64>,
     factor: Vec<f64>,
+    /// Origin moves: the noise of steps `0..t-2` of every particle's own path
+    /// (dimension-major, one-to-one with the particles), and the sum of their
+    /// observation log-likelihoods.
+    history_noise: Vec<Vec<f32>>,
+    history_loglik: Vec<f64>,
+    /// Whether each step's observation entered the weights (so the target).
+    used: Vec<bool>,
+    /// Proposals of an origin move: a whole path.
+    path: Vec<Proposal>,
 }
 
 impl Temperer {
@@ -204,7 +229,16 @@ impl Temperer {
             gather_usize: Vec::new(),
             joint: Vec::new(),
             factor: Vec::new(),
+            history_noise: Vec::new(),
+            history_loglik: Vec::new(),
+            used: Vec::new(),
+            path: Vec::new(),
         }
+    }
+
+    /// Whether step `t` keeps an un-shared history and makes origin moves.
+    pub(super) fn origin_at(&self, t: usize) -> bool {
+        t >= 1 && t <= self.config.origin_steps
     }
 
     fn noise_dim(&self, t: usize) -> usize {
@@ -217,8 +251,25 @@ impl Temperer {
 
     /// At the start of step `t >= 1`: the particles of `t - 1` that the new ones
     /// descend from (`ancestors`) hand their noise and log-likelihoods on.
-    pub(super) fn carry(&mut self, ancestors: &[usize]) {
+    pub(super) fn carry(&mut self, t: usize, ancestors: &[usize]) {
         let n = ancestors.len();
+        if self.origin_at(t) {
+            // Step t - 2 joins the history, and the history follows its particles.
+            if t >= 2 {
+                self.history_noise.push(std::mem::take(&mut self.prev_noise));
+                if self.history_loglik.len() != n {
+                    self.history_loglik = vec![0.0; n];
+                }
+                self.history_loglik.iter_mut().zip(&self.prev_loglik).for_each(|(h, l)| *h += l);
+            }
+            for z in &mut self.history_noise {
+                gather(z, &mut self.gather_f32, ancestors, n);
+            }
+            gather(&mut self.history_loglik, &mut self.gather_f64, ancestors, n);
+        } else if !self.history_noise.is_empty() {
+            self.history_noise.clear();
+            self.history_loglik.clear();
+        }
         std::mem::swap(&mut self.noise, &mut self.prev_noise);
         std::mem::swap(&mut self.loglik, &mut self.prev_loglik);
         gather(&mut self.prev_noise, &mut self.gather_f32, ancestors, n);
@@ -253,24 +304,32 @@ impl Temperer {
         model: &M,
         at: Batch,
         particles: StepParticles<'_>,
+        mut history: Option<History<'_>>,
         log_w: &mut [f64],
         resampling: Resampling,
         rng: &mut SmallRng,
         scratch: &mut M::Scratch,
     ) -> Weighing {
         let Batch { t, n, .. } = at;
+        let origin = self.origin_at(t) && t >= 2;
+        debug_assert_eq!(history.as_ref().map(|h| h.len()), origin.then(|| t - 1), "history of steps 0..t-2");
         let mut out = Weighing { evaluations: 1, ..Weighing::default() };
         let StepParticles { states, actions, mut parent } = particles;
         self.current.loglik.resize(n, 0.0);
         out.observed = model.observation_loglik(at, states, &mut self.current.loglik, scratch);
         self.loglik.clear();
+        self.used.truncate(t);
+        self.used.resize(t + 1, false);
         if !out.observed {
             self.loglik.resize(n, 0.0);
             self.prev_observed = false;
             return out;
         }
         self.loglik.extend(self.current.loglik.iter().map(|&l| if l.is_nan() { f64::NEG_INFINITY } else { l as f64 }));
-        if let Some(ParentStep { parents, grandparents: Some(grand), .. }) = &parent {
+        if let Some(h) = &history {
+            // Un-shared: x_{t-2} is the history's last step, already one-to-one.
+            self.grand.clone_from(&h[t - 2][0]);
+        } else if let Some(ParentStep { parents, grandparents: Some(grand), .. }) = &parent {
             let d = grand.len() / n;
             self.grand.clear();
             for k in 0..d {
@@ -282,6 +341,9 @@ impl Temperer {
         let mut total = 0.0;
         let mut step_current = 2.38 / (self.noise_dim(t).max(1) as f64).sqrt();
         let mut step_lookback = 2.38 / ((self.noise_dim(t) + self.noise_dim(t.saturating_sub(1))) as f64).sqrt();
+        let mut step_origin = 2.38 / (self.dims.prior.max(1) as f64).sqrt();
+        // Origin moves also rejuvenate at the full posterior, once.
+        let mut rejuvenated = !origin;
         loop {
             let remaining = 1.0 - beta;
             let last = out.stages + 1 >= self.config.max_stages;
@@ -294,10 +356,15 @@ impl Temperer {
             };
             total += inc;
             if delta >= remaining {
-                break;
+                if rejuvenated {
+                    break;
+                }
+                rejuvenated = true;
+                beta = 1.0;
+            } else {
+                beta += delta;
+                out.stages += 1;
             }
-            beta += delta;
-            out.stages += 1;
 
             // Resample within the step, each particle with its own parent.
             self.weights.clear();
@@ -315,9 +382,19 @@ impl Temperer {
                 gather(p.parents, &mut self.gather_usize, idx, n);
                 gather(&mut self.prev_noise, &mut self.gather_f32, idx, n);
                 gather(&mut self.prev_loglik, &mut self.gather_f64, idx, n);
-                if p.grandparents.is_some() {
+                if p.grandparents.is_some() || history.is_some() {
                     gather(&mut self.grand, &mut self.gather_f32, idx, n);
                 }
+            }
+            if let Some(h) = &mut history {
+                for [states, actions] in h.iter_mut() {
+                    gather(states, &mut self.gather_f32, idx, n);
+                    gather(actions, &mut self.gather_f32, idx, n);
+                }
+                for z in &mut self.history_noise {
+                    gather(z, &mut self.gather_f32, idx, n);
+                }
+                gather(&mut self.history_loglik, &mut self.gather_f64, idx, n);
             }
             log_w.fill(-(n as f64).ln());
 
@@ -344,10 +421,20 @@ impl Temperer {
                     out.proposed += n;
                     out.accepted += accepted;
                     step_lookback = adapt(step_lookback, accepted, n);
+                    if let Some(h) = &mut history {
+                        let current = Drawn { next: states, actions };
+                        let (accepted, evaluations) =
+                            self.origin(model, at, beta, step_origin, current, p, h, rng, scratch);
+                        out.evaluations += evaluations;
+                        out.proposed += n;
+                        out.accepted += accepted;
+                        step_origin = adapt(step_origin, accepted, n);
+                    }
                 }
             }
         }
         self.prev_observed = true;
+        self.used[t] = true;
         out.increment = Some(total);
         out
     }
@@ -511,6 +598,107 @@ impl Temperer {
                 copy_particle(&prev.actions, parent.actions, n, i);
                 copy_particle(&cur.states, states, n, i);
                 copy_particle(&cur.actions, actions, n, i);
+            }
+        }
+        (accepted, evaluations)
+    }
+
+    /// One origin sweep (see [`Tempering::origin_steps`]): every particle's prior
+    /// noise `z_0` moved by a random walk shaped by the cloud's covariance, and its
+    /// whole path `x_0..x_t` re-propagated with the noise of steps `1..t` kept, at
+    /// the target `prod_{s<t} g(y_s | x_s) g(y_t | x_t)^beta` times the noise's
+    /// standard normal density (the transitions are the noise's map). Returns the
+    /// accepted moves and the likelihood evaluations.
+    #[allow(clippy::too_many_arguments)]
+    fn origin<M: ParticleModel>(
+        &mut self,
+        model: &M,
+        at: Batch,
+        beta: f64,
+        step: f64,
+        particles: Drawn<'_>,
+        parent: &mut ParentStep<'_>,
+        history: History<'_>,
+        rng: &mut SmallRng,
+        scratch: &mut M::Scratch,
+    ) -> (usize, usize) {
+        let Batch { t, n, .. } = at;
+        let Drawn { next: states, actions } = particles;
+        let dp = self.dims.prior;
+        self.joint.clear();
+        for i in 0..n {
+            self.joint.extend((0..dp).map(|k| self.history_noise[0][k * n + i] as f64));
+        }
+        cloud_factor(&self.joint, dp, &mut self.factor);
+        let (d, a) = (states.len() / n, actions.len() / n);
+        self.path.resize_with(t + 1, Proposal::default);
+        for (s, prop) in self.path.iter_mut().enumerate() {
+            let noise = if s == 0 { dp * n } else { 0 };
+            prop.resize(noise, d * n, if s == 0 { 0 } else { a * n }, n);
+        }
+        let mut xi = vec![0.0f64; dp];
+        for i in 0..n {
+            xi.iter_mut().for_each(|x| *x = rng.sample::<f64, _>(StandardNormal));
+            for r in 0..dp {
+                let shift: f64 = (0..=r).map(|c| self.factor[r * dp + c] * xi[c]).sum();
+                self.path[0].noise[r * n + i] = (self.joint[i * dp + r] + step * shift) as f32;
+            }
+        }
+        // The proposed paths, step by step, with the observations the target holds.
+        let mut evaluations = 0;
+        for s in 0..=t {
+            let (before, rest) = self.path.split_at_mut(s);
+            let cur = &mut rest[0];
+            let noise = std::mem::take(&mut cur.noise);
+            let z: &[f32] = match s {
+                0 => &noise,
+                s if s + 1 < t => &self.history_noise[s],
+                s if s + 1 == t => &self.prev_noise,
+                _ => &self.noise,
+            };
+            let parent_states = if s == 0 { &[][..] } else { &before[s - 1].states[..] };
+            let to = Drawn { next: &mut cur.states, actions: &mut cur.actions };
+            map_noise(model, Batch { t: s, ..at }, parent_states, z, to, scratch);
+            let used = if s < t { self.used[s] } else { true };
+            if used {
+                model.observation_loglik(Batch { t: s, ..at }, &cur.states, &mut cur.loglik, scratch);
+                evaluations += 1;
+            } else {
+                cur.loglik.fill(0.0);
+            }
+            cur.noise = noise;
+        }
+        let mut accepted = 0;
+        'particles: for i in 0..n {
+            let mut history_loglik = 0.0;
+            for prop in &self.path[..t - 1] {
+                let Some(l) = finite(prop.loglik[i]) else { continue 'particles };
+                history_loglik += l;
+            }
+            let (Some(lp), Some(lc)) = (finite(self.path[t - 1].loglik[i]), finite(self.path[t].loglik[i])) else {
+                continue;
+            };
+            let log_ratio = (history_loglik - self.history_loglik[i])
+                + (lp - self.prev_loglik[i])
+                + beta * (lc - self.loglik[i])
+                - half_sq_change(&self.history_noise[0], &self.path[0].noise, dp, n, i);
+            if accept(log_ratio, rng) {
+                accepted += 1;
+                self.history_loglik[i] = history_loglik;
+                self.prev_loglik[i] = lp;
+                self.loglik[i] = lc;
+                copy_particle(&self.path[0].noise, &mut self.history_noise[0], n, i);
+                for (s, (prop, [hs, ha])) in self.path.iter().zip(history.iter_mut()).enumerate() {
+                    copy_particle(&prop.states, hs, n, i);
+                    if s > 0 {
+                        copy_particle(&prop.actions, ha, n, i);
+                    }
+                }
+                copy_particle(&self.path[t - 2].states, &mut self.grand, n, i);
+                copy_particle(&self.path[t - 1].states, parent.states, n, i);
+                copy_particle(&self.path[t - 1].actions, parent.actions, n, i);
+                copy_particle(&self.path[t].states, states, n, i);
+                copy_particle(&self.path[t].actions, actions, n, i);
             }
         }
         (accepted, evaluations)
