@@ -201,3 +201,44 @@ fn origin_moves_keep_the_likelihood_unbiased_and_the_score_exact() {
     };
     assert_eq!(run(1), run(2));
 }
+
+/// Checks, at every fixed-lag step the filter hands over, that each particle with
+/// weight was reached from its recorded parent by its recorded noise:
+/// `x_t = phi x_{t-1} + s_v z_t`. Moves that change past states must keep the
+/// genealogy, the states and the actions consistent.
+struct Genealogy {
+    phi: f64,
+    sv: f64,
+    checked: usize,
+    worst: f64,
+}
+
+impl ssm::filter::Observer for Genealogy {
+    fn smoothed(&mut self, view: &ssm::filter::LagView<'_>) {
+        let Some(prev) = view.prev_states else { return };
+        for i in 0..view.n {
+            if view.weights[i] > 0.0 {
+                let predicted = self.phi * prev[view.parents[i]] as f64 + self.sv * view.actions[i] as f64;
+                let err = (view.states[i] as f64 - predicted).abs() / (1.0 + predicted.abs());
+                self.worst = self.worst.max(err);
+                self.checked += 1;
+            }
+        }
+    }
+}
+
+#[test]
+fn moves_keep_every_recorded_path_consistent() {
+    let (sv, sw) = (0.5, 0.02);
+    let model = sharp_model(sv, sw);
+    let ys = model.simulate(14, &mut StdRng::seed_from_u64(25)).ys;
+    let data = replicated(&model, &ys, 4);
+    for (tempering, lag) in [(Tempering::default(), 3), (Tempering { origin_steps: 8, ..Tempering::default() }, 3)] {
+        let cfg = FilterConfig { lag, ..config(256, Some(tempering)) };
+        let run = run_filter(&data, &cfg, |_| Genealogy { phi: 0.9, sv, checked: 0, worst: 0.0 });
+        for g in &run.observers {
+            assert!(g.checked > 0);
+            assert!(g.worst < 1e-5, "origin steps {}: a path step is off by {}", tempering.origin_steps, g.worst);
+        }
+    }
+}

@@ -379,7 +379,11 @@ impl Temperer {
                 gather(actions, &mut self.gather_f32, idx, n);
                 gather(p.states, &mut self.gather_f32, idx, n);
                 gather(p.actions, &mut self.gather_f32, idx, n);
-                gather(p.parents, &mut self.gather_usize, idx, n);
+                if history.is_none() {
+                    // (With a history, x_{t-2} is re-indexed with the particles
+                    // below, so each parent stays its own line: the identity.)
+                    gather(p.parents, &mut self.gather_usize, idx, n);
+                }
                 gather(&mut self.prev_noise, &mut self.gather_f32, idx, n);
                 gather(&mut self.prev_loglik, &mut self.gather_f64, idx, n);
                 if p.grandparents.is_some() || history.is_some() {
