@@ -537,30 +537,11 @@ impl Temperer {
         let Drawn { next: states, actions } = particles;
         let before = Batch { t: t - 1, ..at };
         let (dp, dc) = (self.noise_dim(t - 1), self.noise_dim(t));
-        let dim = dp + dc;
-        // The joint noise, particle-major, and the Cholesky factor of its covariance.
-        self.joint.clear();
-        for i in 0..n {
-            self.joint.extend((0..dp).map(|k| self.prev_noise[k * n + i] as f64));
-            self.joint.extend((0..dc).map(|k| self.noise[k * n + i] as f64));
-        }
-        cloud_factor(&self.joint, dim, &mut self.factor);
         let (prev, cur) = (&mut self.previous, &mut self.current);
         prev.resize(dp * n, parent.states.len(), parent.actions.len(), n);
         cur.resize(dc * n, states.len(), actions.len(), n);
-        let mut xi = vec![0.0f64; dim];
-        for i in 0..n {
-            xi.iter_mut().for_each(|x| *x = rng.sample::<f64, _>(StandardNormal));
-            for r in 0..dim {
-                let shift: f64 = (0..=r).map(|c| self.factor[r * dim + c] * xi[c]).sum();
-                let z = (self.joint[i * dim + r] + step * shift) as f32;
-                if r < dp {
-                    prev.noise[r * n + i] = z;
-                } else {
-                    cur.noise[(r - dp) * n + i] = z;
-                }
-            }
-        }
+        let walk = CloudWalk { joint: &mut self.joint, factor: &mut self.factor, n, step };
+        walk.propose(&[&self.prev_noise, &self.noise], &mut [&mut prev.noise, &mut cur.noise], rng);
         let grand = if t >= 2 { &self.grand[..] } else { &[][..] };
         map_noise(
             model,
@@ -629,25 +610,14 @@ impl Temperer {
         let Batch { t, n, .. } = at;
         let Drawn { next: states, actions } = particles;
         let dp = self.dims.prior;
-        self.joint.clear();
-        for i in 0..n {
-            self.joint.extend((0..dp).map(|k| self.history_noise[0][k * n + i] as f64));
-        }
-        cloud_factor(&self.joint, dp, &mut self.factor);
         let (d, a) = (states.len() / n, actions.len() / n);
         self.path.resize_with(t + 1, Proposal::default);
         for (s, prop) in self.path.iter_mut().enumerate() {
             let noise = if s == 0 { dp * n } else { 0 };
             prop.resize(noise, d * n, if s == 0 { 0 } else { a * n }, n);
         }
-        let mut xi = vec![0.0f64; dp];
-        for i in 0..n {
-            xi.iter_mut().for_each(|x| *x = rng.sample::<f64, _>(StandardNormal));
-            for r in 0..dp {
-                let shift: f64 = (0..=r).map(|c| self.factor[r * dp + c] * xi[c]).sum();
-                self.path[0].noise[r * n + i] = (self.joint[i * dp + r] + step * shift) as f32;
-            }
-        }
+        let walk = CloudWalk { joint: &mut self.joint, factor: &mut self.factor, n, step };
+        walk.propose(&[&self.history_noise[0]], &mut [&mut self.path[0].noise], rng);
         // The proposed paths, step by step, with the observations the target holds.
         let mut evaluations = 0;
         for s in 0..=t {
@@ -706,6 +676,48 @@ impl Temperer {
             }
         }
         (accepted, evaluations)
+    }
+}
+
+/// A random-walk proposal shaped by the particle cloud, with its working memory.
+struct CloudWalk<'a> {
+    /// The joint noise, particle-major.
+    joint: &'a mut Vec<f64>,
+    /// The Cholesky factor of its sample covariance.
+    factor: &'a mut Vec<f64>,
+    n: usize,
+    /// The walk's scale, in units of the cloud's spread.
+    step: f64,
+}
+
+impl CloudWalk<'_> {
+    /// Joins the noise `blocks` (each dimension-major over the `n` particles)
+    /// per particle and writes `z + step L xi` back block by block into `out`
+    /// (same layout), with `L L^T` the joint's sample covariance and `xi`
+    /// standard normal.
+    fn propose(self, blocks: &[&[f32]], out: &mut [&mut [f32]], rng: &mut SmallRng) {
+        let n = self.n;
+        let dims: Vec<usize> = blocks.iter().map(|b| b.len() / n.max(1)).collect();
+        let dim: usize = dims.iter().sum();
+        self.joint.clear();
+        for i in 0..n {
+            for (b, &d) in blocks.iter().zip(&dims) {
+                self.joint.extend((0..d).map(|k| b[k * n + i] as f64));
+            }
+        }
+        cloud_factor(self.joint, dim, self.factor);
+        let mut xi = vec![0.0f64; dim];
+        for i in 0..n {
+            xi.iter_mut().for_each(|x| *x = rng.sample::<f64, _>(StandardNormal));
+            let mut r = 0;
+            for (o, &d) in out.iter_mut().zip(&dims) {
+                for k in 0..d {
+                    let shift: f64 = (0..=r).map(|c| self.factor[r * dim + c] * xi[c]).sum();
+                    o[k * n + i] = (self.joint[i * dim + r] + self.step * shift) as f32;
+                    r += 1;
+                }
+            }
+        }
     }
 }
 
