@@ -302,7 +302,8 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
 /// `seed + 1`, with `offsets` learned or fixed at zero.
 fn initial_models(seed: u64, offsets: DetectionOffsets) -> Models {
-    train::fresh_models("neural", "", ObservationKind::Boxes, offsets, seed).expect("the neural policy needs no settings")
+    train::fresh_models("neural", "", ObservationKind::Boxes, offsets, seed)
+        .expect("the neural policy needs no settings")
 }
 
 /// AOTLL of `models`' observation network on `data`.

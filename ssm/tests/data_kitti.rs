@@ -219,7 +219,8 @@ fn options_change_the_windows() {
     let imp2 = import_kitti(&root, &swapped).unwrap();
     assert_eq!(imp2.report.train.sequences, vec![0]);
     assert_eq!(imp2.report.val.sequences, vec![2]);
-    let seq = |d: &Dataset| d.scenes().iter().map(|s| s.id / KITTI_SCENE_ID_BASE).collect::<std::collections::BTreeSet<_>>();
+    let seq =
+        |d: &Dataset| d.scenes().iter().map(|s| s.id / KITTI_SCENE_ID_BASE).collect::<std::collections::BTreeSet<_>>();
     assert_eq!(seq(&imp2.val), [2].into());
     assert_eq!(seq(&imp2.train), [0].into());
     assert_eq!(imp2.val.objects().len(), imp.train.objects().len(), "sequence 2 alone, as before");

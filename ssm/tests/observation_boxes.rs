@@ -353,6 +353,9 @@ fn centred_model_has_zero_offsets_matches_its_reference_and_is_read_back_as_cent
             AnyObservation::Boxes(m) => assert_eq!(m.offsets(), offsets),
             other => panic!("read back as {:?}", other.kind()),
         }
-        assert_eq!(back.observation_params.get(autodiff::nn::ParamId(5)), models.observation_params.get(autodiff::nn::ParamId(5)));
+        assert_eq!(
+            back.observation_params.get(autodiff::nn::ParamId(5)),
+            models.observation_params.get(autodiff::nn::ParamId(5))
+        );
     }
 }

@@ -652,10 +652,9 @@ impl Temperer {
             let (Some(lp), Some(lc)) = (finite(self.path[t - 1].loglik[i]), finite(self.path[t].loglik[i])) else {
                 continue;
             };
-            let log_ratio = (history_loglik - self.history_loglik[i])
-                + (lp - self.prev_loglik[i])
-                + beta * (lc - self.loglik[i])
-                - half_sq_change(&self.history_noise[0], &self.path[0].noise, dp, n, i);
+            let log_ratio =
+                (history_loglik - self.history_loglik[i]) + (lp - self.prev_loglik[i]) + beta * (lc - self.loglik[i])
+                    - half_sq_change(&self.history_noise[0], &self.path[0].noise, dp, n, i);
             if accept(log_ratio, rng) {
                 accepted += 1;
                 self.history_loglik[i] = history_loglik;

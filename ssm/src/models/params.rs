@@ -325,7 +325,12 @@ impl Models {
 
     /// [`Models::initial`] with the box model's detection offsets learned or fixed
     /// at zero ([`DetectionOffsets`]; ignored for points).
-    pub fn initial_with_offsets(kind: ObservationKind, policy: AnyPolicy, seed: u64, offsets: DetectionOffsets) -> Models {
+    pub fn initial_with_offsets(
+        kind: ObservationKind,
+        policy: AnyPolicy,
+        seed: u64,
+        offsets: DetectionOffsets,
+    ) -> Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
         let observation = AnyObservation::init_with_offsets(kind, offsets, &mut observation_params, &mut rng);

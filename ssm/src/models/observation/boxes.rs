@@ -421,9 +421,7 @@ impl ObservationModel for BoxObservationModel {
         let wrapped = -(a * inv_by) - b_yaw.mul_scalar(2.0).ln()
             + (a.add_scalar(-PI) * inv_by).mul_scalar(2.0).softplus()
             - z.neg().exp().neg().add_scalar(1.0).ln();
-        let lq = laplace(along, mean_offset(0), b_along)
-            + laplace(across, mean_offset(1), b_across)
-            + wrapped;
+        let lq = laplace(along, mean_offset(0), b_along) + laplace(across, mean_offset(1), b_across) + wrapped;
         lq.scatter_add(0, &idx, r)
     }
 
