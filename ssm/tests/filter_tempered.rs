@@ -169,11 +169,15 @@ fn tempering_refuses_soft_resampling() {
 #[test]
 fn origin_moves_keep_the_likelihood_unbiased_and_the_score_exact() {
     let origin = Tempering { origin_steps: 8, ..Tempering::default() };
+    // Origin moves over the whole window as well as up to step 8.
+    let whole = Tempering { origin_steps: 15, ..Tempering::default() };
     for (sv, sw, seed) in [(0.5, 0.02, 21), (0.3, 0.2, 22)] {
         let model = sharp_model(sv, sw);
         let ys = model.simulate(16, &mut StdRng::seed_from_u64(seed)).ys;
         let exact = model.log_likelihood(&ys);
         let data = replicated(&model, &ys, 200);
+        let (m, se, _) = spread(&run_filter(&data, &config(128, Some(whole)), |_| ()), exact);
+        assert!((m - 1.0).abs() < 4.0 * se + 0.02, "sv {sv} sw {sw}, whole window: mean ratio {m} +- {se}");
         let run = run_filter(&data, &config(128, Some(origin)), |_| ());
         let (m, se, _) = spread(&run, exact);
         assert!((m - 1.0).abs() < 4.0 * se + 0.02, "sv {sv} sw {sw}: mean ratio {m} +- {se}");

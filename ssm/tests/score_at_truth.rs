@@ -65,18 +65,29 @@ fn point_data(objects: usize, steps: usize, sds: (f64, f64), seed: u64) -> (Data
     (data, truth.params)
 }
 
-/// Box detections drawn from a neural policy and an (unfitted) box network.
-fn box_data(seed: u64) -> (Dataset, ParamStore<f64>) {
-    let skeleton = generate_hidden(&HiddenConfig {
-        scenes: 10,
+/// The scenes, objects and priors of generated box data: `scenes` scenes of 6
+/// objects, `steps` steps.
+fn box_skeleton(seed: u64, scenes: usize, steps: usize) -> Dataset {
+    generate_hidden(&HiddenConfig {
+        scenes,
         objects_per_scene: 6,
-        steps: 12,
+        steps,
         ..HiddenConfig::quick(ObservationKind::Boxes, HiddenEffect::None, seed)
     })
-    .unwrap();
+    .unwrap()
+}
+
+/// Box detections on `skeleton` drawn from a neural policy and an (unfitted) box
+/// network, with those parameters.
+fn draw_boxes(skeleton: &Dataset, seed: u64) -> (Dataset, ParamStore<f64>) {
     let policy = NeuralPolicy::new(&mut StdRng::seed_from_u64(seed)).with_initial_sds(0.5, 0.02);
     let store = Models::initial(ObservationKind::Boxes, AnyPolicy::Neural(policy), seed + 1).to_store();
-    (sample_dataset(&skeleton, &store, seed).unwrap(), store)
+    (sample_dataset(skeleton, &store, seed).unwrap(), store)
+}
+
+/// Box detections drawn from a neural policy and an (unfitted) box network.
+fn box_data(seed: u64) -> (Dataset, ParamStore<f64>) {
+    draw_boxes(&box_skeleton(seed, 10, 12), seed)
 }
 
 #[test]
@@ -124,13 +135,7 @@ fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_of_box_data_with_a_ne
 /// one detection says nothing about the speed): the skeleton's priors rewritten,
 /// then every path drawn from them.
 fn box_data_with_speed_prior(seed: u64, steps: usize, sd_v: f64) -> (Dataset, ParamStore<f64>) {
-    let skeleton = generate_hidden(&HiddenConfig {
-        scenes: 20,
-        objects_per_scene: 6,
-        steps,
-        ..HiddenConfig::quick(ObservationKind::Boxes, HiddenEffect::None, seed)
-    })
-    .unwrap();
+    let skeleton = box_skeleton(seed, 20, steps);
     let dir = std::env::temp_dir().join(format!("ssm-speed-prior-{seed}-{}", std::process::id()));
     skeleton.write(&dir).unwrap();
     let path = dir.join("objects.csv");
@@ -147,9 +152,7 @@ fn box_data_with_speed_prior(seed: u64, steps: usize, sd_v: f64) -> (Dataset, Pa
     std::fs::write(&path, out).unwrap();
     let skeleton = Dataset::read(&dir).unwrap();
     std::fs::remove_dir_all(&dir).ok();
-    let policy = NeuralPolicy::new(&mut StdRng::seed_from_u64(seed)).with_initial_sds(0.5, 0.02);
-    let store = Models::initial(ObservationKind::Boxes, AnyPolicy::Neural(policy), seed + 1).to_store();
-    (sample_dataset(&skeleton, &store, seed).unwrap(), store)
+    draw_boxes(&skeleton, seed)
 }
 
 /// A broad speed prior is what the moves of the last two steps cannot reach once

@@ -253,22 +253,20 @@ impl Temperer {
     /// descend from (`ancestors`) hand their noise and log-likelihoods on.
     pub(super) fn carry(&mut self, t: usize, ancestors: &[usize]) {
         let n = ancestors.len();
-        if self.origin_at(t) {
-            // Step t - 2 joins the history, and the history follows its particles.
-            if t >= 2 {
-                self.history_noise.push(std::mem::take(&mut self.prev_noise));
-                if self.history_loglik.len() != n {
-                    self.history_loglik = vec![0.0; n];
-                }
-                self.history_loglik.iter_mut().zip(&self.prev_loglik).for_each(|(h, l)| *h += l);
+        if self.origin_at(t) && t >= 2 {
+            // Step t - 2 joins the history (which starts at t = 2), and the
+            // history follows its particles.
+            if t == 2 {
+                self.history_noise.clear();
+                self.history_loglik.clear();
+                self.history_loglik.resize(n, 0.0);
             }
+            self.history_noise.push(std::mem::take(&mut self.prev_noise));
+            self.history_loglik.iter_mut().zip(&self.prev_loglik).for_each(|(h, l)| *h += l);
             for z in &mut self.history_noise {
                 gather(z, &mut self.gather_f32, ancestors, n);
             }
             gather(&mut self.history_loglik, &mut self.gather_f64, ancestors, n);
-        } else if !self.history_noise.is_empty() {
-            self.history_noise.clear();
-            self.history_loglik.clear();
         }
         std::mem::swap(&mut self.noise, &mut self.prev_noise);
         std::mem::swap(&mut self.loglik, &mut self.prev_loglik);
