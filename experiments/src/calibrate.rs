@@ -9,7 +9,7 @@ use autodiff::nn::ParamStore;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use ssm::calibration::{complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
-use ssm::data::Dataset;
+use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::{FilterConfig, Sampling, Tempering};
 
@@ -40,28 +40,32 @@ pub struct FilterArgs {
     #[arg(long, default_value_t = Tempering::default().moves)]
     pub temper_moves: usize,
     /// Tempered filter: origin moves (the prior's noise, whole paths re-propagated)
-    /// at every step up to this one; 0 for none.
-    #[arg(long, default_value_t = Tempering::default().origin_steps)]
-    #[serde(default)]
-    pub temper_origin_steps: usize,
+    /// at every step up to this one; 0 for none. Default: by the data's
+    /// observations (8 on box detections, none on point sets).
+    #[arg(long)]
+    #[serde(default = "no_origin_moves")]
+    pub temper_origin_steps: Option<usize>,
 }
 
 impl FilterArgs {
-    /// The tempering settings of `kind` with these parameters, validated.
-    pub fn tempering_of(&self, kind: FilterKind) -> Result<Option<Tempering>, String> {
-        FilterArgs { filter: kind, ..self.clone() }.tempering()
+    /// The tempering settings of filter `filter` with these parameters on
+    /// observations of `kind`, validated.
+    pub fn tempering_of(&self, filter: FilterKind, kind: ObservationKind) -> Result<Option<Tempering>, String> {
+        FilterArgs { filter, ..self.clone() }.tempering(kind)
     }
 
-    /// The tempering settings (`None` for the bootstrap filter), validated.
-    pub fn tempering(&self) -> Result<Option<Tempering>, String> {
+    /// The tempering settings (`None` for the bootstrap filter) on observations
+    /// of `kind` (which pick the origin moves unless given), validated.
+    pub fn tempering(&self, kind: ObservationKind) -> Result<Option<Tempering>, String> {
         match self.filter {
             FilterKind::Bootstrap => Ok(None),
             FilterKind::Tempered => {
+                let by_data = Tempering::for_observations(kind);
                 let t = Tempering {
                     ess_fraction: self.temper_ess,
                     moves: self.temper_moves,
-                    origin_steps: self.temper_origin_steps,
-                    ..Tempering::default()
+                    origin_steps: self.temper_origin_steps.unwrap_or(by_data.origin_steps),
+                    ..by_data
                 };
                 t.validate()?;
                 Ok(Some(t))
@@ -69,11 +73,12 @@ impl FilterArgs {
         }
     }
 
-    /// The tempering settings for `estimator`: the through-filter baselines
-    /// replay the bootstrap filter, so they get `None` whatever was asked.
-    pub fn tempering_for(&self, estimator: &Estimator) -> Result<Option<Tempering>, String> {
+    /// The tempering settings for `estimator` on observations of `kind`: the
+    /// through-filter baselines replay the bootstrap filter, so they get `None`
+    /// whatever was asked.
+    pub fn tempering_for(&self, estimator: &Estimator, kind: ObservationKind) -> Result<Option<Tempering>, String> {
         match estimator {
-            Estimator::PfSefi(_) => self.tempering(),
+            Estimator::PfSefi(_) => self.tempering(kind),
             Estimator::ThroughFilter(_) => Ok(None),
         }
     }
@@ -85,6 +90,11 @@ impl FilterArgs {
             FilterKind::Bootstrap => "bootstrap",
         }
     }
+}
+
+/// What a run configuration written before origin moves existed meant: none.
+fn no_origin_moves() -> Option<usize> {
+    Some(0)
 }
 
 /// The suffix of a table's method that trains PF-SEFI on the tempered filter.
@@ -244,7 +254,8 @@ pub fn run_score_at(args: &ScoreAtArgs) -> Result<(), String> {
     if args.particles == 0 {
         return Err("--particles must be at least 1".into());
     }
-    let config = EstimatorConfig::new(Sampling::new(args.particles, args.filter.tempering_for(&estimator)?));
+    let config =
+        EstimatorConfig::new(Sampling::new(args.particles, args.filter.tempering_for(&estimator, data.kind())?));
     let filter = if config.sampling.tempering.is_some() { "tempered" } else { "bootstrap" };
     let bar = progress(data.objects().len(), "objects");
     let s = score_at(&data, &store, &estimator, &config, args.runs, args.seed, &|| bar.inc(1))?;
@@ -277,7 +288,7 @@ pub fn run_precision(args: &PrecisionArgs) -> Result<(), String> {
     let mut rows = Vec::new();
     for f in &filters {
         for &n in &args.particles {
-            let config = FilterConfig::new(Sampling::new(n, f.tempering()?), 0, args.seed);
+            let config = FilterConfig::new(Sampling::new(n, f.tempering(data.kind())?), 0, args.seed);
             let p: LikelihoodPrecision = likelihood_precision(&data, &store, &config, args.runs)?;
             let mean_ess = p.ess_per_step.iter().sum::<f64>() / p.ess_per_step.len() as f64;
             let min_ess = p.min_ess_per_step.iter().copied().fold(f64::INFINITY, f64::min);

@@ -266,8 +266,11 @@ fn learning_stage(
     // TRUE, evaluated as every run's test MLL is: the tempered filter at `eval_particles`.
     let truth =
         Models::from_store(&experiment.truth.model.params, ObservationKind::Points).map_err(|e| e.to_string())?;
-    let eval_filter =
-        FilterConfig::new(Sampling::new(eval_particles, Some(Tempering::default())), 0, seed.wrapping_add(7));
+    let eval_filter = FilterConfig::new(
+        Sampling::new(eval_particles, Some(Tempering::for_observations(ObservationKind::Points))),
+        0,
+        seed.wrapping_add(7),
+    );
     let true_mll = metric_runs(&experiment.test, &truth, &eval_filter, 1)?[0].mll.unwrap_or(f64::NAN);
     println!(
         "learning from observations alone ({} training scenes of {} objects; TRUE test MLL {true_mll:.3} nats/point):",

@@ -292,7 +292,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     order.sort_by(|a, b| b.before.z.abs().total_cmp(&a.before.z.abs()));
     for ch in order {
         let b = &ch.before;
-        let (az, ap) = ch.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt(a.z), fmt(a.p_adjusted)));
+        let (az, ap) = ch.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt_z(a.z), fmt(a.p_adjusted)));
         let flag = if b.significant { " **" } else { "" };
         let _ = writeln!(
             s,
@@ -302,7 +302,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             fmt(b.measured),
             fmt(b.replicated),
             fmt(b.replicated_sd),
-            fmt(b.z),
+            fmt_z(b.z),
             fmt(b.p_adjusted),
         );
     }
@@ -362,6 +362,22 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     s
 }
 
+/// Beyond this |z| the differences' spread is rounding: the measured statistic
+/// sits off every replicate by the same amount.
+const UNBOUNDED_Z: f64 = 1e6;
+
+/// A check's z for people: beyond [`UNBOUNDED_Z`] it is written as a bound, not
+/// as a ratio to a rounding error.
+fn fmt_z(z: f64) -> String {
+    if z >= UNBOUNDED_Z {
+        "> 1e6 (no spread)".into()
+    } else if z <= -UNBOUNDED_Z {
+        "< -1e6 (no spread)".into()
+    } else {
+        fmt(z)
+    }
+}
+
 fn fmt(x: f64) -> String {
     if !x.is_finite() {
         "-".into()
@@ -392,10 +408,10 @@ fn check_plot(path: &Path, c: &CheckReport) -> Result<(), String> {
     let root = SVGBackend::new(path, (820, 130 + 60 * rows.len() as u32)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let title = format!(
-        "{} (z = {:.2} before{})",
+        "{} (z = {} before{})",
         c.name,
-        c.before.z,
-        c.after.as_ref().map_or(String::new(), |a| { format!(", {:.2} after", a.z) })
+        fmt_z(c.before.z),
+        c.after.as_ref().map_or(String::new(), |a| format!(", {} after", fmt_z(a.z)))
     );
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 20))

@@ -185,7 +185,8 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         args.lag,
         args.runs
     );
-    let filter = FilterConfig::new(Sampling::new(args.particles, args.filter.tempering()?), args.lag, args.seed);
+    let filter =
+        FilterConfig::new(Sampling::new(args.particles, args.filter.tempering(data.kind())?), args.lag, args.seed);
     let runs = metric_runs(&data, &models, &filter, args.runs)?;
     let summary = metrics::summarise_runs(&runs);
 
@@ -259,7 +260,8 @@ pub fn track(args: &TrackArgs) -> Result<(), String> {
         None => 0,
     };
     ensure_dir(&args.out)?;
-    let config = FilterConfig::new(Sampling::new(args.particles, args.filter.tempering()?), args.lag, args.seed);
+    let config =
+        FilterConfig::new(Sampling::new(args.particles, args.filter.tempering(data.kind())?), args.lag, args.seed);
     eprintln!(
         "track: {} objects x {} steps ({}), {} policy, {} particles, lag {}",
         data.objects().len(),

@@ -416,7 +416,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         scale.scenes_per_step,
     );
     let eval_seed = 1000 + args.seed;
-    let sampling = Sampling::new(scale.eval_particles, args.table.filter.tempering()?);
+    let sampling = Sampling::new(scale.eval_particles, args.table.filter.tempering(val.kind())?);
     let eval_filter = FilterConfig::new(sampling, scale.lag, eval_seed);
     let evaluate = |models: &Models| metric_runs(&val, models, &eval_filter, scale.eval_runs);
 

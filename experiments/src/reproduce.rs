@@ -176,11 +176,19 @@ fn out_dir(args: &ReproduceArgs) -> PathBuf {
 /// Where a finished run keeps its final test metrics, with the evaluation's settings.
 const FINAL_METRICS: &str = "final_metrics.json";
 
-/// Metrics cached in `path` for the evaluation `key`, if they are there.
+/// Metrics cached in `path` for the evaluation `key` (`filter` and `runs`), if
+/// they are there: the first `runs` of a cache with as many or more runs of the
+/// same filter (run `r` is the filter's seed plus `r`, whatever the count).
 fn cached_metrics(path: &Path, key: &serde_json::Value) -> Option<Vec<Metrics>> {
     let text = std::fs::read_to_string(path).ok()?;
     let doc: serde_json::Value = serde_json::from_str(&text).ok()?;
-    (doc.get("evaluation")? == key).then(|| serde_json::from_value(doc.get("metrics")?.clone()).ok())?
+    let cached = doc.get("evaluation")?;
+    let runs = key.get("runs")?.as_u64()? as usize;
+    if cached.get("filter")? != key.get("filter")? || cached.get("runs")?.as_u64()? < runs as u64 {
+        return None;
+    }
+    let metrics: Vec<Metrics> = serde_json::from_value(doc.get("metrics")?.clone()).ok()?;
+    (metrics.len() >= runs).then(|| metrics.into_iter().take(runs).collect())
 }
 
 /// `metric_runs` of `models`, cached in `path` under the evaluation `key`.
@@ -224,12 +232,6 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
     for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
-    let eval_filter = |seed: u64| -> Result<FilterConfig, String> {
-        Ok(FilterConfig::new(Sampling::new(scale.eval_particles, args.table.filter.tempering()?), scale.lag, seed))
-    };
-    let eval_key = |seed: u64, runs: usize| -> Result<serde_json::Value, String> {
-        Ok(json!({ "filter": eval_filter(seed)?, "runs": runs }))
-    };
     let data_dir = out.join("data");
     if !cluster.is_root() {
         cluster.wait_for_first(true);
@@ -259,6 +261,13 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
     generated?;
     let test = Dataset::read(data_dir.join("test")).map_err(|e| e.to_string())?;
     let train_data = Dataset::read(data_dir.join("train")).map_err(|e| e.to_string())?;
+    let eval_filter = |seed: u64| -> Result<FilterConfig, String> {
+        let tempering = args.table.filter.tempering(test.kind())?;
+        Ok(FilterConfig::new(Sampling::new(scale.eval_particles, tempering), scale.lag, seed))
+    };
+    let eval_key = |seed: u64, runs: usize| -> Result<serde_json::Value, String> {
+        Ok(json!({ "filter": eval_filter(seed)?, "runs": runs }))
+    };
 
     // TRUE: the generating parameters, one evaluation per seed.
     let true_path = data_dir.join("true_params.bin");
@@ -472,4 +481,48 @@ fn training_chart(
 
 fn display(p: &Path) -> String {
     p.display().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn metrics(seed: u64) -> Metrics {
+        Metrics {
+            mll: Some(-1.0 - seed as f64),
+            log_likelihood: -10.0,
+            observed_units: 10,
+            smoothed: Default::default(),
+            filtered: Default::default(),
+            aotll: Default::default(),
+            aptll: Default::default(),
+            collapsed_steps: 0,
+            particles: 8,
+            lag: 0,
+            seed,
+        }
+    }
+
+    /// A cache of three runs serves requests for one to three runs (their
+    /// first runs) of the same filter, and nothing for four runs or another filter.
+    #[test]
+    fn cached_metrics_serve_a_prefix_of_the_same_filter() {
+        let dir = std::env::temp_dir().join(format!("sefi-cache-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("true_metrics.json");
+        let key = |filter: &str, runs: usize| json!({ "filter": filter, "runs": runs });
+        let three: Vec<Metrics> = (0..3).map(metrics).collect();
+        let computed = evaluate_cached(&path, &key("a", 3), || Ok(three.clone())).unwrap();
+        assert_eq!(computed, three);
+        for runs in 1..=3 {
+            assert_eq!(cached_metrics(&path, &key("a", runs)), Some(three[..runs].to_vec()), "{runs} runs");
+        }
+        assert_eq!(cached_metrics(&path, &key("a", 4)), None);
+        assert_eq!(cached_metrics(&path, &key("b", 1)), None);
+        // A smaller request never replaces the larger cache.
+        let one = evaluate_cached(&path, &key("a", 1), || Err("evaluated again".into())).unwrap();
+        assert_eq!(one, three[..1].to_vec());
+        assert_eq!(cached_metrics(&path, &key("a", 3)), Some(three));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

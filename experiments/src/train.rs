@@ -274,10 +274,12 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
             ));
         }
     }
-    let config = ObjectiveConfig {
+    // The filters' tempering depends on the data's observations (origin moves on
+    // boxes), set once they are read.
+    let mut config = ObjectiveConfig {
         estimator,
         estimator_config: EstimatorConfig {
-            sampling: Sampling::new(args.particles, args.filter.tempering_for(&estimator)?),
+            sampling: Sampling::new(args.particles, None),
             chunk_objects: args.chunk_objects.max(1),
             ..EstimatorConfig::default()
         },
@@ -286,9 +288,11 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
         extension: None,
         extension_only: false,
         proposal: None,
-        eval_tempering: args.filter.tempering_of(args.eval_filter)?,
+        eval_tempering: None,
     };
     let (data, test) = read_data(args, &config, cluster)?;
+    config.estimator_config.sampling.tempering = args.filter.tempering_for(&estimator, data.kind())?;
+    config.eval_tempering = args.filter.tempering_of(args.eval_filter, data.kind())?;
     let initial = initial_store(args, &data)?;
     let mut objective = SceneObjective::new(&data, test, config)?.with_collective(cluster.collective());
     let train_config = TrainConfig {

@@ -39,6 +39,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use super::resample::Resampling;
+use crate::data::ObservationKind;
 use crate::models::{Batch, Drawn, NoiseDims, ParticleModel};
 use crate::setting::SettingError;
 
@@ -67,13 +68,36 @@ pub struct Tempering {
 
 impl Default for Tempering {
     /// Half the particles' worth of ESS per stage (the usual choice in adaptive
-    /// SMC samplers), two sweeps of moves, at most 64 stages.
+    /// SMC samplers), two sweeps of moves, at most 64 stages, no origin moves
+    /// ([`Tempering::for_observations`] adds them where the data call for them).
     fn default() -> Self {
         Tempering { ess_fraction: 0.5, moves: 2, max_stages: 64, origin_steps: 0 }
     }
 }
 
+/// Origin moves' reach on box detections by default (see
+/// [`Tempering::for_observations`]).
+pub const BOX_ORIGIN_STEPS: usize = 8;
+
 impl Tempering {
+    /// The default filter for observations of `kind`, by a rule measured on both
+    /// kinds (README, "Origin moves"): on box detections, [`BOX_ORIGIN_STEPS`] of
+    /// origin moves; on point sets, none. One detection per step, with scales of
+    /// tenths of metres, pins the speed only over several steps and rarely calls
+    /// for tempering stages after `t = 0`, so without origin moves nothing
+    /// rejuvenates the part of the state it leaves open: at equal CPU they made
+    /// one object's log-likelihood 2–7x more precise on box data with speed priors
+    /// of 1 and 10 m/s. About ten sharp points per step temper and move the cloud
+    /// at every step anyway, and there origin moves gain less than the same CPU
+    /// spent on particles.
+    pub fn for_observations(kind: ObservationKind) -> Tempering {
+        let origin_steps = match kind {
+            ObservationKind::Boxes => BOX_ORIGIN_STEPS,
+            ObservationKind::Points => 0,
+        };
+        Tempering { origin_steps, ..Tempering::default() }
+    }
+
     /// Checks the settings; the error names the bad one.
     pub fn validate(&self) -> Result<(), SettingError> {
         let f = self.ess_fraction;

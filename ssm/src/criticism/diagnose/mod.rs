@@ -114,8 +114,10 @@ pub struct DiagnoseConfig {
     /// are averaged for each evaluated object.
     pub eval_runs: usize,
     /// The filter of the checks and of the evaluation: tempered within a step,
-    /// so that sharp observations do not leave it degenerate.
-    pub tempering: Tempering,
+    /// so that sharp observations do not leave it degenerate; `None` for the
+    /// default of the data's observations ([`Tempering::for_observations`]:
+    /// origin moves on box detections). The report records the one used.
+    pub tempering: Option<Tempering>,
     /// Train with the tempered filter too (PF-SEFI on the bootstrap filter is
     /// biased where its weights degenerate; see the README's drift section).
     pub train_tempered: bool,
@@ -156,7 +158,7 @@ impl Default for DiagnoseConfig {
             scenes_per_step: 16,
             draws: 50,
             eval_runs: 2,
-            tempering: Tempering::default(),
+            tempering: None,
             train_tempered: true,
             alpha: 0.05,
             plausible_p: 0.2,
@@ -215,16 +217,24 @@ impl DiagnoseConfig {
         SettingError::check(self.permutations >= 99, "permutations", self.permutations, "at least 99")?;
         let g = self.min_gain;
         SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
-        self.tempering.validate()?;
+        if let Some(tempering) = &self.tempering {
+            tempering.validate()?;
+        }
         for (setting, lr) in [("lr", self.lr), ("candidate_lr", self.candidate_lr)] {
             SettingError::check(lr > 0.0 && lr.is_finite(), setting, lr, "positive and finite")?;
         }
         Ok(())
     }
 
+    /// The tempering of every filter ([`DiagnoseConfig::tempering`], resolved for
+    /// the data by [`run`] before anything is filtered).
+    fn tempering(&self) -> Tempering {
+        self.tempering.unwrap_or_default()
+    }
+
     /// The filter of the checks and of the evaluation, with run `run`'s seed.
     fn eval_filter(&self, run: usize) -> FilterConfig {
-        FilterConfig::new(Sampling::new(self.eval_particles, Some(self.tempering)), 0, self.seed + run as u64)
+        FilterConfig::new(Sampling::new(self.eval_particles, Some(self.tempering())), 0, self.seed + run as u64)
     }
 }
 
@@ -484,6 +494,10 @@ fn run(
 ) -> Result<Report, String> {
     let started = std::time::Instant::now();
     let kind = parts.fit.kind();
+    let config = &DiagnoseConfig {
+        tempering: Some(config.tempering.unwrap_or_else(|| Tempering::for_observations(kind))),
+        ..config.clone()
+    };
     // 2. The base, from the network's own initialisation.
     let initial = {
         let mut rng = StdRng::seed_from_u64(config.seed);
@@ -670,14 +684,14 @@ fn fit(
         estimator: Estimator::pf_sefi(config.lag),
         estimator_config: EstimatorConfig::new(Sampling::new(
             config.particles,
-            config.train_tempered.then_some(config.tempering),
+            config.train_tempered.then_some(config.tempering()),
         )),
         scenes_per_step: config.scenes_per_step,
         eval_particles: config.eval_particles,
         extension,
         extension_only: extension.is_some(),
         proposal: None,
-        eval_tempering: Some(config.tempering),
+        eval_tempering: Some(config.tempering()),
     };
     let mut objective = SceneObjective::for_process(parts.fit, parts.check.clone(), objective_config, comm.clone())?;
     let batches = crate::training::Objective::batches(&objective).max(1);
