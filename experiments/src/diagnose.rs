@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use indicatif::ProgressBar;
 use plotters::prelude::*;
+use ssm::criticism::checks::{format_z, UNBOUNDED_Z};
 use ssm::criticism::diagnose::{
     diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
@@ -362,17 +363,10 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     s
 }
 
-/// Beyond this |z| the differences' spread is rounding: the measured statistic
-/// sits off every replicate by the same amount.
-const UNBOUNDED_Z: f64 = 1e6;
-
-/// A check's z for people: beyond [`UNBOUNDED_Z`] it is written as a bound, not
-/// as a ratio to a rounding error.
+/// A check's z for the report: as [`fmt`] within [`UNBOUNDED_Z`], else a bound.
 fn fmt_z(z: f64) -> String {
-    if z >= UNBOUNDED_Z {
-        "> 1e6 (no spread)".into()
-    } else if z <= -UNBOUNDED_Z {
-        "< -1e6 (no spread)".into()
+    if z.abs() >= UNBOUNDED_Z {
+        format_z(z, 0)
     } else {
         fmt(z)
     }
@@ -410,8 +404,8 @@ fn check_plot(path: &Path, c: &CheckReport) -> Result<(), String> {
     let title = format!(
         "{} (z = {} before{})",
         c.name,
-        fmt_z(c.before.z),
-        c.after.as_ref().map_or(String::new(), |a| format!(", {} after", fmt_z(a.z)))
+        format_z(c.before.z, 2),
+        c.after.as_ref().map_or(String::new(), |a| format!(", {} after", format_z(a.z, 2)))
     );
     let mut chart = ChartBuilder::on(&root)
         .caption(title, ("sans-serif", 20))

@@ -110,12 +110,22 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
     ensure_dir(&args.out)?;
+    // Strength-major from the middle out (the default strength and the controls
+    // first, then the others by distance from it), so that an interrupted study
+    // already answers the headline question: the share named at the middle
+    // strength and the false causes on controls.
+    let mut strengths = args.strengths.clone();
+    strengths.sort_by(|a, b| (a.ln().abs()).total_cmp(&b.ln().abs()).then(a.total_cmp(b)));
+    strengths.dedup();
     let mut plan = Vec::new();
-    for e in &effects {
-        let strengths = if e.is_control() { vec![1.0] } else { args.strengths.clone() };
-        for &s in &strengths {
+    for (i, &s) in strengths.iter().enumerate() {
+        for e in &effects {
+            if e.is_control() && i > 0 {
+                continue;
+            }
+            let strength = if e.is_control() { 1.0 } else { s };
             for seed in 0..args.seeds {
-                plan.push((e, s, seed));
+                plan.push((e, strength, seed));
             }
         }
     }
@@ -128,23 +138,29 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     for (e, strength, seed) in plan {
         bar.set_message(format!("{} x{strength} seed {seed}", e.id));
         cells.push(run_cell(&args.out, e, strength, seed)?);
+        // The tables so far after every diagnosis: an interrupted study shows
+        // what it has.
+        write_tables(&args.out, &effects, &strengths, &cells)?;
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let md = summarise(&effects, &args.strengths, &cells);
+    print!("{}", summarise(&effects, &strengths, &cells));
+    println!("wrote {} (power.csv, power.md)", args.out.display());
+    Ok(())
+}
+
+/// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
+fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
     let mut csv = String::from("effect,strength,seed,cause,named,relative_error,gain,seconds\n");
-    for c in &cells {
+    for c in cells {
         let _ = writeln!(
             csv,
             "{},{},{},{},{},{},{},{:.1}",
             c.effect, c.strength, c.seed, c.cause, c.named, c.relative_error, c.gain, c.seconds
         );
     }
-    write_atomic(&args.out.join("power.csv"), csv.as_bytes())?;
-    write_atomic(&args.out.join("power.md"), md.as_bytes())?;
-    print!("{md}");
-    println!("wrote {} (power.csv, power.md)", args.out.display());
-    Ok(())
+    write_atomic(&out.join("power.csv"), csv.as_bytes())?;
+    write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())
 }
 
 /// The diagnosis of one effect, strength and seed (read back if already done).
@@ -199,7 +215,8 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
          |---|---|---|---|---|---|---|---|\n",
     );
     for e in effects {
-        let list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
+        let mut list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
+        list.sort_by(f64::total_cmp);
         for st in list {
             let group: Vec<&Cell> = cells.iter().filter(|c| c.effect == e.id && c.strength == st).collect();
             if group.is_empty() {

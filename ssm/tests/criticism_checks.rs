@@ -4,7 +4,7 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
-use ssm::criticism::checks::{calibrate, checks_for, statistics, CheckDef};
+use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef};
 use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::models::extended::{lagged_pose, ObjectObservations};
@@ -368,4 +368,21 @@ fn accel_kurtosis_uses_standardised_innovations_when_given() {
     assert!((stat(&data, &raw, "accel_kurtosis") + 2.0).abs() < 1e-12);
     let with = [ObjectSample { accel_innovations: innovations, ..sample(0, states(), actions, no_points) }];
     assert!((stat(&data, &with, "accel_kurtosis") - 2.0).abs() < 1e-12);
+}
+
+/// Differences equal up to rounding (the measured statistic off every replicate
+/// by the same amount) give a z that is a ratio to a rounding error; it is
+/// printed as a bound, with its sign, and ordinary z as numbers.
+#[test]
+fn a_z_without_spread_is_printed_as_a_bound() {
+    let offset = 0.054;
+    let rounding = [offset, offset + 1e-17, offset - 1e-17, offset, offset + 2e-17];
+    let column: Vec<(f64, f64)> = rounding.iter().map(|&m| (m, 0.0)).collect();
+    let (m, r) = tables(&[column]);
+    let z = calibrate(&[&A], &m, &r, 0.05)[0].z;
+    assert!(z > 1e12, "z {z}");
+    assert_eq!(format_z(z, 1), "> 1e6 (no spread)");
+    assert_eq!(format_z(-z, 1), "< -1e6 (no spread)");
+    assert_eq!(format_z(-3.14159, 1), "-3.1");
+    assert_eq!(format_z(2.345, 2), "2.35");
 }

@@ -529,6 +529,22 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
     results
 }
 
+/// Beyond this |z| a check's differences have no spread but rounding: the
+/// measured statistic sits off every replicate by the same amount.
+pub const UNBOUNDED_Z: f64 = 1e6;
+
+/// A check's z for people, with `digits` decimals: beyond [`UNBOUNDED_Z`] it
+/// is written as a bound, not as a ratio to a rounding error.
+pub fn format_z(z: f64, digits: usize) -> String {
+    if z >= UNBOUNDED_Z {
+        "> 1e6 (no spread)".into()
+    } else if z <= -UNBOUNDED_Z {
+        "< -1e6 (no spread)".into()
+    } else {
+        format!("{z:.digits$}")
+    }
+}
+
 /// Holm's step-down adjustment: the `i`-th smallest p-value (from 0) becomes
 /// `max over j <= i of min(1, (m - j) p_(j))`.
 pub fn holm(p: &[f64]) -> Vec<f64> {

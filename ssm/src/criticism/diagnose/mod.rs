@@ -59,7 +59,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::checks::{calibrate, checks_for, holm, CheckResult};
+use super::checks::{calibrate, checks_for, format_z, holm, CheckResult};
 use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::{stream_seed, FilterConfig, Sampling, Tempering};
@@ -619,7 +619,7 @@ fn run(
         })
         .collect();
     let failing: Vec<String> =
-        before.iter().filter(|c| c.significant).map(|c| format!("{} (z {:.1})", c.name, c.z)).collect();
+        before.iter().filter(|c| c.significant).map(|c| format!("{} (z {})", c.name, format_z(c.z, 1))).collect();
     let (cause, finding) = match winner {
         Some(i) => (candidates[i].cause.clone(), candidates[i].description.clone()),
         None if !failing.is_empty() => (
