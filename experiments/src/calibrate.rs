@@ -11,7 +11,7 @@ use serde_json::json;
 use ssm::calibration::{complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
-use ssm::filter::{FilterConfig, Sampling, Tempering};
+use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 
 use crate::output::{ensure_dir, write_json};
 
@@ -40,46 +40,51 @@ pub struct FilterArgs {
     #[arg(long, default_value_t = Tempering::default().moves)]
     pub temper_moves: usize,
     /// Tempered filter: origin moves (the prior's noise, whole paths re-propagated)
-    /// at every step up to this one; 0 for none. Default: by the data's
-    /// observations (8 on box detections, none on point sets).
+    /// at every step up to this one, in training and evaluation; 0 for none.
+    /// Default: by the data's observations and the filter's use (8 in evaluating
+    /// box detections; none in training, or on point sets).
     #[arg(long)]
     #[serde(default = "no_origin_moves")]
     pub temper_origin_steps: Option<usize>,
 }
 
 impl FilterArgs {
-    /// The tempering settings of filter `filter` with these parameters on
-    /// observations of `kind`, validated.
+    /// The evaluation filter `filter` with these parameters on observations of
+    /// `kind`, validated.
     pub fn tempering_of(&self, filter: FilterKind, kind: ObservationKind) -> Result<Option<Tempering>, String> {
         FilterArgs { filter, ..self.clone() }.tempering(kind)
     }
 
-    /// The tempering settings (`None` for the bootstrap filter) on observations
-    /// of `kind` (which pick the origin moves unless given), validated.
+    /// The tempering settings of the evaluation filter (`None` for the bootstrap
+    /// filter) on observations of `kind`, validated.
     pub fn tempering(&self, kind: ObservationKind) -> Result<Option<Tempering>, String> {
+        self.tempering_with(Tempering::for_observations(kind, FilterPurpose::Evaluation))
+    }
+
+    /// The tempering settings of `estimator`'s training filter on observations
+    /// of `kind`: the through-filter baselines replay the bootstrap filter, so
+    /// they get `None` whatever was asked.
+    pub fn tempering_for(&self, estimator: &Estimator, kind: ObservationKind) -> Result<Option<Tempering>, String> {
+        match estimator {
+            Estimator::PfSefi(_) => self.tempering_with(Tempering::for_observations(kind, FilterPurpose::Training)),
+            Estimator::ThroughFilter(_) => Ok(None),
+        }
+    }
+
+    /// These settings over `default` (the rule's filter for the data and use).
+    fn tempering_with(&self, default: Tempering) -> Result<Option<Tempering>, String> {
         match self.filter {
             FilterKind::Bootstrap => Ok(None),
             FilterKind::Tempered => {
-                let by_data = Tempering::for_observations(kind);
                 let t = Tempering {
                     ess_fraction: self.temper_ess,
                     moves: self.temper_moves,
-                    origin_steps: self.temper_origin_steps.unwrap_or(by_data.origin_steps),
-                    ..by_data
+                    origin_steps: self.temper_origin_steps.unwrap_or(default.origin_steps),
+                    ..default
                 };
                 t.validate()?;
                 Ok(Some(t))
             }
-        }
-    }
-
-    /// The tempering settings for `estimator` on observations of `kind`: the
-    /// through-filter baselines replay the bootstrap filter, so they get `None`
-    /// whatever was asked.
-    pub fn tempering_for(&self, estimator: &Estimator, kind: ObservationKind) -> Result<Option<Tempering>, String> {
-        match estimator {
-            Estimator::PfSefi(_) => self.tempering(kind),
-            Estimator::ThroughFilter(_) => Ok(None),
         }
     }
 

@@ -31,7 +31,7 @@ use serde_json::json;
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
-use ssm::filter::{FilterConfig, Sampling, Tempering};
+use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 use ssm::metrics::{metrics_of, track, Metrics};
 use ssm::models::params::Models;
 use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
@@ -267,7 +267,10 @@ fn learning_stage(
     let truth =
         Models::from_store(&experiment.truth.model.params, ObservationKind::Points).map_err(|e| e.to_string())?;
     let eval_filter = FilterConfig::new(
-        Sampling::new(eval_particles, Some(Tempering::for_observations(ObservationKind::Points))),
+        Sampling::new(
+            eval_particles,
+            Some(Tempering::for_observations(ObservationKind::Points, FilterPurpose::Evaluation)),
+        ),
         0,
         seed.wrapping_add(7),
     );

@@ -26,9 +26,11 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     let text = std::fs::read_to_string(out.join("report.json")).expect("report.json");
     let report: Value = serde_json::from_str(&text).expect("report.json is JSON");
     assert!(stdout.contains(&format!("cause: {}", report["cause"].as_str().unwrap())), "stdout: {stdout}");
-    // The filter's default for the data's observations: origin moves on boxes only.
+    // The filters' defaults for the data's observations: origin moves in the
+    // checks and evaluations of boxes only, none in training.
     let origin_steps = report["config"]["tempering"]["origin_steps"].as_u64();
     assert_eq!(origin_steps, Some(if extra.contains(&"--boxes") { 8 } else { 0 }), "tempering by the data's kind");
+    assert_eq!(report["config"]["train_tempering"]["origin_steps"].as_u64(), Some(0), "training without origin moves");
     (report, out)
 }
 

@@ -67,3 +67,12 @@ pub fn ks_distance_to_normal(mut z: Vec<f64>) -> f64 {
         })
         .fold(0.0, f64::max)
 }
+
+/// Reads a number that JSON may hold as `null`: serde_json writes a non-finite
+/// `f64` (a NaN share, an undefined z) as `null`, and this reads it back as NaN,
+/// so a report written with one can be read again (`#[serde(deserialize_with =
+/// "crate::stats::nan_from_null")]`).
+pub fn nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<f64, D::Error> {
+    use serde::Deserialize;
+    Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
+}

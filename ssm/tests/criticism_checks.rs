@@ -386,3 +386,18 @@ fn a_z_without_spread_is_printed_as_a_bound() {
     assert_eq!(format_z(-3.14159, 1), "-3.1");
     assert_eq!(format_z(2.345, 2), "2.35");
 }
+
+/// A check without usable draws has non-finite statistics, which JSON holds as
+/// `null`; the result is read back with NaN there (a report must be readable
+/// again, e.g. when `sefi power-study` resumes).
+#[test]
+fn a_check_with_non_finite_statistics_survives_a_json_round_trip() {
+    let (m, r) = tables(&[vec![(f64::NAN, 0.0), (f64::NAN, 1.0), (f64::NAN, 2.0)]]);
+    let result = calibrate(&[&A], &m, &r, 0.05).remove(0);
+    assert!(result.measured.is_nan() && result.draws == 0, "{result:?}");
+    let text = serde_json::to_string(&result).unwrap();
+    assert!(text.contains("\"measured\":null"), "{text}");
+    let back: ssm::criticism::checks::CheckResult = serde_json::from_str(&text).unwrap();
+    assert!(back.measured.is_nan() && back.replicated.is_nan());
+    assert_eq!((back.z, back.p, back.draws), (result.z, result.p, result.draws));
+}

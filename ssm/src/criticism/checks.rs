@@ -446,16 +446,22 @@ pub struct CheckResult {
     /// The extension it can reveal ([`CheckDef::suggests`]).
     pub suggests: Option<String>,
     /// Mean over the usable draws of `T(measured)`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub measured: f64,
     /// Mean over the usable draws of `T(replicated)`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub replicated: f64,
     /// Standard deviation over the usable draws of `T(replicated)`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub replicated_sd: f64,
     /// `mean(D) / sd(D)` of the differences `D = T(measured) - T(replicated)`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub z: f64,
     /// Two-sided p-value `2 (1 - Phi(|z|))`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
     /// Holm-adjusted p-value over the checks.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p_adjusted: f64,
     /// `p_adjusted < alpha`.
     pub significant: bool,

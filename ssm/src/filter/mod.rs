@@ -36,8 +36,8 @@ use serde::{Deserialize, Serialize};
 
 pub use moments::Moments;
 pub use resample::{effective_sample_size, Resampling};
-pub use tempering::Tempering;
 use tempering::{reweight, ParentStep, StepParticles, Temperer};
+pub use tempering::{FilterPurpose, Tempering};
 
 use crate::models::{Batch, Drawn, ParticleModel};
 use crate::seed::splitmix64;

@@ -62,7 +62,7 @@ use serde::{Deserialize, Serialize};
 use super::checks::{calibrate, checks_for, format_z, holm, CheckResult};
 use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
-use crate::filter::{stream_seed, FilterConfig, Sampling, Tempering};
+use crate::filter::{stream_seed, FilterConfig, FilterPurpose, Sampling, Tempering};
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
@@ -115,12 +115,17 @@ pub struct DiagnoseConfig {
     pub eval_runs: usize,
     /// The filter of the checks and of the evaluation: tempered within a step,
     /// so that sharp observations do not leave it degenerate; `None` for the
-    /// default of the data's observations ([`Tempering::for_observations`]:
-    /// origin moves on box detections). The report records the one used.
+    /// evaluation default of the data's observations
+    /// ([`Tempering::for_observations`]: origin moves on box detections). The
+    /// report records the one used.
     pub tempering: Option<Tempering>,
     /// Train with the tempered filter too (PF-SEFI on the bootstrap filter is
     /// biased where its weights degenerate; see the README's drift section).
     pub train_tempered: bool,
+    /// The tempered filter of training; `None` for the training default of the
+    /// data's observations (no origin moves). The report records the one used.
+    #[serde(default)]
+    pub train_tempering: Option<Tempering>,
     /// Family-wise level of the checks (Holm-corrected).
     pub alpha: f64,
     /// An extension is fitted when a check that suggests it has an uncorrected p
@@ -160,6 +165,7 @@ impl Default for DiagnoseConfig {
             eval_runs: 2,
             tempering: None,
             train_tempered: true,
+            train_tempering: None,
             alpha: 0.05,
             plausible_p: 0.2,
             fit_all: false,
@@ -217,7 +223,7 @@ impl DiagnoseConfig {
         SettingError::check(self.permutations >= 99, "permutations", self.permutations, "at least 99")?;
         let g = self.min_gain;
         SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
-        if let Some(tempering) = &self.tempering {
+        for tempering in self.tempering.iter().chain(&self.train_tempering) {
             tempering.validate()?;
         }
         for (setting, lr) in [("lr", self.lr), ("candidate_lr", self.candidate_lr)] {
@@ -226,10 +232,16 @@ impl DiagnoseConfig {
         Ok(())
     }
 
-    /// The tempering of every filter ([`DiagnoseConfig::tempering`], resolved for
-    /// the data by [`run`] before anything is filtered).
+    /// The tempering of the checks and evaluations ([`DiagnoseConfig::tempering`],
+    /// resolved for the data by [`run`] before anything is filtered).
     fn tempering(&self) -> Tempering {
         self.tempering.unwrap_or_default()
+    }
+
+    /// The tempering of training ([`DiagnoseConfig::train_tempering`], resolved
+    /// likewise).
+    fn train_tempering(&self) -> Tempering {
+        self.train_tempering.unwrap_or_default()
     }
 
     /// The filter of the checks and of the evaluation, with run `run`'s seed.
@@ -291,17 +303,22 @@ pub struct CandidateReport {
     /// The extension's id.
     pub cause: String,
     /// Log-likelihood gain over the base on the evaluation part (nats per observed unit).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain: f64,
     /// Its normal-approximation standard error (paired over objects; shown for
     /// scale, the decision uses `p_adjusted`).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_se: f64,
     /// One-sided sign-flip permutation p-value of the gain.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
     /// `p`, Holm-adjusted over the fitted candidates.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p_adjusted: f64,
     /// Per evaluated object, its log-likelihood gain (nats).
     pub object_gains: Vec<f64>,
     /// The share of the total gain carried by the two objects with the largest gains.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub top_two_share: f64,
     /// The learned parameters in physical units: `(name, value, unit)`.
     pub params: Vec<(String, f64, String)>,
@@ -331,10 +348,13 @@ pub struct Report {
     /// The chosen extension's id, [`UNEXPLAINED`] or [`NO_CAUSE`].
     pub cause: String,
     /// Its gain on the evaluation part (nats per observed unit; 0 without a cause).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain: f64,
     /// The gain's standard error.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_se: f64,
     /// Its Holm-adjusted permutation p-value (1 without a cause).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_p: f64,
     /// The chosen extension's learned parameters in a sentence; for
     /// `unexplained`, the failing checks.
@@ -364,8 +384,10 @@ pub struct Report {
     /// Observed units (points, detections) of the evaluation part.
     pub eval_units: usize,
     /// Log-likelihood of the base on the evaluation part (nats per observed unit).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub base_mll: f64,
     /// The same for the chosen model (the base's without a cause).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub chosen_mll: f64,
     /// Training steps of the base skipped (non-finite estimates).
     pub base_skipped_steps: usize,
@@ -495,7 +517,12 @@ fn run(
     let started = std::time::Instant::now();
     let kind = parts.fit.kind();
     let config = &DiagnoseConfig {
-        tempering: Some(config.tempering.unwrap_or_else(|| Tempering::for_observations(kind))),
+        tempering: Some(
+            config.tempering.unwrap_or_else(|| Tempering::for_observations(kind, FilterPurpose::Evaluation)),
+        ),
+        train_tempering: Some(
+            config.train_tempering.unwrap_or_else(|| Tempering::for_observations(kind, FilterPurpose::Training)),
+        ),
         ..config.clone()
     };
     // 2. The base, from the network's own initialisation.
@@ -684,7 +711,7 @@ fn fit(
         estimator: Estimator::pf_sefi(config.lag),
         estimator_config: EstimatorConfig::new(Sampling::new(
             config.particles,
-            config.train_tempered.then_some(config.tempering()),
+            config.train_tempered.then_some(config.train_tempering()),
         )),
         scenes_per_step: config.scenes_per_step,
         eval_particles: config.eval_particles,
