@@ -383,7 +383,7 @@ fn a_z_without_spread_is_printed_as_a_bound() {
     assert!(z > 1e12, "z {z}");
     assert_eq!(format_z(z, 1), "> 1e6 (no spread)");
     assert_eq!(format_z(-z, 1), "< -1e6 (no spread)");
-    assert_eq!(format_z(-3.14159, 1), "-3.1");
+    assert_eq!(format_z(-3.27, 1), "-3.3");
     assert_eq!(format_z(2.345, 2), "2.35");
 }
 
