@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use indicatif::ProgressBar;
 use plotters::prelude::*;
-use ssm::criticism::checks::{format_z, UNBOUNDED_Z};
+use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
     diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
@@ -363,13 +363,9 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     s
 }
 
-/// A check's z for the report: as [`fmt`] within [`UNBOUNDED_Z`], else a bound.
+/// A check's z for the report: as [`fmt`], or its bound ([`z_bound`]).
 fn fmt_z(z: f64) -> String {
-    if z.abs() >= UNBOUNDED_Z {
-        format_z(z, 0)
-    } else {
-        fmt(z)
-    }
+    z_bound(z).map_or_else(|| fmt(z), str::to_string)
 }
 
 fn fmt(x: f64) -> String {

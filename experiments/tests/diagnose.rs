@@ -11,6 +11,7 @@ mod common;
 
 use common::{ok, s, sefi, temp};
 use serde_json::Value;
+use ssm::criticism::diagnose::Report;
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
 /// `generate` arguments such as `--boxes --scenes 32`), runs `diagnose --quick`
@@ -25,6 +26,10 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     let stdout = ok(&sefi(&["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", seed]));
     let text = std::fs::read_to_string(out.join("report.json")).expect("report.json");
     let report: Value = serde_json::from_str(&text).expect("report.json is JSON");
+    // It reads back as the library's report too, non-finite numbers (`null`) and all,
+    // as `sefi power-study` does when it resumes.
+    let typed: Result<Report, _> = serde_json::from_str(&text);
+    assert!(typed.is_ok(), "report.json does not read back as a Report: {:?}", typed.err());
     assert!(stdout.contains(&format!("cause: {}", report["cause"].as_str().unwrap())), "stdout: {stdout}");
     // The filters' defaults for the data's observations: origin moves in the
     // checks and evaluations of boxes only, none in training.

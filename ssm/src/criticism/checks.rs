@@ -539,16 +539,21 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
 /// measured statistic sits off every replicate by the same amount.
 pub const UNBOUNDED_Z: f64 = 1e6;
 
-/// A check's z for people, with `digits` decimals: beyond [`UNBOUNDED_Z`] it
-/// is written as a bound, not as a ratio to a rounding error.
-pub fn format_z(z: f64, digits: usize) -> String {
+/// The bound a z beyond [`UNBOUNDED_Z`] is written as (a ratio to a rounding
+/// error is not a number to print); `None` within it.
+pub fn z_bound(z: f64) -> Option<&'static str> {
     if z >= UNBOUNDED_Z {
-        "> 1e6 (no spread)".into()
+        Some("> 1e6 (no spread)")
     } else if z <= -UNBOUNDED_Z {
-        "< -1e6 (no spread)".into()
+        Some("< -1e6 (no spread)")
     } else {
-        format!("{z:.digits$}")
+        None
     }
+}
+
+/// A check's z for people, with `digits` decimals, or its bound ([`z_bound`]).
+pub fn format_z(z: f64, digits: usize) -> String {
+    z_bound(z).map_or_else(|| format!("{z:.digits$}"), str::to_string)
 }
 
 /// Holm's step-down adjustment: the `i`-th smallest p-value (from 0) becomes
