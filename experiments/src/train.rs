@@ -252,6 +252,27 @@ fn read_data(args: &TrainArgs, config: &ObjectiveConfig, cluster: &Cluster) -> R
     Ok((data, test))
 }
 
+/// Whether `args` continue the run described by `before`: the same settings, with
+/// the origin moves compared as the filters they give on data of `kind` (a run
+/// described before the option existed, or with the default rule, resumes with an
+/// explicit count that gives the same filters, and the other way round).
+fn same_run(
+    before: &TrainArgs,
+    args: &TrainArgs,
+    estimator: &Estimator,
+    kind: ObservationKind,
+) -> Result<bool, String> {
+    let filters = |a: &TrainArgs| -> Result<_, String> {
+        Ok((a.filter.tempering_for(estimator, kind)?, a.filter.tempering_of(a.eval_filter, kind)?))
+    };
+    let rest = |a: &TrainArgs| TrainArgs {
+        resume: false,
+        filter: FilterArgs { temper_origin_steps: None, ..a.filter.clone() },
+        ..a.clone()
+    };
+    Ok(rest(before) == rest(args) && filters(before)? == filters(args)?)
+}
+
 /// Runs one training run as one process of `cluster` (of one, but for `sefi
 /// train` under mpiexec); `bar` shows its progress (hidden for none). Only the
 /// first process writes files.
@@ -263,17 +284,6 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
     ensure_dir(&args.out)?;
     let run_file = args.out.join("run.json");
     let root = cluster.is_root();
-    if args.resume {
-        let text = std::fs::read_to_string(&run_file).map_err(|e| format!("{}: {e}", run_file.display()))?;
-        let before: TrainArgs =
-            serde_json::from_str(&text).map_err(|e| format!("{}: not a run description: {e}", run_file.display()))?;
-        if before != (TrainArgs { resume: false, ..args.clone() }) {
-            return Err(format!(
-                "{}: the run was started with other settings; resume it with the same arguments",
-                run_file.display()
-            ));
-        }
-    }
     // The filters' tempering depends on the data's observations (origin moves on
     // boxes), set once they are read.
     let mut config = ObjectiveConfig {
@@ -291,6 +301,17 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
         eval_tempering: None,
     };
     let (data, test) = read_data(args, &config, cluster)?;
+    if args.resume {
+        let text = std::fs::read_to_string(&run_file).map_err(|e| format!("{}: {e}", run_file.display()))?;
+        let before: TrainArgs =
+            serde_json::from_str(&text).map_err(|e| format!("{}: not a run description: {e}", run_file.display()))?;
+        if !same_run(&before, args, &estimator, data.kind())? {
+            return Err(format!(
+                "{}: the run was started with other settings; resume it with the same arguments",
+                run_file.display()
+            ));
+        }
+    }
     config.estimator_config.sampling.tempering = args.filter.tempering_for(&estimator, data.kind())?;
     config.eval_tempering = args.filter.tempering_of(args.eval_filter, data.kind())?;
     let initial = initial_store(args, &data)?;
@@ -386,4 +407,31 @@ pub fn run(args: &TrainArgs, cluster: &Cluster) -> Result<(), String> {
     );
     println!("parameters: {}", args.out.join(ssm::training::PARAMS_FILE).display());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run described before `--temper-origin-steps` existed (read as 0) resumes
+    /// under the default rule where that rule gives the same filters (point
+    /// sets), and not where it does not (box detections are evaluated with origin
+    /// moves); any other change of settings still refuses.
+    #[test]
+    fn a_run_resumes_when_its_filters_are_the_same() {
+        let args = TrainArgs::with_defaults("train".into(), "test".into(), "out".into());
+        let estimator = Estimator::parse(&args.estimator, args.lag, args.alpha).expect("the default estimator");
+        let old =
+            TrainArgs { filter: FilterArgs { temper_origin_steps: Some(0), ..args.filter.clone() }, ..args.clone() };
+        assert_eq!(args.filter.temper_origin_steps, None);
+        assert!(same_run(&old, &args, &estimator, ObservationKind::Points).unwrap());
+        assert!(!same_run(&old, &args, &estimator, ObservationKind::Boxes).unwrap());
+        let explicit =
+            TrainArgs { filter: FilterArgs { temper_origin_steps: Some(8), ..args.filter.clone() }, ..args.clone() };
+        assert!(!same_run(&explicit, &args, &estimator, ObservationKind::Points).unwrap());
+        let other_lr = TrainArgs { lr: args.lr * 2.0, ..args.clone() };
+        assert!(!same_run(&other_lr, &args, &estimator, ObservationKind::Points).unwrap());
+        let resumed = TrainArgs { resume: true, ..args.clone() };
+        assert!(same_run(&args, &resumed, &estimator, ObservationKind::Boxes).unwrap());
+    }
 }
