@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, UNEXPLAINED};
+use ssm::criticism::diagnose::{diagnose, CandidateReport, DiagnoseConfig, Report, NO_CAUSE, UNEXPLAINED};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 
@@ -38,6 +38,9 @@ pub struct PowerArgs {
     /// Seeds per effect and strength (data and diagnosis).
     #[arg(long, default_value_t = 5)]
     seeds: u64,
+    /// Rebuild power.csv and power.md from the finished diagnoses only (run none).
+    #[arg(long)]
+    table_only: bool,
 }
 
 /// The study's setting of one effect id: the hidden effect, the data's kind and
@@ -101,6 +104,9 @@ struct Cell {
     relative_error: f64,
     gain: f64,
     seconds: f64,
+    /// The cause the diagnosis would name without rule (d), that an extension
+    /// must lower its flagging checks' |z| (the same decision otherwise).
+    cause_without_check_rule: String,
 }
 
 /// Runs `sefi power-study`.
@@ -137,7 +143,10 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     let mut cells = Vec::new();
     for (e, strength, seed) in plan {
         bar.set_message(format!("{} x{strength} seed {seed}", e.id));
-        cells.push(run_cell(&args.out, e, strength, seed)?);
+        match run_cell(&args.out, e, strength, seed, args.table_only)? {
+            Some(cell) => cells.push(cell),
+            None => continue,
+        }
         // The tables so far after every diagnosis: an interrupted study shows
         // what it has.
         write_tables(&args.out, &effects, &strengths, &cells)?;
@@ -151,25 +160,36 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
 
 /// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
 fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
-    let mut csv = String::from("effect,strength,seed,cause,named,relative_error,gain,seconds\n");
+    let mut csv =
+        String::from("effect,strength,seed,cause,named,relative_error,gain,seconds,cause_without_check_rule\n");
     for c in cells {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{:.1}",
-            c.effect, c.strength, c.seed, c.cause, c.named, c.relative_error, c.gain, c.seconds
+            "{},{},{},{},{},{},{},{:.1},{}",
+            c.effect,
+            c.strength,
+            c.seed,
+            c.cause,
+            c.named,
+            c.relative_error,
+            c.gain,
+            c.seconds,
+            c.cause_without_check_rule
         );
     }
     write_atomic(&out.join("power.csv"), csv.as_bytes())?;
     write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())
 }
 
-/// The diagnosis of one effect, strength and seed (read back if already done).
-fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cell, String> {
+/// The diagnosis of one effect, strength and seed: read back if already done,
+/// else run (or, with `table_only`, `None`).
+fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: bool) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
     let dir = out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"));
     let report_path = dir.join("report.json");
     let report: Report = match std::fs::read_to_string(&report_path) {
         Ok(text) => serde_json::from_str(&text).map_err(|err| format!("{}: {err}", report_path.display()))?,
+        Err(_) if table_only => return Ok(None),
         Err(_) => {
             let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
@@ -195,7 +215,8 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cel
             .map_or(f64::NAN, |p| p.1 / truth - 1.0),
         _ => f64::NAN,
     };
-    Ok(Cell {
+    Ok(Some(Cell {
+        cause_without_check_rule: cause_without_check_rule(&report),
         effect: e.id.clone(),
         strength,
         seed,
@@ -204,15 +225,30 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> Result<Cel
         relative_error,
         gain: report.gain,
         seconds: report.seconds,
-    })
+    }))
+}
+
+/// The cause `report` would name if the extensions did not have to lower their
+/// flagging checks' |z| (rule (d) of the decision): the largest gain among the
+/// candidates that pass every other rule; else what the report says when no
+/// candidate does (`unexplained` or `none`, from the same failing checks).
+fn cause_without_check_rule(report: &Report) -> String {
+    let config = &report.config;
+    let passes = |c: &&CandidateReport| {
+        c.material && c.gain.is_finite() && c.gain >= config.min_gain && c.p_adjusted < config.cause_level
+    };
+    let best = report.candidates.iter().filter(passes).max_by(|a, b| a.gain.total_cmp(&b.gain));
+    // A candidate that qualifies passes these rules too, so with none the report
+    // named no catalogue cause either.
+    best.map_or_else(|| report.cause.clone(), |c| c.cause.clone())
 }
 
 /// The study's table: per effect and strength, the share named, false causes,
 /// `unexplained`, and the median |relative error| of the learned magnitude.
 fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> String {
     let mut s = String::from(
-        "| effect | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) |\n\
-         |---|---|---|---|---|---|---|---|\n",
+        "| effect | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) | without rule (d): named | without rule (d): false cause |\n\
+         |---|---|---|---|---|---|---|---|---|---|\n",
     );
     for e in effects {
         let mut list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
@@ -232,15 +268,27 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
             let error =
                 if errors.is_empty() { "-".to_string() } else { format!("{:.0}%", 100.0 * errors[errors.len() / 2]) };
             let time = group.iter().map(|c| c.seconds).sum::<f64>() / n;
+            let loose = |c: &&&Cell| c.cause_without_check_rule == e.expected;
+            let named_loose = group.iter().filter(loose).count() as f64 / n;
+            let false_loose = group
+                .iter()
+                .filter(|c| {
+                    let cause = &c.cause_without_check_rule;
+                    cause != NO_CAUSE && cause != UNEXPLAINED && cause != e.expected
+                })
+                .count() as f64
+                / n;
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} |",
+                "| {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} | {:.0}% | {:.0}% |",
                 e.id,
                 if e.is_control() { "-".to_string() } else { format!("{st}") },
                 group.len(),
                 100.0 * named,
                 100.0 * false_cause,
-                100.0 * unexplained
+                100.0 * unexplained,
+                100.0 * named_loose,
+                100.0 * false_loose
             );
         }
     }
