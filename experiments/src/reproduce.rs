@@ -35,7 +35,7 @@ use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Series};
-use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER};
+use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
@@ -285,60 +285,93 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
         sd_curves: Vec::new(),
         seconds: clock.elapsed().as_secs_f64(),
     };
-    let mut results: Vec<MethodResult> = args
-        .table
-        .methods
-        .iter()
-        .map(|m| MethodResult {
-            method: m.clone(),
-            runs: Vec::new(),
-            sds: Vec::new(),
-            curves: Vec::new(),
-            sd_curves: Vec::new(),
-            seconds: 0.0,
-        })
-        .collect();
-
     // Seed-major: after each round every method has one more finished run, so a
-    // table with all methods exists early and grows.
+    // table with all methods exists early and grows. The table holds every
+    // finished run in `out`, whichever command trained it (a run of some
+    // methods or seeds leaves the others in the table).
     let steps_per_run = scale.epochs * train_data.scenes().len();
-    for seed in 0..scale.seeds as u64 {
-        for (method, result) in args.table.methods.iter().zip(results.iter_mut()) {
-            let dir = out.join("runs").join(format!("{method}-seed{seed}"));
-            let finished = dir.join(FINAL_METRICS);
-            if args.table_only && !finished.is_file() {
-                continue;
-            }
-            let clock = Instant::now();
-            if !args.table_only {
+    let evaluate_run = |dir: &Path, seed: u64| -> Result<Vec<Metrics>, String> {
+        let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
+        let models = Models::from_store(&store, test.kind()).map_err(|e| e.to_string())?;
+        evaluate_cached(&dir.join(FINAL_METRICS), &eval_key(2000 + seed, 1)?, || {
+            metric_runs(&test, &models, &eval_filter(2000 + seed)?, 1)
+        })
+    };
+    let rounds = if args.table_only { 1 } else { scale.seeds as u64 };
+    for seed in 0..rounds {
+        if !args.table_only {
+            for method in &args.table.methods {
+                let dir = out.join("runs").join(format!("{method}-seed{seed}"));
                 let bar = train::bar(&format!("{method} s{seed}"));
                 train::train_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;
                 bar.finish_and_clear();
+                let m = evaluate_run(&dir, seed)?;
+                eprintln!(
+                    "{method} seed {seed}: test MLL {:.4} ({} steps)",
+                    m.last().and_then(|m| m.mll).unwrap_or(f64::NAN),
+                    steps_per_run
+                );
             }
-            let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
-            let models = Models::from_store(&store, test.kind()).map_err(|e| e.to_string())?;
-            let mut m = evaluate_cached(&finished, &eval_key(2000 + seed, 1)?, || {
-                metric_runs(&test, &models, &eval_filter(2000 + seed)?, 1)
-            })?;
-            result.runs.append(&mut m);
-            result.sds.extend(learned_sds(&store, &test));
-            result.curves.push(read_eval_curve(&dir, "test_mll")?);
-            if let (Ok(a), Ok(p)) = (read_eval_curve(&dir, "sd_accel"), read_eval_curve(&dir, "sd_pinch")) {
-                result.sd_curves.push((a, p));
-            }
-            result.seconds += train_seconds(&dir).unwrap_or(clock.elapsed().as_secs_f64());
-            eprintln!(
-                "{method} seed {seed}: test MLL {:.4} ({} steps)",
-                result.runs.last().and_then(|m| m.mll).unwrap_or(f64::NAN),
-                steps_per_run
-            );
         }
         let mut all = vec![truth.clone()];
-        all.extend(results.iter().filter(|r| !r.runs.is_empty()).cloned());
+        for method in table_methods(&args.table.methods) {
+            let mut result = MethodResult {
+                method: method.clone(),
+                runs: Vec::new(),
+                sds: Vec::new(),
+                curves: Vec::new(),
+                sd_curves: Vec::new(),
+                seconds: 0.0,
+            };
+            for (seed, dir) in finished_runs(&out, &method)? {
+                let store = ParamStore::<f64>::load(&dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
+                result.runs.append(&mut evaluate_run(&dir, seed)?);
+                result.sds.extend(learned_sds(&store, &test));
+                result.curves.push(read_eval_curve(&dir, "test_mll")?);
+                if let (Ok(a), Ok(p)) = (read_eval_curve(&dir, "sd_accel"), read_eval_curve(&dir, "sd_pinch")) {
+                    result.sd_curves.push((a, p));
+                }
+                result.seconds += train_seconds(&dir).unwrap_or(0.0);
+            }
+            if !result.runs.is_empty() {
+                all.push(result);
+            }
+        }
         write_outputs(args, &out, &scale, &all, started.elapsed().as_secs_f64())?;
     }
     cluster.print_traffic();
     Ok(())
+}
+
+/// The methods of the table: every method of the default list, in its order,
+/// then any other of `requested`.
+fn table_methods(requested: &[String]) -> Vec<String> {
+    let mut methods: Vec<String> = DEFAULT_METHODS.split(',').map(str::to_string).collect();
+    methods.extend(requested.iter().filter(|m| !DEFAULT_METHODS.split(',').any(|d| d == m.as_str())).cloned());
+    methods
+}
+
+/// `method`'s finished runs in `out/runs` (those with final metrics), as
+/// `(seed, directory)` in the order of their seeds.
+fn finished_runs(out: &Path, method: &str) -> Result<Vec<(u64, PathBuf)>, String> {
+    let runs = out.join("runs");
+    let entries = match std::fs::read_dir(&runs) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(format!("{}: {e}", runs.display())),
+    };
+    let prefix = format!("{method}-seed");
+    let mut found = Vec::new();
+    for entry in entries {
+        let entry = entry.map_err(|e| format!("{}: {e}", runs.display()))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(seed) = name.strip_prefix(&prefix).and_then(|k| k.parse::<u64>().ok()) else { continue };
+        if entry.path().join(FINAL_METRICS).is_file() {
+            found.push((seed, entry.path()));
+        }
+    }
+    found.sort();
+    Ok(found)
 }
 
 /// What a process other than the first does in `sefi reproduce`: train every

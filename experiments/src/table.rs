@@ -8,6 +8,11 @@ use ssm::metrics::{summarise_runs, Metrics, Summary};
 
 use crate::calibrate::FilterArgs;
 
+/// The methods a Table 1 run trains by default, in the table's order: the
+/// estimators on the bootstrap filter (the paper's setting), then PF-SEFI on the
+/// tempered filter.
+pub const DEFAULT_METHODS: &str = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered";
+
 /// The settings of a Table 1 run (`reproduce`, `experiment-c`): its scale, the
 /// methods it trains and the filters.
 #[derive(clap::Args, Clone, Debug)]
@@ -20,7 +25,7 @@ pub struct TableArgs {
     pub paper: bool,
     /// Methods to train (comma-separated): the estimators on the bootstrap filter
     /// (the paper's setting) and `pf-sefi-tempered`, PF-SEFI on the tempered filter.
-    #[arg(long, value_delimiter = ',', default_value = "pf-sefi,dpf-sgr,pfnet,pf,pf-sefi-tempered")]
+    #[arg(long, value_delimiter = ',', default_value = DEFAULT_METHODS)]
     pub methods: Vec<String>,
     /// The evaluation's filter (the same for every method and TRUE) and the
     /// tempered filter's settings.

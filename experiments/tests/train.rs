@@ -104,6 +104,13 @@ fn reproduce_quick_writes_the_table_curves_and_every_method() {
     let again = sefi(&["reproduce", "--exp", "A", "--quick", "--out", s(&dir)]);
     ok(&again);
     assert!(String::from_utf8_lossy(&again.stderr).contains("reusing"));
+    // A call for one method and seed keeps every finished run in the table.
+    ok(&sefi(&["reproduce", "--exp", "A", "--quick", "--methods", "pf", "--seeds", "1", "--out", s(&dir)]));
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("reproduce.json")).unwrap()).unwrap();
+    let methods: Vec<&str> = doc["methods"].as_array().unwrap().iter().map(|m| m["method"].as_str().unwrap()).collect();
+    assert_eq!(methods, ["TRUE", "pf-sefi", "dpf-sgr", "pfnet", "pf", "pf-sefi-tempered"]);
+    assert!(doc["methods"].as_array().unwrap()[1..].iter().all(|m| m["runs"].as_array().unwrap().len() == 2));
     let _ = std::fs::remove_dir_all(&dir);
 }
 
