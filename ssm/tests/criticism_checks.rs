@@ -70,6 +70,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
             "length_extent_ratio",
             "width_extent_ratio",
             "accel_kurtosis",
+            "accel_peakedness",
             "pinch_kurtosis",
             "edge_residual_sd",
             "across_offset_vs_speed",
@@ -84,6 +85,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
             "initial_lag",
             "yaw_reversal_fraction",
             "accel_kurtosis",
+            "accel_peakedness",
             "pinch_kurtosis",
             "los_along_residual_sd",
             "los_across_residual_sd",
@@ -93,9 +95,12 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
     let suggests = |k| checks_for(k).iter().filter_map(|d| d.suggests).collect::<Vec<_>>();
     assert_eq!(
         suggests(ObservationKind::Points),
-        ["latency", "latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel"]
+        ["latency", "latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel", "heavy_tailed_accel"]
     );
-    assert_eq!(suggests(ObservationKind::Boxes), ["latency", "latency", "heading_flip", "heavy_tailed_accel"]);
+    assert_eq!(
+        suggests(ObservationKind::Boxes),
+        ["latency", "latency", "heading_flip", "heavy_tailed_accel", "heavy_tailed_accel"]
+    );
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
         for d in checks_for(kind) {
             assert!(d.kinds.contains(&kind), "{} listed for {kind:?}", d.name);
@@ -183,13 +188,17 @@ fn accelerations_give_kurtosis_and_speed_change_sd() {
     ];
     assert!((stat(&data, &heavy, "accel_kurtosis") - 2.0).abs() < 1e-12);
     assert!((stat(&data, &heavy, "pinch_kurtosis") - 2.0).abs() < 1e-9);
+    // Geary's ratio: mean |x| = 2, sqrt(m2) = sqrt(20).
+    assert!((stat(&data, &heavy, "accel_peakedness") - 2.0 / 20f64.sqrt()).abs() < 1e-12);
     // A two-point distribution has excess kurtosis -2; accel dt = +-0.5, sd sqrt(1/3).
     let light = [sample(0, states(), actions(&[-1.0, 1.0, -1.0, 1.0]), no_points.clone())];
     assert!((stat(&data, &light, "accel_kurtosis") - -2.0).abs() < 1e-12);
+    assert!((stat(&data, &light, "accel_peakedness") - 1.0).abs() < 1e-12);
     assert!((stat(&data, &light, "speed_change_sd") - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
     // Without points every point statistic is NaN, the action ones are not.
     for (d, v) in checks_for(ObservationKind::Points).iter().zip(statistics(&data, &light)) {
-        let from_actions = ["accel_kurtosis", "pinch_kurtosis", "speed_change_sd"].contains(&d.name);
+        let from_actions =
+            ["accel_kurtosis", "accel_peakedness", "pinch_kurtosis", "speed_change_sd"].contains(&d.name);
         assert_eq!(v.is_finite(), from_actions, "{} = {v}", d.name);
     }
 }

@@ -8,11 +8,12 @@ use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor, Var};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
+use ssm::criticism::checks::geary_ratio;
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Action, Dataset, ObservationKind, State};
 use ssm::filter::{run_filter, FilterConfig, Sampling};
 use ssm::models::extended::{
-    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension,
+    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension, GAUSSIAN_GEARY_RATIO,
 };
 use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
 use ssm::models::road_user::VehicleSsm;
@@ -225,7 +226,38 @@ impl ModelVisitor for Sampler {
         assert!((m2 - 1.0).abs() < 0.02, "variance {m2}");
         let want = mixture_excess_kurtosis(0.1, 5.0);
         assert!((m4 / (m2 * m2) - 3.0 - want).abs() < 0.15 * want, "kurtosis {} vs {want}", m4 / (m2 * m2) - 3.0);
+        // Geary's ratio of the draws is the mixture's (the `accel_peakedness` check's statistic).
+        assert!((geary_ratio(&z) - mixture_geary(0.1, 5.0)).abs() < 0.005, "Geary {}", geary_ratio(&z));
     }
+}
+
+/// Geary's ratio `E|x| / sqrt(E x^2)` of a centred two-normal scale mixture:
+/// fraction `p` at `r` times the sd of the rest.
+fn mixture_geary(p: f64, r: f64) -> f64 {
+    GAUSSIAN_GEARY_RATIO * ((1.0 - p) + p * r) / ((1.0 - p) + p * r * r).sqrt()
+}
+
+#[test]
+fn heavy_tail_start_has_the_peakedness_the_check_part_measured() {
+    let ext = Extension::HeavyTailedAccel;
+    // Without a kurtosis above the replicates', the start comes from Geary's ratio
+    // below them: 5% of draws at the ratio whose mixture has the measured ratio.
+    for d in [-0.01, -0.04, -0.1] {
+        let raw = ext.initial_from_checks(&[("accel_kurtosis", -0.3), ("accel_peakedness", d)]);
+        let v = ext.natural(raw.data()).unwrap();
+        let (p, r) = (v[0].1, v[1].1);
+        assert!((p - 0.05).abs() < 1e-9, "fraction {p}");
+        assert!((mixture_geary(p, r) - (GAUSSIAN_GEARY_RATIO + d)).abs() < 1e-6, "ratio {r} for {d}");
+    }
+    // A measured kurtosis takes precedence; nothing measured leaves the default start.
+    let from_kurtosis = ext.initial_from_checks(&[("accel_kurtosis", 2.0), ("accel_peakedness", -0.1)]);
+    assert_eq!(from_kurtosis, ext.initial_from_checks(&[("accel_kurtosis", 2.0)]));
+    assert_eq!(ext.initial_from_checks(&[("accel_peakedness", 0.02)]), ext.initial());
+    // A Gaussian sample has the Gaussian's ratio.
+    let mut rng = SmallRng::seed_from_u64(9);
+    let z: Vec<f64> =
+        (0..200_000).map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng)).collect();
+    assert!((geary_ratio(&z) - GAUSSIAN_GEARY_RATIO).abs() < 0.003, "{}", geary_ratio(&z));
 }
 
 #[test]

@@ -69,7 +69,7 @@ const fn check(
 }
 
 /// Every check, in the order [`checks_for`] and [`statistics`] use.
-static CHECKS: [Check; 15] = [
+static CHECKS: [Check; 16] = [
     check(
         "along_offset_vs_speed",
         "Least-squares slope, over observed object-steps, of the observation's mean offset along the heading \
@@ -127,6 +127,15 @@ static CHECKS: [Check; 15] = [
         BOTH,
         Some("heavy_tailed_accel"),
         accel_kurtosis,
+    ),
+    check(
+        "accel_peakedness",
+        "Geary's ratio, mean |x| / sqrt(mean x^2), of the same standardised acceleration innovations (unitless; \
+         sqrt(2/pi) = 0.798 for a Gaussian, lower for heavier tails). Set by the bulk of the innovations, not by \
+         the few largest, which a smoother under a Gaussian policy spreads over neighbouring steps.",
+        BOTH,
+        Some("heavy_tailed_accel"),
+        accel_peakedness,
     ),
     check(
         "pinch_kurtosis",
@@ -353,6 +362,14 @@ fn accel_kurtosis(view: &View) -> f64 {
     }
 }
 
+fn accel_peakedness(view: &View) -> f64 {
+    if view.innovations.is_empty() {
+        geary_ratio(&view.accels)
+    } else {
+        geary_ratio(&view.innovations)
+    }
+}
+
 fn pinch_kurtosis(view: &View) -> f64 {
     excess_kurtosis(&view.pinches)
 }
@@ -433,6 +450,20 @@ fn excess_kurtosis(xs: &[f64]) -> f64 {
         f64::NAN
     } else {
         m4 / (m2 * m2) - 3.0
+    }
+}
+
+/// Geary's ratio `mean |x - m| / sqrt(mean (x - m)^2)` (denominator `n`):
+/// `sqrt(2 / pi)` for a Gaussian, lower for heavier tails. NaN below 4 values
+/// or without spread.
+pub fn geary_ratio(xs: &[f64]) -> f64 {
+    let m = mean(xs.iter().copied());
+    let m1 = mean(xs.iter().map(|x| (x - m).abs()));
+    let m2 = mean(xs.iter().map(|x| (x - m).powi(2)));
+    if xs.len() < 4 || m2 <= 0.0 {
+        f64::NAN
+    } else {
+        m1 / m2.sqrt()
     }
 }
 

@@ -183,7 +183,8 @@ impl Extension {
     /// `initial_lag` (about minus the delay) and reversed headings in
     /// `yaw_reversal_fraction` (the excess fraction), so those extensions start
     /// there; heavy tails start at 5% of draws with the sd ratio whose mixture has
-    /// the excess kurtosis `accel_kurtosis` measured beyond the replicates. The
+    /// the excess kurtosis `accel_kurtosis` measured beyond the replicates (or,
+    /// without one, the Geary ratio `accel_peakedness` measured below them). The
     /// others (and these without their check) start at [`Extension::initial`].
     /// Training then takes it from there.
     pub fn initial_from_checks(self, discrepancies: &[(&str, f64)]) -> Tensor<f64> {
@@ -201,13 +202,20 @@ impl Extension {
                 Some(excess) if excess > INITIAL_FRACTION => Tensor::from_vec(vec![logit(excess.min(0.5))]),
                 _ => self.initial(),
             },
-            Extension::HeavyTailedAccel => match find("accel_kurtosis") {
-                Some(excess) if excess > 0.0 => {
-                    let ratio = tail_ratio_for_kurtosis(KURTOSIS_START_FRACTION, excess);
-                    Tensor::from_vec(vec![logit(KURTOSIS_START_FRACTION), (ratio - 1.0).ln() / LOG_SCALE])
+            Extension::HeavyTailedAccel => {
+                let from_kurtosis = find("accel_kurtosis")
+                    .filter(|&excess| excess > 0.0)
+                    .map(|excess| tail_ratio_for_kurtosis(KURTOSIS_START_FRACTION, excess));
+                let from_peakedness = find("accel_peakedness")
+                    .filter(|&d| d < 0.0)
+                    .map(|d| tail_ratio_for_geary(KURTOSIS_START_FRACTION, GAUSSIAN_GEARY_RATIO + d));
+                match from_kurtosis.or(from_peakedness) {
+                    Some(ratio) => {
+                        Tensor::from_vec(vec![logit(KURTOSIS_START_FRACTION), (ratio - 1.0).ln() / LOG_SCALE])
+                    }
+                    None => self.initial(),
                 }
-                _ => self.initial(),
-            },
+            }
             _ => self.initial(),
         }
     }
@@ -990,6 +998,30 @@ pub(crate) fn state_at(states: &[f32], n: usize, i: usize) -> State {
     let c = |k: usize| states[k * n + i] as f64;
     debug_assert!(states.len() >= STATE_DIM * n);
     State { x: c(0), y: c(1), yaw: c(YAW), v: c(3), kappa: c(4) }
+}
+
+/// Geary's ratio `E|x| / sqrt(E x^2)` of a Gaussian: `sqrt(2 / pi)`.
+pub const GAUSSIAN_GEARY_RATIO: f64 = 0.797_884_560_802_865_4;
+
+/// The sd ratio `r` at which a scale mixture of two centred normals, fraction
+/// `p` at `r` times the sd of the rest, has Geary's ratio `target` (clamped to
+/// `[1, MAX_INITIAL_TAIL_RATIO]`): `sqrt(2/pi) ((1-p) + p r) / sqrt((1-p) + p r^2)`,
+/// which falls from the Gaussian's as `r` grows (for `p` below one half).
+fn tail_ratio_for_geary(p: f64, target: f64) -> f64 {
+    let geary = |r: f64| GAUSSIAN_GEARY_RATIO * ((1.0 - p) + p * r) / ((1.0 - p) + p * r * r).sqrt();
+    let (mut lo, mut hi) = (1.0, MAX_INITIAL_TAIL_RATIO);
+    if geary(hi) >= target {
+        return hi;
+    }
+    for _ in 0..60 {
+        let mid = 0.5 * (lo + hi);
+        if geary(mid) > target {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    (0.5 * (lo + hi)).max(1.0 + 1e-3)
 }
 
 /// The sd ratio `r` for which a scale mixture of normals, `1 - p` at sd 1 and `p`
