@@ -65,7 +65,7 @@ use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
 use ssm::models::params::{Models, ObservationVisitor};
 use ssm::supervised::{fit_observation, SupervisedReport};
-use ssm::training::{PARAMS_FILE, TRAIN_LOG};
+use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
 use crate::calibrate::check_method;
 use crate::cluster::Cluster;
@@ -231,6 +231,8 @@ struct Row {
     /// Training steps, skipped steps and collapsed filter steps summed over training.
     steps: Option<usize>,
     skipped_steps: Option<usize>,
+    /// Why steps were skipped: each reason of the run's skip log with its count.
+    skip_reasons: Vec<(String, usize)>,
     train_collapsed_steps: Option<usize>,
     /// Wall time of training, summed over resumed sessions (or of the supervised fit).
     train_seconds: Option<f64>,
@@ -335,6 +337,27 @@ fn train_log_totals(dir: &Path) -> Result<(usize, usize), String> {
     Ok((s, c))
 }
 
+/// Each reason of a run's skip log with the number of steps it skipped, most
+/// frequent first (none for a run without the log, written before it existed).
+fn skip_reasons(dir: &Path) -> Result<Vec<(String, usize)>, String> {
+    let path = dir.join(SKIP_LOG);
+    if !path.is_file() {
+        return Ok(Vec::new());
+    }
+    let mut reader = csv::Reader::from_path(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let mut counts: Vec<(String, usize)> = Vec::new();
+    for row in reader.records() {
+        let row = row.map_err(|e| format!("{}: {e}", path.display()))?;
+        let reason = row.get(2).unwrap_or("").to_string();
+        match counts.iter_mut().find(|(r, _)| *r == reason) {
+            Some((_, n)) => *n += 1,
+            None => counts.push((reason, 1)),
+        }
+    }
+    counts.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    Ok(counts)
+}
+
 /// The training data's batches per epoch and the steps between evaluations.
 fn schedule(scale: &Scale, train_scenes: usize) -> (usize, usize) {
     let batches = train_scenes.div_ceil(scale.scenes_per_step);
@@ -430,6 +453,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         train_aotll: aotll_on(&train_data, &init),
         steps: None,
         skipped_steps: None,
+        skip_reasons: Vec::new(),
         train_collapsed_steps: None,
         train_seconds: None,
         eval_seconds: clock.elapsed().as_secs_f64(),
@@ -462,6 +486,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
             train_aotll: aotll_on(&train_data, &models),
             steps: Some(outcome.steps),
             skipped_steps: Some(outcome.skipped_steps),
+            skip_reasons: skip_reasons(&dir)?,
             train_collapsed_steps: Some(collapsed),
             train_seconds: Some(outcome.seconds),
             eval_seconds: clock.elapsed().as_secs_f64(),
@@ -502,6 +527,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         train_aotll: aotll_on(&train_data, &supervised),
         steps: Some(report.steps),
         skipped_steps: Some(report.skipped),
+        skip_reasons: Vec::new(),
         train_collapsed_steps: None,
         train_seconds: Some(fit_seconds),
         eval_seconds: clock.elapsed().as_secs_f64(),
@@ -543,6 +569,16 @@ fn validity_notes(rows: &[Row]) -> String {
     let mut notes = String::new();
     let bound = BoxObservationModel::max_log_density();
     for r in rows {
+        if !r.skip_reasons.is_empty() {
+            let reasons: Vec<String> = r.skip_reasons.iter().map(|(why, n)| format!("{n}: {why}")).collect();
+            let _ = writeln!(
+                notes,
+                "\n{}: {} training steps skipped, each before it reached the parameters ({}).",
+                r.method,
+                r.skip_reasons.iter().map(|x| x.1).sum::<usize>(),
+                reasons.join("; ")
+            );
+        }
         let bad_states = r.runs.iter().any(|m| m.smoothed.ade.is_some_and(|a| !a.is_finite()));
         let over: Vec<f64> = r.runs.iter().filter_map(|m| m.mll).filter(|&v| v > bound).collect();
         if bad_states {

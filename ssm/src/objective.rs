@@ -32,7 +32,7 @@ use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::GaussianPolicy;
 use crate::models::DifferentiableModel;
 use crate::reduce::{assign_blocks, Collective, SingleProcess};
-use crate::training::{non_finite, BatchEstimate, EstimateError, Objective};
+use crate::training::{BatchEstimate, EstimateError, Objective};
 
 /// How the objective estimates and evaluates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -232,10 +232,9 @@ impl Objective for SceneObjective {
             seed,
         };
         let (partial, names) = models.visit(&self.batches[batch], visit)??;
+        // A non-finite estimate goes to the trainer as it is: it skips the step
+        // and records which parameters' gradients were not finite.
         let estimate = partial.reduce(&*self.comm);
-        if !estimate.is_finite() {
-            return Err(non_finite(format!("score estimate on batch {batch}")));
-        }
         let units = estimate.observed_units.max(1) as f64;
         let mut gradient = gradient_in_store_order(params, &names, estimate.gradient)?;
         let learned = self.config.extension.filter(|_| self.config.extension_only).map(|e| e.param_name());

@@ -13,7 +13,7 @@ use rand::SeedableRng;
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::training::{
     non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError, TrainEvent,
-    CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, TRAIN_LOG, TRAIN_LOG_HEADER,
+    CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, SKIP_LOG, TRAIN_LOG, TRAIN_LOG_HEADER,
 };
 
 /// The data's parameters: `(phi, ln s_v, ln s_w)`.
@@ -385,6 +385,17 @@ fn non_finite_estimates_are_skipped_counted_and_logged() {
     assert!(column(&rows, "log_likelihood")[i].parse::<f64>().unwrap().is_finite());
     let j = batch.iter().position(|b| b == "2").unwrap();
     assert_eq!(column(&rows, "log_likelihood")[j], "NaN");
+    // Every skip has its reason in the skip log: the parameter whose gradient was
+    // not finite, or the estimate's own message.
+    let skips = self::rows(&dir.path().join(SKIP_LOG));
+    assert_eq!(skips.len(), 10);
+    for row in &skips {
+        let step: usize = row[0].parse().unwrap();
+        assert_eq!(skipped[step - 1], "1", "step {step}");
+        assert_eq!(row[1], batch[step - 1]);
+        let want = if row[1] == "1" { "gradient not finite in theta" } else { "all log-weights are -inf" };
+        assert_eq!(row[2], want, "step {step}");
+    }
     // Training still made progress on the healthy batches.
     assert!(obj.inner.total_score(theta_of(&out.params).to_array()).0 > obj.inner.total_score(START).0);
 }

@@ -13,8 +13,8 @@
 //!   and a resumed run repeats exactly what an uninterrupted one would have done.
 //! * **Non-finite estimates never reach the parameters.** A gradient holding NaN or
 //!   an infinity, a non-finite log-likelihood, or an [`EstimateError::NonFinite`]
-//!   from `estimate` skips the step (counted, marked in the log); any other error
-//!   aborts training with the step named.
+//!   from `estimate` skips the step (counted, marked in the log, and its reason
+//!   written to [`SKIP_LOG`]); any other error aborts training with the step named.
 //! * **Clipping.** With `clip` set the global norm of the score is clipped before
 //!   the update; the log records the norm before clipping.
 //! * **Files in `out_dir`.** [`TRAIN_LOG`] (one row per step, header
@@ -97,6 +97,14 @@ pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
 pub const PARAMS_FILE: &str = "params.bin";
 /// Format version of [`CHECKPOINT_FILE`] (checked by [`autodiff::nn::read_versioned`]).
 pub const CHECKPOINT_VERSION: u32 = 2;
+/// Why each skipped step was skipped: one row per skip (header
+/// [`SKIP_LOG_HEADER`]), created with the train log, cut back on resume as it is.
+pub const SKIP_LOG: &str = "skipped.csv";
+
+/// Columns of [`SKIP_LOG`]: the step, its batch and the reason in words (e.g.
+/// `gradient not finite in policy.0.w, policy.2.b`).
+pub const SKIP_LOG_HEADER: [&str; 3] = ["step", "batch", "reason"];
+
 /// Columns of [`TRAIN_LOG`].
 ///
 /// `step` counts from 1; `epoch` counts from 0; `batch` is the objective's batch
@@ -237,6 +245,7 @@ struct Run<'a, O: Objective + ?Sized> {
     /// that writes no files).
     train_log: Option<CsvLog>,
     eval_log: Option<CsvLog>,
+    skip_log: Option<CsvLog>,
     /// Whether this process writes the run's files ([`Objective::is_root`]).
     writes: bool,
 }
@@ -251,6 +260,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
         let t0 = Instant::now();
         let estimate_err = |message: String| TrainError::Estimate { step, batch, message };
         let seed = step_seed(self.config.seed, step);
+        let mut skip_reason = None;
         let (ll, units, collapsed, grad_norm, clipped, skipped) =
             match self.objective.estimate(&self.params, batch, seed) {
                 Ok(est) => {
@@ -274,6 +284,9 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                     // Checked before clipping: scaling by a NaN norm would poison
                     // every coordinate.
                     let finite = est.log_likelihood.is_finite() && grad.iter().all(|g| g.all_finite());
+                    if !finite {
+                        skip_reason = Some(non_finite_reason(est.log_likelihood, &self.params, &grad));
+                    }
                     let norm = match self.config.clip {
                         Some(c) if finite => clip_global_norm(&mut grad, c),
                         _ => global_norm(&grad),
@@ -288,17 +301,27 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                         self.adam.lr = self.config.lr_at(step, self.config.epochs * self.batches);
                         match self.adam.step(&mut self.params, &grad) {
                             Ok(()) => {}
-                            Err(StepError::NonFinite) => skipped = true,
+                            Err(StepError::NonFinite) => {
+                                skipped = true;
+                                skip_reason = Some("update not finite".to_string());
+                            }
                             Err(e @ StepError::Layout(_)) => return Err(estimate_err(e.to_string())),
                         }
                     }
                     (est.log_likelihood, est.observed_units, est.collapsed_steps, norm, clipped, skipped)
                 }
-                Err(EstimateError::NonFinite(_)) => (f64::NAN, 0, 0, f64::NAN, false, true),
+                Err(EstimateError::NonFinite(detail)) => {
+                    skip_reason = Some(detail);
+                    (f64::NAN, 0, 0, f64::NAN, false, true)
+                }
                 Err(EstimateError::Failed(message)) => return Err(estimate_err(message)),
             };
         if skipped {
             self.skipped += 1;
+            if let Some(log) = self.skip_log.as_mut() {
+                let reason = skip_reason.unwrap_or_else(|| "not finite".to_string());
+                log.row(&[step.to_string(), batch.to_string(), reason])?;
+            }
         }
         let ll_per_unit = per_unit(ll, units);
         let flag = |b: bool| if b { "1" } else { "0" }.to_string();
@@ -407,6 +430,7 @@ pub fn train(
     let started = Instant::now();
     let ckpt_path = out_dir.join(CHECKPOINT_FILE);
     let train_header: Vec<String> = TRAIN_LOG_HEADER.iter().map(|s| s.to_string()).collect();
+    let skip_header: Vec<String> = SKIP_LOG_HEADER.iter().map(|s| s.to_string()).collect();
 
     let (mut run, done) = if resume {
         let ckpt = Checkpoint::load(&ckpt_path)?;
@@ -433,13 +457,15 @@ pub fn train(
             });
         }
         let eval_header: Vec<String> = std::iter::once("step".to_string()).chain(ckpt.eval_names.clone()).collect();
-        let (train_log, eval_log) = if writes {
+        let (train_log, eval_log, skip_log) = if writes {
             (
                 Some(truncate_log(&out_dir.join(TRAIN_LOG), &train_header, ckpt.step)?),
                 Some(truncate_log(&out_dir.join(EVAL_LOG), &eval_header, ckpt.step)?),
+                // Runs written before the skip log existed get one from here on.
+                Some(truncate_log(&out_dir.join(SKIP_LOG), &skip_header, ckpt.step)?),
             )
         } else {
-            (None, None)
+            (None, None, None)
         };
         let run = Run {
             objective,
@@ -455,11 +481,12 @@ pub fn train(
             started,
             train_log,
             eval_log,
+            skip_log,
             writes,
         };
         (run, ckpt.step)
     } else {
-        for name in [CHECKPOINT_FILE, TRAIN_LOG, EVAL_LOG, PARAMS_FILE] {
+        for name in [CHECKPOINT_FILE, TRAIN_LOG, EVAL_LOG, SKIP_LOG, PARAMS_FILE] {
             let path = out_dir.join(name);
             if writes && path.exists() {
                 return Err(TrainError::Exists { path });
@@ -479,6 +506,7 @@ pub fn train(
             started,
             train_log: None,
             eval_log: None,
+            skip_log: None,
             writes,
         };
         (run, 0)
@@ -491,6 +519,7 @@ pub fn train(
         on_event(&run.evaluate(0)?);
         if writes {
             run.train_log = Some(CsvLog::create(&out_dir.join(TRAIN_LOG), &train_header)?);
+            run.skip_log = Some(CsvLog::create(&out_dir.join(SKIP_LOG), &skip_header)?);
         }
         on_event(&run.checkpoint(0)?);
     }
@@ -519,4 +548,19 @@ pub fn train(
         steps_run: total - done,
         params: run.params,
     })
+}
+
+/// Why an estimate is not finite, in words: the log-likelihood's value and the
+/// parameters whose gradient holds NaN or an infinity.
+fn non_finite_reason(log_likelihood: f64, params: &ParamStore<f64>, grad: &[Tensor<f64>]) -> String {
+    let mut parts = Vec::new();
+    if !log_likelihood.is_finite() {
+        parts.push(format!("log-likelihood {log_likelihood}"));
+    }
+    let names: Vec<&str> =
+        params.iter().zip(grad).filter(|(_, g)| !g.all_finite()).map(|((name, _), _)| name).collect();
+    if !names.is_empty() {
+        parts.push(format!("gradient not finite in {}", names.join(", ")));
+    }
+    parts.join("; ")
 }
