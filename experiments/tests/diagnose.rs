@@ -36,6 +36,17 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     let origin_steps = report["config"]["tempering"]["origin_steps"].as_u64();
     assert_eq!(origin_steps, Some(if extra.contains(&"--boxes") { 8 } else { 0 }), "tempering by the data's kind");
     assert_eq!(report["config"]["train_tempering"]["origin_steps"].as_u64(), Some(0), "training without origin moves");
+    // Candidates are compared with the base refitted alone as they were refitted:
+    // a reference with its own checks whenever any candidate was fitted.
+    let candidates = report["candidates"].as_array().unwrap();
+    assert_eq!(report["config"]["refit"], true);
+    assert_eq!(report["reference"].is_object(), !candidates.is_empty(), "{}", summary(&report));
+    if let Some(reference) = report["reference"].as_object() {
+        let n = report["checks"].as_array().unwrap().len();
+        assert_eq!(reference["checks"].as_array().unwrap().len(), n);
+        assert!(candidates.iter().all(|c| c["checks_after"].as_array().unwrap().len() == n));
+        assert!(out.join("reference").join("train.csv").is_file(), "the reference's training run");
+    }
     (report, out)
 }
 
