@@ -276,6 +276,61 @@ fn heading_flip_reverses_the_asked_fraction_of_detections() {
     assert_eq!(none, 0.0, "no flips without the effect");
 }
 
+/// Mean over scene-steps of the products of two objects' residuals (detection
+/// minus truth: x, y and heading), over every pair of objects seen at the same
+/// step of the same scene, with their standard error: what the objects of one
+/// step share.
+fn shared_residuals(d: &Dataset) -> [(f64, f64); 3] {
+    let boxes = d.boxes().unwrap();
+    let mut by_step: std::collections::BTreeMap<(usize, usize), Vec<[f64; 3]>> = Default::default();
+    for (o, t, b) in boxes.iter() {
+        let x = truth(d, o, t);
+        let dyaw = ssm::models::observation::boxes::wrap_angle(b.yaw - x.yaw);
+        by_step.entry((d.object_scene(o), t)).or_default().push([b.x - x.x, b.y - x.y, dyaw]);
+    }
+    let mut products: [Vec<f64>; 3] = Default::default();
+    for residuals in by_step.values() {
+        for (i, a) in residuals.iter().enumerate() {
+            for b in &residuals[i + 1..] {
+                for k in 0..3 {
+                    products[k].push(a[k] * b[k]);
+                }
+            }
+        }
+    }
+    products.map(|p| {
+        let n = p.len() as f64;
+        let m = p.iter().sum::<f64>() / n;
+        let sd = (p.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        (m, sd / n.sqrt())
+    })
+}
+
+#[test]
+fn ego_pose_noise_moves_every_object_of_a_step_together() {
+    // Position errors only: the objects of one step share a shift of variance sd^2
+    // per axis (the detector's own noise is independent between objects).
+    let sd = 0.3;
+    let shifted = data(BOXES, HiddenEffect::EgoPoseNoise { position_sd: sd, yaw_sd: 0.0 }, 7);
+    let [x, y, yaw] = shared_residuals(&shifted);
+    for (axis, (m, se)) in [("x", x), ("y", y)] {
+        assert!((m - sd * sd).abs() < Z * se, "{axis}: shared {m} +- {se}, want {}", sd * sd);
+    }
+    assert!(yaw.0.abs() < Z * yaw.1, "heading: {yaw:?}");
+    // A heading error turns every detection's heading by the same angle.
+    let yaw_sd = 0.05;
+    let turned = data(BOXES, HiddenEffect::EgoPoseNoise { position_sd: 0.0, yaw_sd }, 8);
+    let [_, _, yaw] = shared_residuals(&turned);
+    assert!((yaw.0 - yaw_sd * yaw_sd).abs() < Z * yaw.1, "heading: shared {yaw:?}, want {}", yaw_sd * yaw_sd);
+    // Without the effect the objects share nothing.
+    for (m, se) in shared_residuals(&data(BOXES, HiddenEffect::None, 7)) {
+        assert!(m.abs() < Z * se, "control: {m} +- {se}");
+    }
+    // Point data with it are valid data too.
+    let points = data(POINTS, effect("ego_pose_noise"), 9);
+    assert!(!points.points().unwrap().is_empty());
+}
+
 #[test]
 fn box_generator_noise_is_as_documented() {
     // Laplace offsets: E|X| = b and sd(|X|) = b, so mean(|offset| / b) is 1 with
@@ -317,6 +372,7 @@ fn effects_by_id_have_their_defaults_and_unknown_ids_are_errors() {
     assert_eq!(effect("size_bias"), HiddenEffect::SizeBias { length_factor: 1.25, width_factor: 1.15 });
     assert_eq!(effect("heavy_tailed_accel"), HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 10.0 });
     assert_eq!(effect("heading_flip"), HiddenEffect::HeadingFlip { fraction: 0.2 });
+    assert_eq!(effect("ego_pose_noise"), HiddenEffect::EgoPoseNoise { position_sd: 0.1, yaw_sd: 0.01 });
     let msg = HiddenEffect::by_id("wobble").unwrap_err().to_string();
     assert!(msg.contains("wobble") && HIDDEN_EFFECT_IDS.iter().all(|id| msg.contains(id)), "{msg}");
     assert_eq!(effect("none").applies_to(), None);

@@ -62,9 +62,20 @@ use crate::synthetic::{
     SyntheticScene,
 };
 
-/// The catalogue ids of the hidden effects, in catalogue order (`none` first).
-pub const HIDDEN_EFFECT_IDS: [&str; 7] =
-    ["none", "latency", "clutter", "size_bias", "heavy_tailed_accel", "student_t_accel", "heading_flip"];
+/// The ids of the hidden effects, in catalogue order (`none` first), then the
+/// effects that no catalogue extension models (`student_t_accel`, another tail
+/// family than the catalogue's, is meant to be named `heavy_tailed_accel`;
+/// `ego_pose_noise` is meant to be named by none).
+pub const HIDDEN_EFFECT_IDS: [&str; 8] = [
+    "none",
+    "latency",
+    "clutter",
+    "size_bias",
+    "heavy_tailed_accel",
+    "student_t_accel",
+    "heading_flip",
+    "ego_pose_noise",
+];
 
 /// Range of the objects' prior mean positions from the AV (m): nearer than the
 /// paper's 5–50 m, so that every object receives plenty of points.
@@ -130,6 +141,19 @@ pub enum HiddenEffect {
         /// Probability that a detection is flipped (in `[0, 1]`).
         fraction: f64,
     },
+    /// An effect outside the catalogue: the observer's own pose is noisy. At each
+    /// step of a scene the sensor sits at the stated AV pose moved by Gaussian
+    /// errors (`position_sd` in x and y, `yaw_sd` in heading), and every object's
+    /// observations of that step are recorded as if it sat at the stated pose: one
+    /// rigid shift of the whole scene, larger far away (range times the yaw error).
+    /// No catalogue extension models it; a diagnosis should call it `unexplained`
+    /// (or `none` when too weak to see), never a catalogue cause.
+    EgoPoseNoise {
+        /// Sd of the sensor's position error, per axis (m, finite, >= 0).
+        position_sd: f64,
+        /// Sd of its heading error (rad, finite, >= 0).
+        yaw_sd: f64,
+    },
 }
 
 fn config_err(m: impl Into<String>) -> SyntheticError {
@@ -164,6 +188,7 @@ impl HiddenEffect {
             HiddenEffect::HeavyTailedAccel { .. } => "heavy_tailed_accel",
             HiddenEffect::StudentTAccel { .. } => "student_t_accel",
             HiddenEffect::HeadingFlip { .. } => "heading_flip",
+            HiddenEffect::EgoPoseNoise { .. } => "ego_pose_noise",
         }
     }
 
@@ -189,8 +214,9 @@ impl HiddenEffect {
     /// 0.9); extents off by `25%` and `15%` times it; a wide component of `10%` of
     /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t with
     /// `2 + 3 / strength` degrees of freedom (5 at 1, heavier when stronger); a flip
-    /// fraction of `0.2` times it (at most 0.5). Fails for an unknown id or a
-    /// strength that is not positive and finite.
+    /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.1 m`
+    /// and `0.01 rad` (sds) times it. Fails for an unknown id or a strength that is
+    /// not positive and finite.
     ///
     /// ```
     /// use ssm::criticism::hidden::HiddenEffect;
@@ -211,6 +237,7 @@ impl HiddenEffect {
             "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 1.0 + 9.0 * s },
             "student_t_accel" => HiddenEffect::StudentTAccel { dof: 2.0 + 3.0 / s },
             "heading_flip" => HiddenEffect::HeadingFlip { fraction: (0.2 * s).min(0.5) },
+            "ego_pose_noise" => HiddenEffect::EgoPoseNoise { position_sd: 0.1 * s, yaw_sd: 0.01 * s },
             _ => {
                 return Err(config_err(format!(
                     "unknown hidden effect `{id}` (known: {})",
@@ -226,7 +253,8 @@ impl HiddenEffect {
             HiddenEffect::None
             | HiddenEffect::Latency { .. }
             | HiddenEffect::HeavyTailedAccel { .. }
-            | HiddenEffect::StudentTAccel { .. } => None,
+            | HiddenEffect::StudentTAccel { .. }
+            | HiddenEffect::EgoPoseNoise { .. } => None,
             HiddenEffect::Clutter { .. } | HiddenEffect::SizeBias { .. } => Some(ObservationKind::Points),
             HiddenEffect::HeadingFlip { .. } => Some(ObservationKind::Boxes),
         }
@@ -264,6 +292,14 @@ impl HiddenEffect {
                 }
             }
             HiddenEffect::HeadingFlip { fraction } => check_fraction("heading_flip: fraction", fraction),
+            HiddenEffect::EgoPoseNoise { position_sd, yaw_sd } => {
+                for (what, v) in [("position_sd", position_sd), ("yaw_sd", yaw_sd)] {
+                    if !(v.is_finite() && v >= 0.0) {
+                        return Err(config_err(format!("ego_pose_noise: {what} must be finite and >= 0, got {v}")));
+                    }
+                }
+                Ok(())
+            }
         }
     }
 }
@@ -551,6 +587,14 @@ fn simulate_hidden_scene(
     let mut detections = Vec::with_capacity(n);
     let points = PointGenerator::default();
     let boxes = BoxGenerator::default();
+    // The sensor's pose errors, one per step, shared by every object of the scene
+    // (drawn only for that effect, so other datasets' draws are unchanged).
+    let ego: Vec<EgoError> = match config.effect {
+        HiddenEffect::EgoPoseNoise { position_sd, yaw_sd } => {
+            (0..steps).map(|_| EgoError::draw(position_sd, yaw_sd, rng)).collect()
+        }
+        _ => Vec::new(),
+    };
     for k in 0..n {
         let (start, k) = (scene.av[0], k as i64);
         let SimulatedObject { object, states, actions } = match config.effect {
@@ -573,13 +617,24 @@ fn simulate_hidden_scene(
         };
         match config.kind {
             ObservationKind::Points => {
-                let per_step =
-                    states.iter().enumerate().map(|(t, x)| hidden_points(&points, config.effect, &ctx_of(t), x, rng));
+                let per_step = states.iter().enumerate().map(|(t, x)| {
+                    let mut pts = hidden_points(&points, config.effect, &ctx_of(t), x, rng);
+                    if let Some(e) = ego.get(t) {
+                        pts.iter_mut().for_each(|p| *p = e.recorded(scene.av[t], *p));
+                    }
+                    pts
+                });
                 scene.points.push(per_step.collect());
             }
             ObservationKind::Boxes => {
-                let per_step =
-                    states.iter().enumerate().map(|(t, x)| hidden_box(&boxes, config.effect, &ctx_of(t), x, rng));
+                let per_step = states.iter().enumerate().map(|(t, x)| {
+                    let mut d = hidden_box(&boxes, config.effect, &ctx_of(t), x, rng);
+                    if let (Some(e), Some(d)) = (ego.get(t), d.as_mut()) {
+                        [d.x, d.y] = e.recorded(scene.av[t], [d.x, d.y]);
+                        d.yaw = wrap_angle(d.yaw - e.yaw);
+                    }
+                    d
+                });
                 detections.push(per_step.collect());
                 scene.points.push(vec![Vec::new(); steps]);
             }
@@ -589,6 +644,39 @@ fn simulate_hidden_scene(
         scene.actions.push(actions);
     }
     Ok((scene, detections))
+}
+
+/// The error of the sensor's pose at one step ([`HiddenEffect::EgoPoseNoise`]):
+/// the sensor sits at the stated AV pose moved by `(dx, dy)` and turned by `yaw`.
+#[derive(Clone, Copy, Debug)]
+struct EgoError {
+    dx: f64,
+    dy: f64,
+    yaw: f64,
+}
+
+impl EgoError {
+    /// Draws the position errors, then the heading error.
+    fn draw(position_sd: f64, yaw_sd: f64, rng: &mut StdRng) -> EgoError {
+        let mut normal = || rng.sample::<f64, _>(StandardNormal);
+        let (dx, dy) = (position_sd * normal(), position_sd * normal());
+        EgoError { dx, dy, yaw: yaw_sd * normal() }
+    }
+
+    /// Where a world point `p` is recorded: the sensor measures it from its true
+    /// pose (the stated `av` moved by this error), and the measurement is put back
+    /// into the world from the stated pose.
+    fn recorded(&self, av: Pose, p: [f64; 2]) -> [f64; 2] {
+        let true_yaw = av.yaw + self.yaw;
+        let (tx, ty) = (av.x + self.dx, av.y + self.dy);
+        // In the true sensor frame.
+        let (rx, ry) = (p[0] - tx, p[1] - ty);
+        let (c, s) = (true_yaw.cos(), true_yaw.sin());
+        let (u, v) = (c * rx + s * ry, -s * rx + c * ry);
+        // Back to the world from the stated pose.
+        let (c0, s0) = (av.yaw.cos(), av.yaw.sin());
+        [av.x + c0 * u - s0 * v, av.y + s0 * u + c0 * v]
+    }
 }
 
 /// The pose the sensor sees of the true state `x` under `effect`.
