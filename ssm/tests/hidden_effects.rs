@@ -372,7 +372,7 @@ fn effects_by_id_have_their_defaults_and_unknown_ids_are_errors() {
     assert_eq!(effect("size_bias"), HiddenEffect::SizeBias { length_factor: 1.25, width_factor: 1.15 });
     assert_eq!(effect("heavy_tailed_accel"), HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 10.0 });
     assert_eq!(effect("heading_flip"), HiddenEffect::HeadingFlip { fraction: 0.2 });
-    assert_eq!(effect("ego_pose_noise"), HiddenEffect::EgoPoseNoise { position_sd: 0.1, yaw_sd: 0.01 });
+    assert_eq!(effect("ego_pose_noise"), HiddenEffect::EgoPoseNoise { position_sd: 0.2, yaw_sd: 0.02 });
     let msg = HiddenEffect::by_id("wobble").unwrap_err().to_string();
     assert!(msg.contains("wobble") && HIDDEN_EFFECT_IDS.iter().all(|id| msg.contains(id)), "{msg}");
     assert_eq!(effect("none").applies_to(), None);

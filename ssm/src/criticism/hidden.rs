@@ -214,9 +214,9 @@ impl HiddenEffect {
     /// 0.9); extents off by `25%` and `15%` times it; a wide component of `10%` of
     /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t with
     /// `2 + 3 / strength` degrees of freedom (5 at 1, heavier when stronger); a flip
-    /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.1 m`
-    /// and `0.01 rad` (sds) times it. Fails for an unknown id or a strength that is
-    /// not positive and finite.
+    /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.2 m`
+    /// and `0.02 rad` (sds) times it (0.4 m at 20 m from the AV). Fails for an
+    /// unknown id or a strength that is not positive and finite.
     ///
     /// ```
     /// use ssm::criticism::hidden::HiddenEffect;
@@ -237,7 +237,7 @@ impl HiddenEffect {
             "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 1.0 + 9.0 * s },
             "student_t_accel" => HiddenEffect::StudentTAccel { dof: 2.0 + 3.0 / s },
             "heading_flip" => HiddenEffect::HeadingFlip { fraction: (0.2 * s).min(0.5) },
-            "ego_pose_noise" => HiddenEffect::EgoPoseNoise { position_sd: 0.1 * s, yaw_sd: 0.01 * s },
+            "ego_pose_noise" => HiddenEffect::EgoPoseNoise { position_sd: 0.2 * s, yaw_sd: 0.02 * s },
             _ => {
                 return Err(config_err(format!(
                     "unknown hidden effect `{id}` (known: {})",
