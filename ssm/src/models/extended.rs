@@ -1004,42 +1004,38 @@ pub(crate) fn state_at(states: &[f32], n: usize, i: usize) -> State {
 pub const GAUSSIAN_GEARY_RATIO: f64 = 0.797_884_560_802_865_4;
 
 /// The sd ratio `r` at which a scale mixture of two centred normals, fraction
-/// `p` at `r` times the sd of the rest, has Geary's ratio `target` (clamped to
-/// `[1, MAX_INITIAL_TAIL_RATIO]`): `sqrt(2/pi) ((1-p) + p r) / sqrt((1-p) + p r^2)`,
-/// which falls from the Gaussian's as `r` grows (for `p` below one half).
+/// `p` at `r` times the sd of the rest, has Geary's ratio `target`:
+/// `sqrt(2/pi) ((1-p) + p r) / sqrt((1-p) + p r^2)`, which falls from the
+/// Gaussian's as `r` grows (for `p` below one half).
 fn tail_ratio_for_geary(p: f64, target: f64) -> f64 {
-    let geary = |r: f64| GAUSSIAN_GEARY_RATIO * ((1.0 - p) + p * r) / ((1.0 - p) + p * r * r).sqrt();
-    let (mut lo, mut hi) = (1.0, MAX_INITIAL_TAIL_RATIO);
-    if geary(hi) >= target {
-        return hi;
-    }
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if geary(mid) > target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    (0.5 * (lo + hi)).max(1.0 + 1e-3)
+    // Solved for its negative, which rises with r.
+    tail_ratio_where(|r| -GAUSSIAN_GEARY_RATIO * ((1.0 - p) + p * r) / ((1.0 - p) + p * r * r).sqrt(), -target)
 }
 
 /// The sd ratio `r` for which a scale mixture of normals, `1 - p` at sd 1 and `p`
 /// at sd `r`, has excess kurtosis `excess`:
-/// `3 ((1 - p) + p r^4) / ((1 - p) + p r^2)^2 - 3`, increasing in `r`; solved by
-/// bisection and kept in `[1, MAX_INITIAL_TAIL_RATIO]`.
+/// `3 ((1 - p) + p r^4) / ((1 - p) + p r^2)^2 - 3`, increasing in `r`.
 fn tail_ratio_for_kurtosis(p: f64, excess: f64) -> f64 {
-    let kurtosis = |r: f64| {
-        let r2 = r * r;
-        3.0 * ((1.0 - p) + p * r2 * r2) / ((1.0 - p) + p * r2).powi(2) - 3.0
-    };
+    tail_ratio_where(
+        |r| {
+            let r2 = r * r;
+            3.0 * ((1.0 - p) + p * r2 * r2) / ((1.0 - p) + p * r2).powi(2) - 3.0
+        },
+        excess,
+    )
+}
+
+/// The `r` in `[1, MAX_INITIAL_TAIL_RATIO]` where `f`, increasing, reaches
+/// `target`, by bisection: the upper end when `f` stays below it, and at least
+/// a hair above 1 (a ratio of exactly 1 is no tail at all).
+fn tail_ratio_where(f: impl Fn(f64) -> f64, target: f64) -> f64 {
     let (mut lo, mut hi) = (1.0, MAX_INITIAL_TAIL_RATIO);
-    if kurtosis(hi) <= excess {
+    if f(hi) <= target {
         return hi;
     }
     for _ in 0..60 {
         let mid = 0.5 * (lo + hi);
-        if kurtosis(mid) < excess {
+        if f(mid) < target {
             lo = mid;
         } else {
             hi = mid;
