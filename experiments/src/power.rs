@@ -12,7 +12,9 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use ssm::criticism::diagnose::{diagnose, CandidateReport, DiagnoseConfig, Report, NO_CAUSE, UNEXPLAINED};
+use ssm::criticism::diagnose::{
+    diagnose, CandidateReport, DiagnoseConfig, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED,
+};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 
@@ -203,7 +205,7 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
             write_json(&report_path, &value)?;
             // The report is what the study keeps: the training runs (checkpoints,
             // parameters) only served to resume an interrupted diagnosis.
-            for run in ["base", "candidates"] {
+            for run in TRAINING_RUN_DIRS {
                 let _ = std::fs::remove_dir_all(dir.join(run));
             }
             report

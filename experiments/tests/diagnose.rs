@@ -74,10 +74,11 @@ fn assert_found(effect: &str, strength: &str, seed: &str, extra: &[&str], cause:
     assert!(std::fs::read_dir(&out).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().ends_with(".svg")));
 }
 
-/// A control names no catalogue cause: `none`, or `unexplained` when a check
-/// that no extension speaks to fails (the base network's own misfit).
-fn assert_no_catalogue_cause(seed: &str, extra: &[&str]) {
-    let (report, out) = diagnose("none", "1", seed, extra);
+/// Data with `effect` (a control, or an effect outside the catalogue) name no
+/// catalogue cause: `none`, or `unexplained` when a check that no extension
+/// speaks to fails (the effect, or the base network's own misfit).
+fn assert_no_catalogue_cause(effect: &str, seed: &str, extra: &[&str]) {
+    let (report, out) = diagnose(effect, "1", seed, extra);
     let cause = report["cause"].as_str().unwrap();
     assert!(cause == "none" || cause == "unexplained", "{}", summary(&report));
     assert_eq!(report["gain"], 0.0);
@@ -149,12 +150,19 @@ fn finds_stronger_heading_flip() {
 
 #[test]
 fn control_points_names_no_catalogue_cause() {
-    assert_no_catalogue_cause("10", &[]);
+    assert_no_catalogue_cause("none", "10", &[]);
+}
+
+/// An effect outside the catalogue — the observer's own pose off by 0.2 m and
+/// 0.02 rad (sds) at each step — must not be blamed on a catalogue extension.
+#[test]
+fn effect_outside_the_catalogue_names_no_catalogue_cause() {
+    assert_no_catalogue_cause("ego_pose_noise", "15", &[]);
 }
 
 #[test]
 fn control_boxes_names_no_catalogue_cause() {
-    assert_no_catalogue_cause("11", &["--boxes", "--scenes", "32"]);
+    assert_no_catalogue_cause("none", "11", &["--boxes", "--scenes", "32"]);
 }
 
 #[test]

@@ -204,6 +204,12 @@ impl Default for DiagnoseConfig {
 /// better predicts a 100-step track `e^3` times better.
 pub const MIN_GAIN: f64 = 0.003;
 
+/// The sub-directories of a diagnosis's output that hold its training runs
+/// (checkpoints, parameters, logs): the base fit, the base refitted alone, and
+/// one run per candidate. They serve only to resume an interrupted diagnosis;
+/// `report.json` and the plots are what a finished one keeps.
+pub const TRAINING_RUN_DIRS: [&str; 3] = ["base", "reference", "candidates"];
+
 impl DiagnoseConfig {
     /// A small scale for generated data (tests, demos): 300 base steps, 40% of the objects fit,
     /// 20% check, 40% evaluate.
@@ -276,9 +282,9 @@ impl DiagnoseConfig {
 /// What [`diagnose`] is doing, for a progress display.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Stage {
-    /// A training run (`base` or an extension id) is at `step` of `total`.
+    /// A training run (`base`, `reference` or an extension id) is at `step` of `total`.
     Training {
-        /// `base` or the extension's id.
+        /// `base`, `reference` or the extension's id.
         model: String,
         /// Steps done.
         step: usize,
@@ -287,12 +293,12 @@ pub enum Stage {
     },
     /// Checking a model on the check part.
     Checking {
-        /// `base` or the extension's id.
+        /// `base`, `reference` or the extension's id.
         model: String,
     },
     /// Filtering the evaluation part with a model.
     Evaluating {
-        /// `base` or the extension's id.
+        /// `base`, `reference` or the extension's id.
         model: String,
     },
 }
@@ -576,7 +582,17 @@ fn run(
         let policy = NeuralPolicy::new(&mut rng);
         Models::initial(kind, AnyPolicy::Neural(policy), rng.random()).to_store()
     };
-    let base = fit(parts, None, initial, config.base_steps, config.lr, config, &out_dir.join("base"), comm, progress)?;
+    let base = fit(
+        parts,
+        None,
+        initial,
+        config.base_steps,
+        config.lr,
+        config,
+        &out_dir.join(TRAINING_RUN_DIRS[0]),
+        comm,
+        progress,
+    )?;
 
     // 3. Checks of the base on the check part.
     progress(&Stage::Checking { model: "base".into() });
@@ -603,7 +619,17 @@ fn run(
     // exactly as the candidates are refitted (when any is), else the base.
     let (steps, lr) = (config.candidate_steps, config.candidate_lr);
     let refitted = if config.refit && !plausible.is_empty() {
-        let run = fit(parts, None, base.params.clone(), steps, lr, config, &out_dir.join("reference"), comm, progress)?;
+        let run = fit(
+            parts,
+            None,
+            base.params.clone(),
+            steps,
+            lr,
+            config,
+            &out_dir.join(TRAINING_RUN_DIRS[1]),
+            comm,
+            progress,
+        )?;
         progress(&Stage::Checking { model: "reference".into() });
         let checks = check_model(parts.check, &run.params, None, config)?;
         let results = calibrate(&defs, &checks.measured, &checks.replicated, config.alpha);
@@ -620,7 +646,7 @@ fn run(
     for (extension, flagged_by) in plausible {
         let mut start = base.params.clone();
         start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
-        let dir = out_dir.join("candidates").join(extension.id());
+        let dir = out_dir.join(TRAINING_RUN_DIRS[2]).join(extension.id());
         let run = fit(parts, Some(extension), start, steps, lr, config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
@@ -803,7 +829,8 @@ fn fit(
         seed: config.seed,
         shuffle: true,
     };
-    let model = extension.map_or("base".to_string(), |e| e.id().to_string());
+    // `base`, `reference` or the extension's id: the run's directory names it.
+    let model = dir.file_name().map_or_else(|| "base".to_string(), |n| n.to_string_lossy().into_owned());
     let resume = dir.join(CHECKPOINT_FILE).exists();
     let mut total = 0;
     let mut on_event = |e: &TrainEvent| match e {
