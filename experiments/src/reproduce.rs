@@ -408,8 +408,8 @@ fn write_outputs(
     let truth = HandCraftedPolicy::truth();
     let (true_sd_a, true_sd_p) = (truth.log_sd_accel().exp(), truth.log_sd_pinch().exp());
     let mut md = format!(
-        "Experiment {} ({} scale: {} training / {} evaluation particles, {} epochs, L = {}, alpha = {}, {} seeds; \
-         {:.0} s). Median [IQR] over seeds.\n\n",
+        "Experiment {} ({} scale: {} training / {} evaluation particles, {} epochs, L = {}, alpha = {}, {} seeds \
+         asked; {:.0} s in this command). Median [IQR] over the finished seeds of each method (`seeds`).\n\n",
         args.exp.to_uppercase(),
         scale.name,
         scale.particles,
@@ -421,14 +421,21 @@ fn write_outputs(
         seconds
     );
     let mut csv = String::from(CSV_HEADER);
-    md.push_str(&header(&["sd accel", "sd pinch", "train time (s)"]));
+    md.push_str(&header(&["sd accel", "sd pinch", "seeds", "train time per run (s)"]));
     for r in results {
         metric_cells(&r.method, &r.runs, &mut md, &mut csv);
         let sd = |f: fn(&(f64, f64)) -> f64| {
             let v: Vec<f64> = r.sds.iter().map(f).collect();
             summary_cell(Summary::of(&v).as_ref())
         };
-        let _ = writeln!(md, " {} | {} | {:.0} |", sd(|s| s.0), sd(|s| s.1), r.seconds);
+        // TRUE is not trained: one evaluation per seed, and its seconds are
+        // those of its evaluation.
+        let (seeds, per_run) = if r.curves.is_empty() {
+            (r.runs.len(), "-".to_string())
+        } else {
+            (r.curves.len(), format!("{:.0}", r.seconds / r.curves.len() as f64))
+        };
+        let _ = writeln!(md, " {} | {} | {seeds} | {per_run} |", sd(|s| s.0), sd(|s| s.1));
         for (name, f) in [("sd_accel", (|s: &(f64, f64)| s.0) as fn(&(f64, f64)) -> f64), ("sd_pinch", |s| s.1)] {
             let v: Vec<f64> = r.sds.iter().map(f).collect();
             if let Some(s) = Summary::of(&v) {
