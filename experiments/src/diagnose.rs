@@ -86,6 +86,10 @@ pub struct DiagnoseArgs {
     /// refitting every parameter with them beside the base refitted alone.
     #[arg(long)]
     no_refit: bool,
+    /// Do not refit the base a second time with another seed to measure the refits' own noise (a cause's gain
+    /// must then exceed only --min-gain).
+    #[arg(long)]
+    no_refit_noise: bool,
 }
 
 impl DiagnoseArgs {
@@ -112,6 +116,7 @@ impl DiagnoseArgs {
         set(&mut c.lr, self.lr);
         set(&mut c.candidate_lr, self.candidate_lr);
         c.refit = !self.no_refit;
+        c.refit_noise = !self.no_refit_noise;
         c
     }
 }
@@ -180,6 +185,18 @@ pub fn print_outcome(report: &Report, out: &Path) {
         );
     }
     println!("report: {}", out.join("report.md").display());
+}
+
+/// How rule (b)'s least gain was set: the stated minimum, or the refits' noise.
+fn noise_note(r: &Report) -> String {
+    match r.reference.as_ref().and_then(|reference| reference.reseeded.as_ref()) {
+        Some(n) => format!(
+            " (the larger of {} and the refits' own noise: the base refitted alone with another seed gains {:+.4} \
+             ± {:.4} over the reference)",
+            r.config.min_gain, n.gain, n.gain_se
+        ),
+        None => String::new(),
+    }
 }
 
 /// Writes `report.json`, `report.md` and the check plots into `out`.
@@ -347,9 +364,11 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         s,
         "Each extension the check objects made plausible, started where their discrepancies point, {how}. A cause \
          must (a) raise the evaluation objects' log-likelihood over the reference's with a Holm-adjusted sign-flip \
-         p below {}, (b) by at least {} nats per unit, (c) change the model materially and (d) lower the mean |z| \
-         of the checks that flagged it below the reference's.\n",
-        c.cause_level, c.min_gain
+         p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially and (d) lower the mean \
+         |z| of the checks that flagged it below the reference's.\n",
+        c.cause_level,
+        r.gain_bar(),
+        noise_note(r)
     );
     let _ = writeln!(
         s,

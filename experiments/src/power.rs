@@ -241,7 +241,7 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
 fn cause_without_check_rule(report: &Report) -> String {
     let config = &report.config;
     let passes = |c: &&CandidateReport| {
-        c.material && c.gain.is_finite() && c.gain >= config.min_gain && c.p_adjusted < config.cause_level
+        c.material && c.gain.is_finite() && c.gain >= report.gain_bar() && c.p_adjusted < config.cause_level
     };
     let best = report.candidates.iter().filter(passes).max_by(|a, b| a.gain.total_cmp(&b.gain));
     // A candidate that qualifies passes these rules too, so with none the report
