@@ -751,11 +751,8 @@ fn run(
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         let material = ext.is_material(&raw)?;
-        let qualifies = material
-            && checks_improved
-            && gain.is_finite()
-            && gain >= gain_bar
-            && adjusted[i] < config.cause_level;
+        let qualifies =
+            material && checks_improved && gain.is_finite() && gain >= gain_bar && adjusted[i] < config.cause_level;
         candidates.push(CandidateReport {
             cause: ext.id().into(),
             gain,
