@@ -98,6 +98,10 @@ pub struct ExperimentCArgs {
     /// Override the scale's repeated filter runs of the final evaluation.
     #[arg(long)]
     pub runs: Option<usize>,
+    /// Let Adam's learning rate fall linearly from the scale's (0.01) to this at
+    /// each run's last step (default: constant, the paper's).
+    #[arg(long)]
+    pub final_lr: Option<f64>,
     /// Seed of the initialisation, batch order and filters.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -378,6 +382,7 @@ fn run_args(
     TrainArgs {
         policy: "neural".into(),
         lr: scale.lr,
+        final_lr: args.final_lr,
         clip: Some(scale.clip),
         eval_every,
         checkpoint_every: eval_every,
@@ -622,7 +627,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
     let detections = |d: &Dataset| d.observations().count();
     let mut md = format!(
         "Experiment C on KITTI ({} scale: {} training / {} evaluation particles, {} epochs of {} steps \
-         ({} scenes per step), L = {}, PFNET alpha = {}, Adam lr {} with global-norm clipping {}, neural \
+         ({} scenes per step), L = {}, PFNET alpha = {}, Adam lr {}{} with global-norm clipping {}, neural \
          policy, box-detection observation network; this session took {:.0} s).\n\
          Train: {} scenes, {} objects, {} detections. Val: {} scenes, {} objects, {} detections.\n\
          Metrics on val, median [IQR] over {} filter runs ({} particles, smoothing lag {}); AOTLL train is the \
@@ -636,6 +641,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         s.lag,
         s.alpha,
         s.lr,
+        c.args.final_lr.map_or_else(String::new, |end| format!(" falling linearly to {end}")),
         s.clip,
         seconds,
         c.train.scenes().len(),

@@ -12,9 +12,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use ssm::criticism::diagnose::{
-    diagnose, CandidateReport, DiagnoseConfig, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED,
-};
+use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 
@@ -239,11 +237,12 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
 /// candidates that pass every other rule; else what the report says when no
 /// candidate does (`unexplained` or `none`, from the same failing checks).
 fn cause_without_check_rule(report: &Report) -> String {
-    let config = &report.config;
-    let passes = |c: &&CandidateReport| {
-        c.material && c.gain.is_finite() && c.gain >= report.gain_bar() && c.p_adjusted < config.cause_level
-    };
-    let best = report.candidates.iter().filter(passes).max_by(|a, b| a.gain.total_cmp(&b.gain));
+    let bar = report.gain_bar();
+    let best = report
+        .candidates
+        .iter()
+        .filter(|c| c.passes_gain_rules(bar, report.config.cause_level))
+        .max_by(|a, b| a.gain.total_cmp(&b.gain));
     // A candidate that qualifies passes these rules too, so with none the report
     // named no catalogue cause either.
     best.map_or_else(|| report.cause.clone(), |c| c.cause.clone())

@@ -79,6 +79,11 @@ pub struct TrainArgs {
     /// Adam's learning rate.
     #[arg(long, default_value_t = 0.01)]
     pub lr: f64,
+    /// If given, the learning rate falls linearly from `--lr` at the first step to
+    /// this at the last (default: constant).
+    #[arg(long)]
+    #[serde(default)]
+    pub final_lr: Option<f64>,
     /// Global gradient-norm clipping (of the per-point score).
     #[arg(long)]
     pub clip: Option<f64>,
@@ -318,7 +323,7 @@ pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Resu
     let mut objective = SceneObjective::new(&data, test, config)?.with_collective(cluster.collective());
     let train_config = TrainConfig {
         lr: args.lr,
-        final_lr: None,
+        final_lr: args.final_lr,
         clip: args.clip,
         epochs: args.epochs,
         eval_every: args.eval_every,
@@ -431,6 +436,13 @@ mod tests {
         assert!(!same_run(&explicit, &args, &estimator, ObservationKind::Points).unwrap());
         let other_lr = TrainArgs { lr: args.lr * 2.0, ..args.clone() };
         assert!(!same_run(&other_lr, &args, &estimator, ObservationKind::Points).unwrap());
+        let decaying = TrainArgs { final_lr: Some(args.lr / 10.0), ..args.clone() };
+        assert!(!same_run(&decaying, &args, &estimator, ObservationKind::Points).unwrap());
+        // A run description written before `final_lr` existed reads as a constant rate.
+        let mut old_json = serde_json::to_value(&args).unwrap();
+        old_json.as_object_mut().unwrap().remove("final_lr");
+        let old_args: TrainArgs = serde_json::from_value(old_json).unwrap();
+        assert!(same_run(&old_args, &args, &estimator, ObservationKind::Points).unwrap());
         let resumed = TrainArgs { resume: true, ..args.clone() };
         assert!(same_run(&args, &resumed, &estimator, ObservationKind::Boxes).unwrap());
     }

@@ -392,6 +392,17 @@ pub struct CandidateReport {
     pub train_seconds: f64,
 }
 
+impl CandidateReport {
+    /// Whether the candidate passes the decision's rules on its learned
+    /// parameters and its gain — material, a finite gain of at least `gain_bar`
+    /// ([`Report::gain_bar`]) and a Holm-adjusted p below `cause_level` — leaving
+    /// out only rule (d), that it lowers its flagging checks' |z|.
+    /// `qualifies` is this and `checks_improved`.
+    pub fn passes_gain_rules(&self, gain_bar: f64, cause_level: f64) -> bool {
+        self.material && self.gain.is_finite() && self.gain >= gain_bar && self.p_adjusted < cause_level
+    }
+}
+
 /// The base refitted alone as the candidates are refitted with their extensions:
 /// what they are compared with.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -751,9 +762,7 @@ fn run(
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         let material = ext.is_material(&raw)?;
-        let qualifies =
-            material && checks_improved && gain.is_finite() && gain >= gain_bar && adjusted[i] < config.cause_level;
-        candidates.push(CandidateReport {
+        let mut candidate = CandidateReport {
             cause: ext.id().into(),
             gain,
             gain_se,
@@ -768,10 +777,12 @@ fn run(
             checks_improved,
             checks_after: after.clone(),
             material,
-            qualifies,
+            qualifies: false,
             skipped_steps: f.run.skipped,
             train_seconds: f.run.seconds,
-        });
+        };
+        candidate.qualifies = checks_improved && candidate.passes_gain_rules(gain_bar, config.cause_level);
+        candidates.push(candidate);
         after_checks.push(after);
     }
     let winner = candidates
