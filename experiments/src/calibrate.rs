@@ -218,8 +218,9 @@ fn progress(len: usize, what: &str) -> ProgressBar {
     bar
 }
 
-/// Prints one line per small tensor entry and one summary line per large tensor.
-fn print_score(s: &ScoreAt, filter: &str) {
+/// Prints one line per small tensor entry, one summary line per large tensor,
+/// and the spread of one object's score norm over objects.
+fn print_score(s: &ScoreAt, data: &Dataset, filter: &str) {
     println!(
         "{} ({filter} filter), {} objects x {} runs, {:.1} s, collapsed steps {}",
         s.estimator, s.objects, s.runs, s.seconds, s.collapsed_steps
@@ -241,6 +242,22 @@ fn print_score(s: &ScoreAt, filter: &str) {
             );
         }
     }
+    let n = &s.object_norms;
+    let largest: Vec<String> = n
+        .largest
+        .iter()
+        .map(|&(o, norm)| {
+            let object = &data.objects()[o];
+            format!("scene {} object {}: {norm:.3e}", object.scene, object.id)
+        })
+        .collect();
+    println!(
+        "one object's score norm over objects: median {:.3e}, 90% {:.3e}, max {:.3e} (largest: {})",
+        n.median,
+        n.q90,
+        n.max,
+        largest.join("; ")
+    );
 }
 
 /// `sefi score-at`.
@@ -248,7 +265,7 @@ pub fn run_score_at(args: &ScoreAtArgs) -> Result<(), String> {
     let (data, store) = load(&args.data, &args.params, args.scenes)?;
     if args.estimator == "complete-data" {
         let s = complete_data_score_at(&data, &store)?;
-        print_score(&s, "no");
+        print_score(&s, &data, "no");
         if let Some(out) = &args.out {
             ensure_dir(out)?;
             write_json(&out.join("score_at.json"), &json!({ "filter": "none", "result": s }))?;
@@ -265,7 +282,7 @@ pub fn run_score_at(args: &ScoreAtArgs) -> Result<(), String> {
     let bar = progress(data.objects().len(), "objects");
     let s = score_at(&data, &store, &estimator, &config, args.runs, args.seed, &|| bar.inc(1))?;
     bar.finish_and_clear();
-    print_score(&s, filter);
+    print_score(&s, &data, filter);
     if let Some(out) = &args.out {
         ensure_dir(out)?;
         write_json(&out.join("score_at.json"), &json!({ "filter": filter, "particles": args.particles, "result": s }))?;

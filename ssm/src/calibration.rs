@@ -68,10 +68,46 @@ pub struct ScoreAt {
     pub runs: usize,
     /// Per tensor, in store order.
     pub tensors: Vec<TensorScore>,
+    /// How large one object's score is: its global norm over every parameter,
+    /// spread over objects (heavy tails here are what clipping meets in training).
+    pub object_norms: NormSpread,
     /// Steps at which every particle of an object was impossible, summed.
     pub collapsed_steps: usize,
     /// Wall-clock seconds.
     pub seconds: f64,
+}
+
+/// The spread over objects of the global norm of each object's score.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct NormSpread {
+    /// Median over objects.
+    pub median: f64,
+    /// 90th percentile over objects.
+    pub q90: f64,
+    /// The largest.
+    pub max: f64,
+    /// The objects (indices into the dataset's objects) with the largest norms,
+    /// largest first, at most five.
+    pub largest: Vec<(usize, f64)>,
+}
+
+/// The [`NormSpread`] of one score per object (tensors in store order).
+fn norm_spread(per_object: &[Vec<autodiff::Tensor<f64>>]) -> NormSpread {
+    let norms: Vec<f64> =
+        per_object.iter().map(|g| g.iter().flat_map(|t| t.data()).map(|x| x * x).sum::<f64>().sqrt()).collect();
+    let mut order: Vec<usize> = (0..norms.len()).collect();
+    order.sort_by(|&a, &b| norms[b].total_cmp(&norms[a]));
+    let at = |q: f64| {
+        // Order statistic of the descending list: rank q from the bottom.
+        let n = order.len();
+        norms[order[n - 1 - ((q * (n - 1) as f64).round() as usize).min(n - 1)]]
+    };
+    NormSpread {
+        median: at(0.5),
+        q90: at(0.9),
+        max: at(1.0),
+        largest: order.iter().take(5).map(|&o| (o, norms[o])).collect(),
+    }
 }
 
 struct ObjectScore<'a> {
@@ -145,6 +181,7 @@ pub fn score_at(
         objects,
         runs,
         tensors: summarise(params, &gradients),
+        object_norms: norm_spread(&gradients),
         collapsed_steps,
         seconds: clock.elapsed().as_secs_f64(),
     })
@@ -246,6 +283,7 @@ pub fn complete_data_score_at(data: &Dataset, params: &ParamStore<f64>) -> Resul
         objects,
         runs: 1,
         tensors: summarise(params, &per_object),
+        object_norms: norm_spread(&per_object),
         collapsed_steps: 0,
         seconds: clock.elapsed().as_secs_f64(),
     })
@@ -463,4 +501,23 @@ pub fn sample_dataset(skeleton: &Dataset, params: &ParamStore<f64>, seed: u64) -
     let mut builder = Dataset::builder(skeleton.meta(), skeleton.kind());
     models.visit(skeleton, SampleFromModel { seed, builder: &mut builder })??;
     builder.build().map_err(|e| e.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use autodiff::Tensor;
+
+    #[test]
+    fn norm_spread_ranks_objects_by_their_score_norm() {
+        // Object k's score is (3k, 4k) split over two tensors: norm 5k.
+        let per_object: Vec<Vec<Tensor<f64>>> = (0..11)
+            .map(|k| vec![Tensor::from_vec(vec![3.0 * k as f64]), Tensor::from_vec(vec![4.0 * k as f64])])
+            .collect();
+        let s = norm_spread(&per_object);
+        assert_eq!(s.median, 25.0);
+        assert_eq!(s.q90, 45.0);
+        assert_eq!(s.max, 50.0);
+        assert_eq!(s.largest, vec![(10, 50.0), (9, 45.0), (8, 40.0), (7, 35.0), (6, 30.0)]);
+    }
 }
