@@ -138,6 +138,8 @@ struct Scale {
     lag: usize,
     alpha: f64,
     lr: f64,
+    /// If set, Adam's rate falls linearly from `lr` to this at each run's last step.
+    final_lr: Option<f64>,
     clip: f64,
     /// Objects per tape of the through-filter baselines.
     chunk_objects: usize,
@@ -162,6 +164,7 @@ impl Scale {
             lag: 15,
             alpha: 0.8,
             lr: 0.01,
+            final_lr: None,
             clip: 0.5,
             chunk_objects: 4,
             train_scenes: None,
@@ -214,6 +217,7 @@ impl Scale {
         if let Some(n) = args.runs {
             s.eval_runs = n;
         }
+        s.final_lr = args.final_lr;
         s
     }
 
@@ -382,7 +386,7 @@ fn run_args(
     TrainArgs {
         policy: "neural".into(),
         lr: scale.lr,
-        final_lr: args.final_lr,
+        final_lr: scale.final_lr,
         clip: Some(scale.clip),
         eval_every,
         checkpoint_every: eval_every,
@@ -641,7 +645,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         s.lag,
         s.alpha,
         s.lr,
-        c.args.final_lr.map_or_else(String::new, |end| format!(" falling linearly to {end}")),
+        s.final_lr.map_or_else(String::new, |end| format!(" falling linearly to {end}")),
         s.clip,
         seconds,
         c.train.scenes().len(),

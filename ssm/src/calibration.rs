@@ -23,6 +23,7 @@ use serde::Serialize;
 use crate::data::Dataset;
 use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
+use crate::metrics::quantile;
 use crate::models::extended::ExtensibleObservation;
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
@@ -95,19 +96,11 @@ pub struct NormSpread {
 fn norm_spread(per_object: &[Vec<autodiff::Tensor<f64>>]) -> NormSpread {
     let norms: Vec<f64> =
         per_object.iter().map(|g| g.iter().flat_map(|t| t.data()).map(|x| x * x).sum::<f64>().sqrt()).collect();
-    let mut order: Vec<usize> = (0..norms.len()).collect();
-    order.sort_by(|&a, &b| norms[b].total_cmp(&norms[a]));
-    let at = |q: f64| {
-        // Order statistic of the descending list: rank q from the bottom.
-        let n = order.len();
-        norms[order[n - 1 - ((q * (n - 1) as f64).round() as usize).min(n - 1)]]
-    };
-    NormSpread {
-        median: at(0.5),
-        q90: at(0.9),
-        max: at(1.0),
-        largest: order.iter().take(5).map(|&o| (o, norms[o])).collect(),
-    }
+    let at = |q: f64| quantile(&norms, q).unwrap_or(f64::NAN);
+    let mut largest: Vec<(usize, f64)> = norms.iter().copied().enumerate().collect();
+    largest.sort_by(|a, b| b.1.total_cmp(&a.1));
+    largest.truncate(5);
+    NormSpread { median: at(0.5), q90: at(0.9), max: at(1.0), largest }
 }
 
 struct ObjectScore<'a> {
@@ -510,14 +503,16 @@ mod tests {
 
     #[test]
     fn norm_spread_ranks_objects_by_their_score_norm() {
-        // Object k's score is (3k, 4k) split over two tensors: norm 5k.
-        let per_object: Vec<Vec<Tensor<f64>>> = (0..11)
-            .map(|k| vec![Tensor::from_vec(vec![3.0 * k as f64]), Tensor::from_vec(vec![4.0 * k as f64])])
-            .collect();
+        // Object i's score is (3k, 4k) split over two tensors, norm 5k, with
+        // k = 7i mod 11: the norms are 0, 5, ..., 50 in an order unlike the objects'.
+        let k = |i: usize| (7 * i % 11) as f64;
+        let per_object: Vec<Vec<Tensor<f64>>> =
+            (0..11).map(|i| vec![Tensor::from_vec(vec![3.0 * k(i)]), Tensor::from_vec(vec![4.0 * k(i)])]).collect();
         let s = norm_spread(&per_object);
         assert_eq!(s.median, 25.0);
         assert_eq!(s.q90, 45.0);
         assert_eq!(s.max, 50.0);
-        assert_eq!(s.largest, vec![(10, 50.0), (9, 45.0), (8, 40.0), (7, 35.0), (6, 30.0)]);
+        // k(i) = 10, 9, 8, 7, 6 at i = 3, 6, 9, 1, 4.
+        assert_eq!(s.largest, vec![(3, 50.0), (6, 45.0), (9, 40.0), (1, 35.0), (4, 30.0)]);
     }
 }
