@@ -97,18 +97,38 @@ pub fn state_errors(estimates: &[Vec<State>], truth: &StepTable<State>) -> State
     StateErrors { ade: mean(pos), aye: mean(yaw), count }
 }
 
-/// A mean of per-item values with the number of items.
+/// A mean of per-item values with the number of items and how the items spread:
+/// a mean of log-densities can be carried by a few items far in the tail, which
+/// the median and the lowest percentile show.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct MeanOver {
     /// The mean; `None` if there was nothing to average.
     pub mean: Option<f64>,
     /// Number of items averaged.
     pub count: usize,
+    /// The items' median (`None` when empty, and in files written before it existed).
+    #[serde(default)]
+    pub median: Option<f64>,
+    /// The items' 1% quantile.
+    #[serde(default)]
+    pub q01: Option<f64>,
+    /// The mean without the items below the 1% quantile: how much of the mean
+    /// the lowest 1% of items carry.
+    #[serde(default)]
+    pub mean_above_q01: Option<f64>,
 }
 
 impl MeanOver {
-    fn new(sum: f64, count: usize) -> Self {
-        MeanOver { mean: (count > 0).then(|| sum / count as f64), count }
+    /// The mean and spread of `items` (non-finite items count in the mean only).
+    pub fn of(items: &[f64]) -> Self {
+        let count = items.len();
+        let mean = (count > 0).then(|| items.iter().sum::<f64>() / count as f64);
+        let q01 = quantile(items, 0.01);
+        let mean_above_q01 = q01.map(|q| {
+            let kept: Vec<f64> = items.iter().copied().filter(|&x| x >= q).collect();
+            kept.iter().sum::<f64>() / kept.len() as f64
+        });
+        MeanOver { mean, count, median: median(items), q01, mean_above_q01 }
     }
 }
 
@@ -120,16 +140,13 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
     if data.kind() != O::KIND {
         return MeanOver::default();
     }
-    let (mut sum, mut count) = (0.0, 0usize);
     let mut per_item = Vec::new();
     for (ctx, pose, items) in labelled_steps::<O>(data, truth) {
-        per_item.clear();
-        per_item.resize(items.len(), 0.0);
-        model.log_density_items(params, &ctx, pose, items, &mut per_item);
-        sum += per_item.iter().sum::<f64>();
-        count += items.len();
+        let start = per_item.len();
+        per_item.resize(start + items.len(), 0.0);
+        model.log_density_items(params, &ctx, pose, items, &mut per_item[start..]);
     }
-    MeanOver::new(sum, count)
+    MeanOver::of(&per_item)
 }
 
 /// Every object-step of `data` with a true state (from `truth`) and observations
@@ -170,7 +187,7 @@ pub fn aptll<P: GaussianPolicy>(data: &Dataset, policy: &P) -> MeanOver {
         let mut scratch = ActionGaussians::default();
         policy.log_density(&v, &kappa, ActionsRef { accel: &accel, pinch: &pinch }, &mut scratch, &mut out);
     }
-    MeanOver::new(out.iter().sum(), out.len())
+    MeanOver::of(&out)
 }
 
 /// The filter's estimates of every object's states.

@@ -257,6 +257,44 @@ fn heavy_tailed_accel_has_heavy_tailed_innovations() {
     }
 }
 
+#[test]
+fn student_t_tails_are_as_far_from_gaussian_as_the_mixture_at_each_strength() {
+    // Both tail families at strength s carry the same divergence from the
+    // Gaussian per innovation, and a stronger effect has fewer degrees of freedom.
+    let mut last_dof = f64::INFINITY;
+    for s in [0.5, 1.0, 2.0] {
+        let mixture = HiddenEffect::at_strength("heavy_tailed_accel", s).unwrap().kl_per_innovation().unwrap();
+        let t = HiddenEffect::at_strength("student_t_accel", s).unwrap();
+        let HiddenEffect::StudentTAccel { dof } = t else { panic!("{t:?}") };
+        let kl = t.kl_per_innovation().unwrap();
+        assert!((kl - mixture).abs() < 1e-6 * mixture, "strength {s}: {kl} against the mixture's {mixture}");
+        assert!(dof > 2.0 && dof < last_dof, "strength {s}: {dof} dof after {last_dof}");
+        last_dof = dof;
+    }
+    // A Gaussian is at zero, whatever way it is written.
+    for gaussian in [
+        HiddenEffect::HeavyTailedAccel { fraction: 0.0, ratio: 10.0 },
+        HiddenEffect::HeavyTailedAccel { fraction: 0.5, ratio: 1.0 },
+    ] {
+        assert!(gaussian.kl_per_innovation().unwrap().abs() < 1e-9, "{gaussian:?}");
+    }
+    // At 3 dof the unit-variance Student-t density is (2 / pi) (1 + x^2)^-2: its
+    // divergence from N(0, 1) by a plain trapezoid rule over [-L, L] (the
+    // integrand falls as x^-2, so the rest is about 1 / (pi L)).
+    let (l, n) = (2.0e4, 4_000_000);
+    let h = 2.0 * l / n as f64;
+    let direct: f64 = (0..=n)
+        .map(|i| {
+            let x = -l + i as f64 * h;
+            let p = 2.0 / PI * (1.0 + x * x).powi(-2);
+            let w = if i == 0 || i == n { 0.5 } else { 1.0 };
+            w * h * p * (p.ln() + 0.5 * (2.0 * PI).ln() + 0.5 * x * x)
+        })
+        .sum();
+    let kl3 = HiddenEffect::StudentTAccel { dof: 3.0 }.kl_per_innovation().unwrap();
+    assert!((kl3 - direct).abs() < 1e-3, "{kl3} against a direct {direct}");
+}
+
 /// Fraction of detections whose yaw is more than pi/2 from the true yaw, and how many.
 fn reversed_fraction(d: &Dataset) -> (f64, usize) {
     let boxes = d.boxes().unwrap();

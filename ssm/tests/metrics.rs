@@ -10,7 +10,8 @@ use rand::SeedableRng;
 use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{
-    aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff, Summary,
+    aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff,
+    MeanOver, Summary,
 };
 use ssm::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
@@ -234,6 +235,24 @@ fn aotll_equals_a_direct_computation() {
     assert_eq!(got.count, count);
     assert_eq!(count, 4 * (2 * 5 - 2), "one step unobserved, one without a true state");
     assert!((got.mean.unwrap() - sum / count as f64).abs() < 1e-10, "{:?} vs {}", got.mean, sum / count as f64);
+}
+
+#[test]
+fn mean_over_shows_a_mean_carried_by_a_few_items() {
+    // 198 items at 1 nat and 2 far in the tail: the mean is negative, the median
+    // and the mean without the lowest 1% are the bulk's.
+    let mut items = vec![1.0; 198];
+    items.insert(17, -100.0);
+    items.insert(120, -100.0);
+    let m = MeanOver::of(&items);
+    assert_eq!(m.count, 200);
+    assert!((m.mean.unwrap() - (198.0 - 200.0) / 200.0).abs() < 1e-12);
+    assert_eq!(m.median, Some(1.0));
+    // Linear interpolation between the 2nd (-100) and 3rd (1) order statistics.
+    assert!((m.q01.unwrap() - (-100.0 + 0.99 * 101.0)).abs() < 1e-9, "{:?}", m.q01);
+    assert!((m.mean_above_q01.unwrap() - 1.0).abs() < 1e-12);
+    let empty = MeanOver::of(&[]);
+    assert_eq!((empty.mean, empty.count, empty.median, empty.q01, empty.mean_above_q01), (None, 0, None, None, None));
 }
 
 #[test]

@@ -212,8 +212,11 @@ impl HiddenEffect {
     /// The effect `id` at `strength` times its default size (1 = [`HiddenEffect::by_id`]):
     /// a delay of `0.15 s` times it; a clutter fraction of `0.15` times it (at most
     /// 0.9); extents off by `25%` and `15%` times it; a wide component of `10%` of
-    /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t with
-    /// `2 + 3 / strength` degrees of freedom (5 at 1, heavier when stronger); a flip
+    /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t whose
+    /// degrees of freedom put it as far from a Gaussian as that mixture at the same
+    /// strength (equal [`HiddenEffect::kl_per_innovation`]: about 2.55, 2.19 and 2.05
+    /// degrees of freedom at 0.5, 1 and 2), so that the two tail families are
+    /// compared at the same size; a flip
     /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.2 m`
     /// and `0.02 rad` (sds) times it (0.4 m at 20 m from the AV). Fails for an
     /// unknown id or a strength that is not positive and finite.
@@ -235,7 +238,11 @@ impl HiddenEffect {
             "clutter" => HiddenEffect::Clutter { fraction: (0.15 * s).min(0.9), scale: 2.5 },
             "size_bias" => HiddenEffect::SizeBias { length_factor: 1.0 + 0.25 * s, width_factor: 1.0 + 0.15 * s },
             "heavy_tailed_accel" => HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 1.0 + 9.0 * s },
-            "student_t_accel" => HiddenEffect::StudentTAccel { dof: 2.0 + 3.0 / s },
+            "student_t_accel" => {
+                let mixture = HiddenEffect::at_strength("heavy_tailed_accel", s)?;
+                let target = mixture.kl_per_innovation().expect("the mixture's divergence is defined");
+                HiddenEffect::StudentTAccel { dof: student_t_dof_with_kl(target) }
+            }
             "heading_flip" => HiddenEffect::HeadingFlip { fraction: (0.2 * s).min(0.5) },
             "ego_pose_noise" => HiddenEffect::EgoPoseNoise { position_sd: 0.2 * s, yaw_sd: 0.02 * s },
             _ => {
@@ -302,6 +309,86 @@ impl HiddenEffect {
             }
         }
     }
+}
+
+impl HiddenEffect {
+    /// How far a heavy-tail effect's acceleration innovation is from a Gaussian:
+    /// the KL divergence (nats per innovation) from its distribution to the
+    /// Gaussian of the same variance, which is what the true model gains per
+    /// action over the best Gaussian policy when the actions are seen. `None`
+    /// for the other effects.
+    ///
+    /// ```
+    /// use ssm::criticism::hidden::HiddenEffect;
+    /// let mixture = HiddenEffect::HeavyTailedAccel { fraction: 0.1, ratio: 10.0 };
+    /// assert!((mixture.kl_per_innovation().unwrap() - 0.7405).abs() < 1e-3);
+    /// let t5 = HiddenEffect::StudentTAccel { dof: 5.0 };
+    /// assert!((t5.kl_per_innovation().unwrap() - 0.0468).abs() < 1e-3);
+    /// assert_eq!(HiddenEffect::None.kl_per_innovation(), None);
+    /// ```
+    pub fn kl_per_innovation(&self) -> Option<f64> {
+        match *self {
+            HiddenEffect::HeavyTailedAccel { fraction, ratio } => {
+                let (log_narrow, log_wide) = ((1.0 - fraction).ln(), fraction.ln() - ratio.ln());
+                let log_density = |x: f64| {
+                    let (a, b) = (log_narrow - 0.5 * x * x, log_wide - 0.5 * (x / ratio).powi(2));
+                    let m = a.max(b);
+                    m + ((a - m).exp() + (b - m).exp()).ln()
+                };
+                Some(kl_to_gaussian(log_density, (1.0 - fraction) + fraction * ratio * ratio))
+            }
+            HiddenEffect::StudentTAccel { dof } => Some(unit_student_t_kl(dof)),
+            _ => None,
+        }
+    }
+}
+
+/// Midpoints of the quadrature of [`kl_to_gaussian`] (over `x = tan(theta)`).
+const KL_QUADRATURE_POINTS: usize = 1 << 16;
+
+/// KL divergence (nats) from the zero-mean density whose log is `log_density` up
+/// to a constant, and whose variance is `variance`, to the Gaussian of that
+/// variance: `-H(p) + ln(2 pi variance) / 2 + 1/2`. The normaliser and the
+/// entropy come from the midpoint rule over `x = tan(theta)`, which covers the
+/// whole line and puts points where the tails are.
+fn kl_to_gaussian(log_density: impl Fn(f64) -> f64, variance: f64) -> f64 {
+    let h = std::f64::consts::PI / KL_QUADRATURE_POINTS as f64;
+    let (mut mass, mut mass_log) = (0.0, 0.0);
+    for i in 0..KL_QUADRATURE_POINTS {
+        let theta = -std::f64::consts::FRAC_PI_2 + (i as f64 + 0.5) * h;
+        let (x, jacobian) = (theta.tan(), h / theta.cos().powi(2));
+        let log_p = log_density(x);
+        let p = log_p.exp() * jacobian;
+        if p > 0.0 {
+            mass += p;
+            mass_log += p * log_p;
+        }
+    }
+    let negative_entropy = mass_log / mass - mass.ln();
+    negative_entropy + 0.5 * (2.0 * std::f64::consts::PI * variance).ln() + 0.5
+}
+
+/// [`HiddenEffect::kl_per_innovation`] of a unit-variance Student-t with `dof > 2`.
+fn unit_student_t_kl(dof: f64) -> f64 {
+    let scale2 = (dof - 2.0) / dof;
+    kl_to_gaussian(|x| -0.5 * (dof + 1.0) * (x * x / (scale2 * dof)).ln_1p(), 1.0)
+}
+
+/// The degrees of freedom of the unit-variance Student-t whose divergence from
+/// the Gaussian is `kl` (nats per innovation): the divergence falls from
+/// infinity at 2 towards 0 as the degrees of freedom grow, so bisection on
+/// `ln(dof - 2)` over `[ln 1e-4, ln 1e4]` finds it (clamped to those ends).
+fn student_t_dof_with_kl(kl: f64) -> f64 {
+    let (mut lo, mut hi) = (1e-4f64.ln(), 1e4f64.ln());
+    for _ in 0..48 {
+        let mid = 0.5 * (lo + hi);
+        if unit_student_t_kl(2.0 + mid.exp()) > kl {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    2.0 + (0.5 * (lo + hi)).exp()
 }
 
 /// A standard normal scale mixture: `z ~ (1 - fraction) N(0, 1) + fraction N(0, ratio^2)`
