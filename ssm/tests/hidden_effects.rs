@@ -258,6 +258,19 @@ fn heavy_tailed_accel_has_heavy_tailed_innovations() {
 }
 
 #[test]
+fn student_t_accel_innovations_are_standard_student_t() {
+    // At 3 dof and unit scale: P(|t| > 3) = 1 - 2 (atan(sqrt 3) + sqrt(3) / 4) / pi
+    // = 0.0577, and P(|t| < 0.765) = 1/2 (the bulk is a standard normal's width).
+    let d = data(POINTS, HiddenEffect::StudentTAccel { dof: 3.0 }, 4);
+    let z = accel_innovations(&d);
+    let n = z.len() as f64;
+    for (threshold, p) in [(3.0, 1.0 - 2.0 * (3f64.sqrt().atan() + 3f64.sqrt() / 4.0) / PI), (0.7649, 0.5)] {
+        let tail = z.iter().filter(|z| z.abs() > threshold).count() as f64 / n;
+        assert!((tail - p).abs() < Z * (p * (1.0 - p) / n).sqrt(), "P(|z| > {threshold}) = {tail}, expected {p}");
+    }
+}
+
+#[test]
 fn student_t_tails_are_as_far_from_gaussian_as_the_mixture_at_each_strength() {
     // Both tail families at strength s carry the same divergence from the
     // Gaussian per innovation, and a stronger effect has fewer degrees of freedom.
@@ -278,9 +291,10 @@ fn student_t_tails_are_as_far_from_gaussian_as_the_mixture_at_each_strength() {
     ] {
         assert!(gaussian.kl_per_innovation().unwrap().abs() < 1e-9, "{gaussian:?}");
     }
-    // At 3 dof the unit-variance Student-t density is (2 / pi) (1 + x^2)^-2: its
-    // divergence from N(0, 1) by a plain trapezoid rule over [-L, L] (the
-    // integrand falls as x^-2, so the rest is about 1 / (pi L)).
+    // The divergence does not depend on the scale. At 3 dof the unit-variance
+    // Student-t density is (2 / pi) (1 + x^2)^-2: its divergence from N(0, 1) by a
+    // plain trapezoid rule over [-L, L] (the integrand falls as x^-2, so the rest
+    // is about 1 / (pi L)).
     let (l, n) = (2.0e4, 4_000_000);
     let h = 2.0 * l / n as f64;
     let direct: f64 = (0..=n)

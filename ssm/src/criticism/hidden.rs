@@ -128,9 +128,10 @@ pub enum HiddenEffect {
         ratio: f64,
     },
     /// Heavy tails of another family than the catalogue's two-normal mixture: the
-    /// acceleration innovation is Student-t with `dof` degrees of freedom, scaled
-    /// to unit variance (`accel = mean + sd z`; see [`UnitStudentT`]). The
-    /// catalogue's `heavy_tailed_accel` is the extension that should explain it.
+    /// acceleration innovation is Student-t with `dof` degrees of freedom at unit
+    /// scale (`accel = mean + sd z`; see [`StandardStudentT`]): its bulk is as wide
+    /// as the policy's, like the mixture's narrow component, and its tails heavier.
+    /// The catalogue's `heavy_tailed_accel` is the extension that should explain it.
     StudentTAccel {
         /// Degrees of freedom (finite, > 2).
         dof: f64,
@@ -337,7 +338,7 @@ impl HiddenEffect {
                 };
                 Some(kl_to_gaussian(log_density, (1.0 - fraction) + fraction * ratio * ratio))
             }
-            HiddenEffect::StudentTAccel { dof } => Some(unit_student_t_kl(dof)),
+            HiddenEffect::StudentTAccel { dof } => Some(student_t_kl(dof)),
             _ => None,
         }
     }
@@ -368,13 +369,13 @@ fn kl_to_gaussian(log_density: impl Fn(f64) -> f64, variance: f64) -> f64 {
     negative_entropy + 0.5 * (2.0 * std::f64::consts::PI * variance).ln() + 0.5
 }
 
-/// [`HiddenEffect::kl_per_innovation`] of a unit-variance Student-t with `dof > 2`.
-fn unit_student_t_kl(dof: f64) -> f64 {
-    let scale2 = (dof - 2.0) / dof;
-    kl_to_gaussian(|x| -0.5 * (dof + 1.0) * (x * x / (scale2 * dof)).ln_1p(), 1.0)
+/// [`HiddenEffect::kl_per_innovation`] of a Student-t with `dof > 2` (the same at
+/// every scale; computed at unit scale, variance `dof / (dof - 2)`).
+fn student_t_kl(dof: f64) -> f64 {
+    kl_to_gaussian(|x| -0.5 * (dof + 1.0) * (x * x / dof).ln_1p(), dof / (dof - 2.0))
 }
 
-/// The degrees of freedom of the unit-variance Student-t whose divergence from
+/// The degrees of freedom of the Student-t whose divergence from
 /// the Gaussian is `kl` (nats per innovation): the divergence falls from
 /// infinity at 2 towards 0 as the degrees of freedom grow, so bisection on
 /// `ln(dof - 2)` over `[ln 1e-4, ln 1e4]` finds it (clamped to those ends).
@@ -382,7 +383,7 @@ fn student_t_dof_with_kl(kl: f64) -> f64 {
     let (mut lo, mut hi) = (1e-4f64.ln(), 1e4f64.ln());
     for _ in 0..48 {
         let mid = 0.5 * (lo + hi);
-        if unit_student_t_kl(2.0 + mid.exp()) > kl {
+        if student_t_kl(2.0 + mid.exp()) > kl {
             lo = mid;
         } else {
             hi = mid;
@@ -416,27 +417,27 @@ impl Distribution<f64> for ScaleMixture {
     }
 }
 
-/// Student-t with `dof > 2` degrees of freedom scaled to unit variance:
-/// `t sqrt((dof - 2) / dof)`. Its excess kurtosis is `6 / (dof - 4)` for `dof > 4`
-/// (infinite below).
+/// Student-t with `dof > 2` degrees of freedom at unit scale (the standard t):
+/// its bulk is as wide as a standard normal's, like [`ScaleMixture`]'s narrow
+/// component, and its variance is `dof / (dof - 2)`. Its excess kurtosis is
+/// `6 / (dof - 4)` for `dof > 4` (infinite below).
 #[derive(Clone, Copy, Debug)]
-pub struct UnitStudentT {
+pub struct StandardStudentT {
     t: rand_distr::StudentT<f64>,
-    scale: f64,
 }
 
-impl UnitStudentT {
+impl StandardStudentT {
     /// Fails unless `dof` is finite and above 2.
     pub fn new(dof: f64) -> Result<Self, SyntheticError> {
         HiddenEffect::StudentTAccel { dof }.validate()?;
         let t = rand_distr::StudentT::new(dof).map_err(|e| config_err(format!("student_t_accel: {e}")))?;
-        Ok(UnitStudentT { t, scale: ((dof - 2.0) / dof).sqrt() })
+        Ok(StandardStudentT { t })
     }
 }
 
-impl Distribution<f64> for UnitStudentT {
+impl Distribution<f64> for StandardStudentT {
     fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> f64 {
-        self.scale * rng.sample(self.t)
+        rng.sample(self.t)
     }
 }
 
@@ -689,7 +690,7 @@ fn simulate_hidden_scene(
                 simulate_object(scene_config, &policy, &motion, start, id, k, &ScaleMixture { fraction, ratio }, rng)
             }
             HiddenEffect::StudentTAccel { dof } => {
-                simulate_object(scene_config, &policy, &motion, start, id, k, &UnitStudentT::new(dof)?, rng)
+                simulate_object(scene_config, &policy, &motion, start, id, k, &StandardStudentT::new(dof)?, rng)
             }
             _ => simulate_object(scene_config, &policy, &motion, start, id, k, &StandardNormal, rng),
         };
