@@ -12,7 +12,9 @@
 //!   are plentiful ([`HiddenConfig::scene_config`]).
 //! * **Dynamics**: the true [`HandCraftedPolicy`] and the exact motion model, by the
 //!   same code as the paper's data ([`simulate_object`]); only the acceleration
-//!   innovation changes under [`HiddenEffect::HeavyTailedAccel`] ([`ScaleMixture`]).
+//!   innovation changes under [`HiddenEffect::HeavyTailedAccel`] ([`ScaleMixture`])
+//!   and [`HiddenEffect::StudentTAccel`] ([`StandardStudentT`]), whose sizes are
+//!   compared by [`HiddenEffect::kl_per_innovation`].
 //! * **Points** come from the physically motivated [`PointGenerator`] (its default),
 //!   not from a fitted network: nothing is fitted, so generation is fast.
 //! * **Boxes** come from [`BoxGenerator`] (its default).
@@ -215,7 +217,7 @@ impl HiddenEffect {
     /// 0.9); extents off by `25%` and `15%` times it; a wide component of `10%` of
     /// the accelerations whose sd ratio exceeds 1 by `9` times it; Student-t whose
     /// degrees of freedom put it as far from a Gaussian as that mixture at the same
-    /// strength (equal [`HiddenEffect::kl_per_innovation`]: about 2.55, 2.19 and 2.05
+    /// strength (equal [`HiddenEffect::kl_per_innovation`]: about 2.56, 2.19 and 2.06
     /// degrees of freedom at 0.5, 1 and 2), so that the two tail families are
     /// compared at the same size; a flip
     /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.2 m`
