@@ -37,7 +37,7 @@ use serde::{Deserialize, Serialize};
 pub use moments::Moments;
 pub use resample::{effective_sample_size, Resampling};
 use tempering::{reweight, ParentStep, StepParticles, Temperer};
-pub use tempering::{FilterPurpose, Tempering};
+pub use tempering::{FilterPurpose, Tempering, BOX_ORIGIN_STEPS};
 
 use crate::models::{Batch, Drawn, ParticleModel};
 use crate::seed::splitmix64;
