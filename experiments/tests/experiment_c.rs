@@ -81,6 +81,30 @@ fn quick_experiment_c_writes_the_table_and_reruns_identically() {
     let sup_train_aotll = rows.last().unwrap()["train_aotll"].as_f64().unwrap();
     assert!((sup_train_aotll - after).abs() < 1e-9, "{sup_train_aotll} vs {after}");
 
+    // The AOTLL spread columns show each row's val AOTLL median and its mean
+    // without the lowest 1%, which the mean's tail can only pull down.
+    // The header, then one line per row (the separator starts with "|-").
+    let lines: Vec<&str> = table.lines().filter(|l| l.starts_with("| ")).collect();
+    fn cells(line: &str) -> Vec<&str> {
+        line.split('|').map(str::trim).collect()
+    }
+    let header = cells(lines[0]);
+    let column = |name: &str| header.iter().position(|h| *h == name).unwrap_or_else(|| panic!("no `{name}` column"));
+    assert_eq!(lines.len(), rows.len() + 1);
+    let (median_col, trimmed_col) = (column("AOTLL median"), column("AOTLL without lowest 1%"));
+    for (row, line) in rows.iter().zip(&lines[1..]) {
+        let aotll = &row["runs"][0]["aotll"];
+        let (mean, median, trimmed) = (
+            aotll["mean"].as_f64().unwrap(),
+            aotll["median"].as_f64().unwrap(),
+            aotll["mean_above_q01"].as_f64().unwrap(),
+        );
+        let line = cells(line);
+        assert_eq!(line[median_col], format!("{median:.3}"), "{line:?}");
+        assert_eq!(line[trimmed_col], format!("{trimmed:.3}"), "{line:?}");
+        assert!(trimmed >= mean, "{row}");
+    }
+
     // Rerun: the import is reused, every finished run resumes at its end, and the
     // evaluation (fixed seeds) gives the same table values.
     let csv_before = std::fs::read_to_string(out.join("table.csv")).unwrap();

@@ -123,12 +123,16 @@ impl MeanOver {
     pub fn of(items: &[f64]) -> Self {
         let count = items.len();
         let mean = (count > 0).then(|| items.iter().sum::<f64>() / count as f64);
-        let q01 = quantile(items, 0.01);
+        // One sorted copy of the finite items serves both quantiles.
+        let mut sorted: Vec<f64> = items.iter().copied().filter(|x| x.is_finite()).collect();
+        sorted.sort_by(f64::total_cmp);
+        let at = |q: f64| (!sorted.is_empty()).then(|| quantile_sorted(&sorted, q));
+        let q01 = at(0.01);
         let mean_above_q01 = q01.map(|q| {
             let kept: Vec<f64> = items.iter().copied().filter(|&x| x >= q).collect();
             kept.iter().sum::<f64>() / kept.len() as f64
         });
-        MeanOver { mean, count, median: median(items), q01, mean_above_q01 }
+        MeanOver { mean, count, median: at(0.5), q01, mean_above_q01 }
     }
 }
 

@@ -59,6 +59,7 @@ use crate::models::observation::boxes::wrap_angle;
 use crate::models::observation::edges::sample_laplace;
 use crate::models::observation::{ObsContext, PointGenerator};
 use crate::models::vehicle::HandCraftedPolicy;
+use crate::stats::log_sum_exp;
 use crate::synthetic::{
     build_dataset, ground_truth_builder, scene_motion, simulate_object, SceneConfig, SimulatedObject, SyntheticError,
     SyntheticScene,
@@ -312,9 +313,7 @@ impl HiddenEffect {
             }
         }
     }
-}
 
-impl HiddenEffect {
     /// How far a heavy-tail effect's acceleration innovation is from a Gaussian:
     /// the KL divergence (nats per innovation) from its distribution to the
     /// Gaussian of the same variance, which is what the true model gains per
@@ -333,11 +332,8 @@ impl HiddenEffect {
         match *self {
             HiddenEffect::HeavyTailedAccel { fraction, ratio } => {
                 let (log_narrow, log_wide) = ((1.0 - fraction).ln(), fraction.ln() - ratio.ln());
-                let log_density = |x: f64| {
-                    let (a, b) = (log_narrow - 0.5 * x * x, log_wide - 0.5 * (x / ratio).powi(2));
-                    let m = a.max(b);
-                    m + ((a - m).exp() + (b - m).exp()).ln()
-                };
+                let log_density =
+                    |x: f64| log_sum_exp(&[log_narrow - 0.5 * x * x, log_wide - 0.5 * (x / ratio).powi(2)]);
                 Some(kl_to_gaussian(log_density, (1.0 - fraction) + fraction * ratio * ratio))
             }
             HiddenEffect::StudentTAccel { dof } => Some(student_t_kl(dof)),
