@@ -308,9 +308,11 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         s,
         "Posterior predictive checks on the check objects: {} paths drawn from the tempered filter's smoother; \
          along each, replicated observations and actions from the fitted model. z = mean / sd over draws of \
-         (measured − replicated); p two-sided, Holm-adjusted over the {} checks.\n",
+         (measured − replicated); p two-sided, Holm-adjusted over the {} checks. Beside the extension a check \
+         suggests, its uncorrected p in the direction that extension moves it: below {} it is fitted.\n",
         c.draws,
-        r.checks.len()
+        r.checks.len(),
+        c.plausible_p
     );
     let _ = writeln!(
         s,
@@ -332,7 +334,10 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             s,
             "| {}{flag} | {} | {} | {} ({}) | {} | {} | {rz} | {rp} | {az} | {ap} |",
             ch.name,
-            ch.suggests.as_deref().unwrap_or("-"),
+            match (ch.suggests.as_deref(), b.screen_p) {
+                (Some(extension), Some(p)) => format!("{extension} (p {})", fmt(p)),
+                (suggests, _) => suggests.unwrap_or("-").to_string(),
+            },
             fmt(b.measured),
             fmt(b.replicated),
             fmt(b.replicated_sd),

@@ -4,7 +4,7 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
-use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef};
+use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef, Direction};
 use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::models::extended::{lagged_pose, ObjectObservations};
@@ -255,10 +255,27 @@ fn too_little_data_is_nan_never_a_panic() {
 
 // ---------------------------------------------------------------- calibration
 
-const A: CheckDef =
-    CheckDef { name: "a", description: "A.", kinds: &[ObservationKind::Points], suggests: Some("clutter") };
-const B: CheckDef = CheckDef { name: "b", description: "B.", kinds: &[ObservationKind::Points], suggests: None };
-const C: CheckDef = CheckDef { name: "c", description: "C.", kinds: &[ObservationKind::Points], suggests: None };
+const A: CheckDef = CheckDef {
+    name: "a",
+    description: "A.",
+    kinds: &[ObservationKind::Points],
+    suggests: Some("clutter"),
+    direction: Direction::Higher,
+};
+const B: CheckDef = CheckDef {
+    name: "b",
+    description: "B.",
+    kinds: &[ObservationKind::Points],
+    suggests: None,
+    direction: Direction::Either,
+};
+const C: CheckDef = CheckDef {
+    name: "c",
+    description: "C.",
+    kinds: &[ObservationKind::Points],
+    suggests: None,
+    direction: Direction::Either,
+};
 
 /// Draw tables from per-check columns of (measured, replicated).
 fn tables(columns: &[Vec<(f64, f64)>]) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
@@ -287,6 +304,47 @@ fn identical_data_is_not_significant_and_a_shift_is() {
     // The sign of z follows the shift.
     let res = calibrate(&[&A, &B], &r, &m, 0.05);
     assert!(res[1].z < -2.5 && res[1].significant);
+}
+
+#[test]
+fn the_screen_is_one_sided_in_the_direction_the_extension_moves_the_check() {
+    // D = [z - 1, z, z + 1] has mean z and sd 1, so z is exact.
+    let column = |z: f64| vec![(z - 1.0, 0.0), (z, 0.0), (z + 1.0, 0.0)];
+    for z in [1.0, -1.0, 2.3, -2.3] {
+        let (m, r) = tables(&[column(z), column(z)]);
+        let res = calibrate(&[&A, &B], &m, &r, 0.05);
+        // A suggests clutter, which raises it: only a positive z screens it in.
+        let screen = res[0].screen_p.expect("a check that suggests an extension has a screen p");
+        assert!((screen - normal_cdf(-z)).abs() < 1e-12, "z {z}: screen p {screen}");
+        assert!((res[0].p - 2.0 * normal_cdf(-z.abs())).abs() < 1e-12, "the reported p stays two-sided");
+        assert_eq!(res[1].screen_p, None, "a general check screens nothing");
+    }
+    // At the same level the one-sided screen passes |z| > 0.84 the predicted way
+    // (the two-sided one needed |z| > 1.28) and never the other way.
+    assert!(Direction::Higher.p_value(0.9) < 0.2 && Direction::Either.p_value(0.9) > 0.2);
+    assert!(Direction::Lower.p_value(-0.9) < 0.2 && Direction::Lower.p_value(5.0) > 0.99);
+    assert_eq!(Direction::Higher.p_value(0.0), 1.0, "no spread, no evidence");
+}
+
+#[test]
+fn every_revealing_check_states_the_direction_its_extension_moves_it() {
+    use ssm::criticism::checks::Direction::{Either, Higher, Lower};
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        for def in checks_for(kind) {
+            let expected = match (def.suggests, def.name) {
+                (None, _) => Either,
+                // A lag puts observations behind the state: a negative slope and offset.
+                (Some("latency"), _) => Lower,
+                (Some("clutter" | "heading_flip"), _) => Higher,
+                // The extent factors can be below or above 1.
+                (Some("size_bias"), _) => Either,
+                (Some("heavy_tailed_accel"), "accel_kurtosis") => Higher,
+                (Some("heavy_tailed_accel"), "accel_peakedness") => Lower,
+                (Some(other), name) => panic!("{name} suggests {other}, which this test does not know"),
+            };
+            assert_eq!(def.direction, expected, "{}", def.name);
+        }
+    }
 }
 
 #[test]

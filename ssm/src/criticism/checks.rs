@@ -46,6 +46,40 @@ pub struct CheckDef {
     /// `"size_bias"`, `"heavy_tailed_accel"`, `"heading_flip"`); `None` for a
     /// general check.
     pub suggests: Option<&'static str>,
+    /// The sign of the discrepancy (measured minus replicated) that extension
+    /// produces: the screen that makes it plausible is one-sided in this
+    /// direction ([`CheckResult::screen_p`]). [`Direction::Either`] for a general check.
+    pub direction: Direction,
+}
+
+/// The sign of the discrepancy, measured minus replicated, that an extension
+/// produces in the check that suggests it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Direction {
+    /// The measured statistic is higher than the model's replicates (clutter's far
+    /// points, heading flips' reversals, heavy tails' kurtosis).
+    Higher,
+    /// The measured statistic is lower (a sensor lag's negative slope and initial
+    /// offset, heavy tails' lower Geary ratio).
+    Lower,
+    /// Either sign (extents under- or over-reported), or no extension.
+    Either,
+}
+
+impl Direction {
+    /// The p-value of a calibrated `z` in this direction: `1 - Phi(z)` for
+    /// [`Direction::Higher`], `Phi(z)` for [`Direction::Lower`], two-sided
+    /// `2 (1 - Phi(|z|))` for [`Direction::Either`]; 1 when `z` is 0 (no spread).
+    pub fn p_value(self, z: f64) -> f64 {
+        if z == 0.0 {
+            return 1.0;
+        }
+        match self {
+            Direction::Higher => normal_cdf(-z),
+            Direction::Lower => normal_cdf(z),
+            Direction::Either => (2.0 * normal_cdf(-z.abs())).min(1.0),
+        }
+    }
 }
 
 /// A definition with the function that computes it.
@@ -58,83 +92,103 @@ const POINTS: &[ObservationKind] = &[ObservationKind::Points];
 const BOXES: &[ObservationKind] = &[ObservationKind::Boxes];
 const BOTH: &[ObservationKind] = &[ObservationKind::Points, ObservationKind::Boxes];
 
+/// A general check: it suggests no extension.
 const fn check(
     name: &'static str,
     description: &'static str,
     kinds: &'static [ObservationKind],
-    suggests: Option<&'static str>,
     stat: fn(&View) -> f64,
 ) -> Check {
-    Check { def: CheckDef { name, description, kinds, suggests }, stat }
+    Check { def: CheckDef { name, description, kinds, suggests: None, direction: Direction::Either }, stat }
+}
+
+/// A check that can reveal `extension`, which moves it in `direction`.
+const fn revealing(
+    name: &'static str,
+    description: &'static str,
+    kinds: &'static [ObservationKind],
+    extension: &'static str,
+    direction: Direction,
+    stat: fn(&View) -> f64,
+) -> Check {
+    Check { def: CheckDef { name, description, kinds, suggests: Some(extension), direction }, stat }
 }
 
 /// Every check, in the order [`checks_for`] and [`statistics`] use.
 static CHECKS: [Check; 16] = [
-    check(
+    revealing(
         "along_offset_vs_speed",
         "Least-squares slope, over observed object-steps, of the observation's mean offset along the heading \
          (points' mean u, or the detection centre's u; m) on the state's speed (m/s), in seconds; \
          a sensor lag of delta seconds makes it about -delta.",
         BOTH,
-        Some("latency"),
+        "latency",
+        Direction::Lower,
         along_offset_vs_speed,
     ),
-    check(
+    revealing(
         "initial_lag",
         "Mean over objects of the initial state's offset from the prior mean along the prior heading, divided by \
          the prior speed (s; objects slower than 1 m/s left out): the smoother's initial states against draws from \
          the prior. Observations that lag the state by delta seconds pull the path about delta behind the prior.",
         BOTH,
-        Some("latency"),
+        "latency",
+        Direction::Lower,
         initial_lag,
     ),
-    check(
+    revealing(
         "far_point_fraction",
         "Fraction of points farther outside the object's box than the box is wide: a distance in the object's own \
          size, not a fixed one (unitless).",
         POINTS,
-        Some("clutter"),
+        "clutter",
+        Direction::Higher,
         far_point_fraction,
     ),
-    check(
+    revealing(
         "yaw_reversal_fraction",
         "Fraction of detections whose heading differs from the state's by more than pi/2 rad (unitless).",
         BOXES,
-        Some("heading_flip"),
+        "heading_flip",
+        Direction::Higher,
         yaw_reversal_fraction,
     ),
-    check(
+    revealing(
         "length_extent_ratio",
         "Mean, over object-steps with at least 4 points, of the points' extent along the heading divided by \
          the object's length (unitless).",
         POINTS,
-        Some("size_bias"),
+        "size_bias",
+        Direction::Either,
         length_extent_ratio,
     ),
-    check(
+    revealing(
         "width_extent_ratio",
         "Mean, over object-steps with at least 4 points, of the points' extent across the heading divided by \
          the object's width (unitless).",
         POINTS,
-        Some("size_bias"),
+        "size_bias",
+        Direction::Either,
         width_extent_ratio,
     ),
-    check(
+    revealing(
         "accel_kurtosis",
         "Sample excess kurtosis of the accelerations' innovations standardised by the fitted policy's mean and sd \
          at each state (the raw accelerations when the policy is not known), pooled over objects and steps \
          (unitless; 0 for a Gaussian).",
         BOTH,
-        Some("heavy_tailed_accel"),
+        "heavy_tailed_accel",
+        Direction::Higher,
         accel_kurtosis,
     ),
-    check(
+    revealing(
         "accel_peakedness",
         "Geary's ratio, mean |x| / sqrt(mean x^2), of the same standardised acceleration innovations (unitless; \
          sqrt(2/pi) = 0.798 for a Gaussian, lower for heavier tails). Set by the bulk of the innovations, not by \
          the few largest, which a smoother under a Gaussian policy spreads over neighbouring steps.",
         BOTH,
-        Some("heavy_tailed_accel"),
+        "heavy_tailed_accel",
+        Direction::Lower,
         accel_peakedness,
     ),
     check(
@@ -142,14 +196,12 @@ static CHECKS: [Check; 16] = [
         "Sample excess kurtosis of the pinches (rates of change of curvature), pooled over objects and steps \
          (unitless; 0 for a Gaussian).",
         BOTH,
-        None,
         pinch_kurtosis,
     ),
     check(
         "edge_residual_sd",
         "Standard deviation of each point's signed distance to the nearest edge of its box, positive outside (m).",
         POINTS,
-        None,
         edge_residual_sd,
     ),
     check(
@@ -157,7 +209,6 @@ static CHECKS: [Check; 16] = [
         "Least-squares slope, over object-steps with points, of the points' mean offset to the left of the \
          heading (m) on the state's speed (m/s), in seconds.",
         POINTS,
-        None,
         across_offset_vs_speed,
     ),
     check(
@@ -165,14 +216,12 @@ static CHECKS: [Check; 16] = [
         "Fraction of points on the half of the box facing the AV (split by the line through the box centre \
          perpendicular to the direction to the AV; unitless).",
         POINTS,
-        None,
         points_near_side_fraction,
     ),
     check(
         "speed_change_sd",
         "Standard deviation of the speed change per step, acceleration times dt (m/s).",
         POINTS,
-        None,
         speed_change_sd,
     ),
     check(
@@ -180,7 +229,6 @@ static CHECKS: [Check; 16] = [
         "Standard deviation of the detection centre's offset from the state's position along the line of sight \
          from the AV (m).",
         BOXES,
-        None,
         los_along_residual_sd,
     ),
     check(
@@ -188,7 +236,6 @@ static CHECKS: [Check; 16] = [
         "Standard deviation of the detection centre's offset from the state's position across the line of \
          sight from the AV (m).",
         BOXES,
-        None,
         los_across_residual_sd,
     ),
     check(
@@ -196,7 +243,6 @@ static CHECKS: [Check; 16] = [
         "Standard deviation of the wrapped heading residual (detection minus state) over detections within \
          pi/2 of the state's heading (rad).",
         BOXES,
-        None,
         yaw_residual_sd,
     ),
 ];
@@ -491,6 +537,12 @@ pub struct CheckResult {
     /// Two-sided p-value `2 (1 - Phi(|z|))`.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
+    /// For a check that suggests an extension, the p-value in the direction that
+    /// extension moves it ([`CheckDef::direction`]): the screen that makes the
+    /// extension plausible. `None` for a general check (and in reports written
+    /// before the screen was one-sided).
+    #[serde(default)]
+    pub screen_p: Option<f64>,
     /// Holm-adjusted p-value over the checks.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p_adjusted: f64,
@@ -543,7 +595,7 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
             let d: Vec<f64> = pairs.iter().map(|(m, r)| m - r).collect();
             let sd_d = sd(d.iter().copied());
             let z = if d.len() >= MIN_CALIBRATION_DRAWS && sd_d > 0.0 { mean(d.iter().copied()) / sd_d } else { 0.0 };
-            let p = if z == 0.0 { 1.0 } else { (2.0 * normal_cdf(-z.abs())).min(1.0) };
+            let p = Direction::Either.p_value(z);
             CheckResult {
                 name: def.name.to_string(),
                 suggests: def.suggests.map(str::to_string),
@@ -552,6 +604,7 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
                 replicated_sd: sd(pairs.iter().map(|p| p.1)),
                 z,
                 p,
+                screen_p: def.suggests.map(|_| def.direction.p_value(z)),
                 p_adjusted: p,
                 significant: false,
                 draws: pairs.len(),

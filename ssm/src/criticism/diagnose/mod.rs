@@ -19,7 +19,10 @@
 //!    values the check part's discrepancies suggest
 //!    ([`Extension::initial_from_checks`]): an extension is plausible when a
 //!    check that suggests it has an uncorrected p below
-//!    [`DiagnoseConfig::plausible_p`] (or always, with [`DiagnoseConfig::fit_all`]).
+//!    [`DiagnoseConfig::plausible_p`] in the direction the extension moves that
+//!    check ([`CheckResult::screen_p`]: a lag lowers the offset-speed slope, heavy
+//!    tails raise the kurtosis; a discrepancy the other way is no sign of it), or
+//!    always, with [`DiagnoseConfig::fit_all`].
 //!    With [`DiagnoseConfig::refit`] (the default) every parameter is refitted
 //!    with the extension's — the base network gives back what it absorbed of the
 //!    effect — and the base alone is refitted the same way, from the same start,
@@ -162,7 +165,8 @@ pub struct DiagnoseConfig {
     /// Family-wise level of the checks (Holm-corrected).
     pub alpha: f64,
     /// An extension is fitted when a check that suggests it has an uncorrected p
-    /// below this.
+    /// below this, one-sided in the direction the extension moves the check
+    /// ([`CheckResult::screen_p`]; two-sided for extents, which it moves either way).
     pub plausible_p: f64,
     /// Fit every extension that applies to the data, plausible or not (only a
     /// flagged one can be the cause).
@@ -669,7 +673,9 @@ fn run(
     for extension in Extension::for_kind(kind) {
         let flagged_by: Vec<String> = before
             .iter()
-            .filter(|c| c.suggests.as_deref() == Some(extension.id()) && c.p < config.plausible_p)
+            .filter(|c| {
+                c.suggests.as_deref() == Some(extension.id()) && c.screen_p.is_some_and(|p| p < config.plausible_p)
+            })
             .map(|c| c.name.clone())
             .collect();
         if flagged_by.is_empty() && !config.fit_all {
