@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use indicatif::ProgressBar;
 use plotters::prelude::*;
-use ssm::criticism::checks::{format_z, z_bound};
+use ssm::criticism::checks::{format_z, z_bound, CheckResult};
 use ssm::criticism::diagnose::{
     diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
@@ -369,21 +369,37 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         s,
         "Each extension the check objects made plausible, started where their discrepancies point, {how}. A cause \
          must (a) raise the evaluation objects' log-likelihood over the reference's with a Holm-adjusted sign-flip \
-         p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially and (d) lower the mean \
-         |z| of the checks that flagged it below the reference's.\n",
+         p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially and (d) lower the \
+         |z| of a check that flagged it below the reference's.\n",
         c.cause_level,
         r.gain_bar(),
         noise_note(r)
     );
     let _ = writeln!(
         s,
-        "| extension | gain (nats/unit) | SE | p adj. | top-2 share | learned | material | flagged by | |z| before → after | qualifies |"
+        "| extension | gain (nats/unit) | SE | p adj. | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
+    let reference_checks = r.reference.as_ref().map_or_else(
+        || r.checks.iter().map(|c| c.before.clone()).collect::<Vec<_>>(),
+        |reference| reference.checks.clone(),
+    );
+    let abs_z = |results: &[CheckResult], name: &str| {
+        results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
+    };
     for cand in &r.candidates {
+        let flagged = if cand.flagged_by.is_empty() {
+            "(fit all)".to_string()
+        } else {
+            let each = cand
+                .flagged_by
+                .iter()
+                .map(|name| format!("{name} {} → {}", abs_z(&reference_checks, name), abs_z(&cand.checks_after, name)));
+            each.collect::<Vec<_>>().join("; ")
+        };
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} → {} | {} |",
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {flagged} | {} |",
             cand.cause,
             cand.gain,
             cand.gain_se,
@@ -391,9 +407,6 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             fmt(cand.top_two_share),
             cand.description,
             if cand.material { "yes" } else { "no" },
-            if cand.flagged_by.is_empty() { "(fit all)".into() } else { cand.flagged_by.join(", ") },
-            fmt(cand.flagged_z.0),
-            fmt(cand.flagged_z.1),
             if cand.qualifies { "**yes**" } else { "no" }
         );
     }

@@ -209,43 +209,27 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
             report
         }
     };
-    let named = report.cause == e.expected;
-    let relative_error = match (named, true_magnitude(&effect)) {
-        (true, Some((name, truth))) => report
-            .candidates
-            .iter()
-            .find(|c| c.cause == report.cause)
-            .and_then(|c| c.params.iter().find(|p| p.0 == name))
-            .map_or(f64::NAN, |p| p.1 / truth - 1.0),
+    // Decided again under the current rules: cells diagnosed under an earlier
+    // rule (d) count as the protocol would decide them now.
+    let (cause, chosen) = report.decided(true);
+    let named = cause == e.expected;
+    let relative_error = match (named, chosen, true_magnitude(&effect)) {
+        (true, Some(c), Some((name, truth))) => {
+            c.params.iter().find(|p| p.0 == name).map_or(f64::NAN, |p| p.1 / truth - 1.0)
+        }
         _ => f64::NAN,
     };
     Ok(Some(Cell {
-        cause_without_check_rule: cause_without_check_rule(&report),
+        cause_without_check_rule: report.decided(false).0,
         effect: e.id.clone(),
         strength,
         seed,
-        cause: report.cause.clone(),
+        cause,
         named,
         relative_error,
-        gain: report.gain,
+        gain: chosen.map_or(0.0, |c| c.gain),
         seconds: report.seconds,
     }))
-}
-
-/// The cause `report` would name if the extensions did not have to lower their
-/// flagging checks' |z| (rule (d) of the decision): the largest gain among the
-/// candidates that pass every other rule; else what the report says when no
-/// candidate does (`unexplained` or `none`, from the same failing checks).
-fn cause_without_check_rule(report: &Report) -> String {
-    let bar = report.gain_bar();
-    let best = report
-        .candidates
-        .iter()
-        .filter(|c| c.passes_gain_rules(bar, report.config.cause_level))
-        .max_by(|a, b| a.gain.total_cmp(&b.gain));
-    // A candidate that qualifies passes these rules too, so with none the report
-    // named no catalogue cause either.
-    best.map_or_else(|| report.cause.clone(), |c| c.cause.clone())
 }
 
 /// The study's table: per effect and strength, the share named, false causes,

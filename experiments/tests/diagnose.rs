@@ -29,7 +29,15 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // It reads back as the library's report too, non-finite numbers (`null`) and all,
     // as `sefi power-study` does when it resumes.
     let typed: Result<Report, _> = serde_json::from_str(&text);
-    assert!(typed.is_ok(), "report.json does not read back as a Report: {:?}", typed.err());
+    let typed = typed.unwrap_or_else(|err| panic!("report.json does not read back as a Report: {err}"));
+    // Deciding again from the report's own candidates and checks (as the power
+    // study does with reports of earlier rules) gives the outcome it names.
+    let (again, chosen) = typed.decided(true);
+    assert_eq!(again, typed.cause, "decided again from the report");
+    assert_eq!(
+        chosen.map(|c| c.cause.as_str()),
+        typed.candidates.iter().find(|c| c.cause == typed.cause).map(|c| c.cause.as_str())
+    );
     assert!(stdout.contains(&format!("cause: {}", report["cause"].as_str().unwrap())), "stdout: {stdout}");
     // The filters' defaults for the data's observations: origin moves in the
     // checks and evaluations of boxes only, none in training.
