@@ -377,13 +377,10 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     );
     let _ = writeln!(
         s,
-        "| extension | gain (nats/unit) | SE | p adj. | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
+        "| extension | gain (nats/unit) | SE | MC sd | p adj. | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|");
-    let reference_checks = r.reference.as_ref().map_or_else(
-        || r.checks.iter().map(|c| c.before.clone()).collect::<Vec<_>>(),
-        |reference| reference.checks.clone(),
-    );
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+    let reference_checks = r.reference_checks();
     let abs_z = |results: &[CheckResult], name: &str| {
         results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
     };
@@ -399,10 +396,11 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {flagged} | {} |",
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {flagged} | {} |",
             cand.cause,
             cand.gain,
             cand.gain_se,
+            fmt(cand.gain_mc_sd),
             fmt(cand.p_adjusted),
             fmt(cand.top_two_share),
             cand.description,
@@ -413,8 +411,11 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     let _ = writeln!(
         s,
         "\nEach object's log-likelihood is that of the mean likelihood of {} runs of the tempered filter with {} \
-         particles, the same seeds for every model.",
-        c.eval_runs, c.eval_particles
+         particles, the same seeds for every model. MC sd: the gain's Monte Carlo error from the filter's own noise \
+         (the spread of each object's runs); the least precise object's gain is uncertain by {} nats.",
+        c.eval_runs,
+        c.eval_particles,
+        fmt(r.candidates.iter().map(|c| c.worst_object_mc_sd).fold(f64::NAN, f64::max))
     );
     if !r.not_fitted.is_empty() {
         let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));

@@ -34,10 +34,10 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // study does with reports of earlier rules) gives the outcome it names.
     let (again, chosen) = typed.decided(true);
     assert_eq!(again, typed.cause, "decided again from the report");
-    assert_eq!(
-        chosen.map(|c| c.cause.as_str()),
-        typed.candidates.iter().find(|c| c.cause == typed.cause).map(|c| c.cause.as_str())
-    );
+    match chosen {
+        Some(c) => assert_eq!((c.cause.as_str(), c.gain), (typed.cause.as_str(), typed.gain), "the chosen candidate"),
+        None => assert_eq!(typed.gain, 0.0, "no candidate chosen, no gain"),
+    }
     assert!(stdout.contains(&format!("cause: {}", report["cause"].as_str().unwrap())), "stdout: {stdout}");
     // The filters' defaults for the data's observations: origin moves in the
     // checks and evaluations of boxes only, none in training.
@@ -100,8 +100,14 @@ fn summary(report: &Value) -> String {
         format!("cause {} gain {} ± {} (p {})\n", report["cause"], report["gain"], report["gain_se"], report["gain_p"]);
     for c in report["candidates"].as_array().unwrap() {
         s += &format!(
-            "  candidate {} gain {} ± {} p_adj {} flagged |z| {} qualifies {}: {}\n",
-            c["cause"], c["gain"], c["gain_se"], c["p_adjusted"], c["flagged_z"], c["qualifies"], c["description"]
+            "  candidate {} gain {} ± {} p_adj {} checks improved {} qualifies {}: {}\n",
+            c["cause"],
+            c["gain"],
+            c["gain_se"],
+            c["p_adjusted"],
+            c["checks_improved"],
+            c["qualifies"],
+            c["description"]
         );
     }
     for c in report["checks"].as_array().unwrap() {

@@ -129,8 +129,8 @@ impl MeanOver {
         let at = |q: f64| (!sorted.is_empty()).then(|| quantile_sorted(&sorted, q));
         let q01 = at(0.01);
         let mean_above_q01 = q01.map(|q| {
-            let kept: Vec<f64> = items.iter().copied().filter(|&x| x >= q).collect();
-            kept.iter().sum::<f64>() / kept.len() as f64
+            let (sum, kept) = items.iter().filter(|&&x| x >= q).fold((0.0, 0usize), |(s, n), &x| (s + x, n + 1));
+            sum / kept as f64
         });
         MeanOver { mean, count, median: at(0.5), q01, mean_above_q01 }
     }

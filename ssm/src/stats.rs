@@ -76,3 +76,9 @@ pub fn nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Resul
     use serde::Deserialize;
     Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
 }
+
+/// NaN: the serde default of a number a report written before it existed lacks
+/// (`#[serde(default = "crate::stats::nan")]`).
+pub fn nan() -> f64 {
+    f64::NAN
+}

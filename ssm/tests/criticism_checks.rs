@@ -4,7 +4,7 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
-use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef, Direction};
+use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef, Direction, Suggestion};
 use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::models::extended::{lagged_pose, ObjectObservations};
@@ -92,7 +92,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
             "yaw_residual_sd"
         ]
     );
-    let suggests = |k| checks_for(k).iter().filter_map(|d| d.suggests).collect::<Vec<_>>();
+    let suggests = |k| checks_for(k).iter().filter_map(|d| d.suggests.map(|s| s.extension)).collect::<Vec<_>>();
     assert_eq!(
         suggests(ObservationKind::Points),
         ["latency", "latency", "clutter", "size_bias", "size_bias", "heavy_tailed_accel", "heavy_tailed_accel"]
@@ -259,23 +259,10 @@ const A: CheckDef = CheckDef {
     name: "a",
     description: "A.",
     kinds: &[ObservationKind::Points],
-    suggests: Some("clutter"),
-    direction: Direction::Higher,
+    suggests: Some(Suggestion { extension: "clutter", direction: Direction::Higher }),
 };
-const B: CheckDef = CheckDef {
-    name: "b",
-    description: "B.",
-    kinds: &[ObservationKind::Points],
-    suggests: None,
-    direction: Direction::Either,
-};
-const C: CheckDef = CheckDef {
-    name: "c",
-    description: "C.",
-    kinds: &[ObservationKind::Points],
-    suggests: None,
-    direction: Direction::Either,
-};
+const B: CheckDef = CheckDef { name: "b", description: "B.", kinds: &[ObservationKind::Points], suggests: None };
+const C: CheckDef = CheckDef { name: "c", description: "C.", kinds: &[ObservationKind::Points], suggests: None };
 
 /// Draw tables from per-check columns of (measured, replicated).
 fn tables(columns: &[Vec<(f64, f64)>]) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
@@ -331,18 +318,18 @@ fn every_revealing_check_states_the_direction_its_extension_moves_it() {
     use ssm::criticism::checks::Direction::{Either, Higher, Lower};
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
         for def in checks_for(kind) {
-            let expected = match (def.suggests, def.name) {
-                (None, _) => Either,
+            let Some(Suggestion { extension, direction }) = def.suggests else { continue };
+            let expected = match (extension, def.name) {
                 // A lag puts observations behind the state: a negative slope and offset.
-                (Some("latency"), _) => Lower,
-                (Some("clutter" | "heading_flip"), _) => Higher,
+                ("latency", _) => Lower,
+                ("clutter" | "heading_flip", _) => Higher,
                 // The extent factors can be below or above 1.
-                (Some("size_bias"), _) => Either,
-                (Some("heavy_tailed_accel"), "accel_kurtosis") => Higher,
-                (Some("heavy_tailed_accel"), "accel_peakedness") => Lower,
-                (Some(other), name) => panic!("{name} suggests {other}, which this test does not know"),
+                ("size_bias", _) => Either,
+                ("heavy_tailed_accel", "accel_kurtosis") => Higher,
+                ("heavy_tailed_accel", "accel_peakedness") => Lower,
+                (other, name) => panic!("{name} suggests {other}, which this test does not know"),
             };
-            assert_eq!(def.direction, expected, "{}", def.name);
+            assert_eq!(direction, expected, "{}", def.name);
         }
     }
 }

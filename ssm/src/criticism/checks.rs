@@ -42,13 +42,20 @@ pub struct CheckDef {
     pub description: &'static str,
     /// The observation kinds it applies to.
     pub kinds: &'static [ObservationKind],
-    /// The catalogue extension a discrepancy can reveal (`"latency"`, `"clutter"`,
-    /// `"size_bias"`, `"heavy_tailed_accel"`, `"heading_flip"`); `None` for a
-    /// general check.
-    pub suggests: Option<&'static str>,
-    /// The sign of the discrepancy (measured minus replicated) that extension
-    /// produces: the screen that makes it plausible is one-sided in this
-    /// direction ([`CheckResult::screen_p`]). [`Direction::Either`] for a general check.
+    /// The catalogue extension a discrepancy can reveal, and which way; `None` for
+    /// a general check.
+    pub suggests: Option<Suggestion>,
+}
+
+/// A catalogue extension a check can reveal, and the sign of the discrepancy it
+/// gives that check: the screen that makes the extension plausible is one-sided
+/// in that direction ([`CheckResult::screen_p`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Suggestion {
+    /// The extension's id (`"latency"`, `"clutter"`, `"size_bias"`,
+    /// `"heavy_tailed_accel"`, `"heading_flip"`).
+    pub extension: &'static str,
+    /// The sign of measured minus replicated under that extension.
     pub direction: Direction,
 }
 
@@ -62,7 +69,7 @@ pub enum Direction {
     /// The measured statistic is lower (a sensor lag's negative slope and initial
     /// offset, heavy tails' lower Geary ratio).
     Lower,
-    /// Either sign (extents under- or over-reported), or no extension.
+    /// Either sign (extents under- or over-reported).
     Either,
 }
 
@@ -99,7 +106,7 @@ const fn check(
     kinds: &'static [ObservationKind],
     stat: fn(&View) -> f64,
 ) -> Check {
-    Check { def: CheckDef { name, description, kinds, suggests: None, direction: Direction::Either }, stat }
+    Check { def: CheckDef { name, description, kinds, suggests: None }, stat }
 }
 
 /// A check that can reveal `extension`, which moves it in `direction`.
@@ -111,7 +118,7 @@ const fn revealing(
     direction: Direction,
     stat: fn(&View) -> f64,
 ) -> Check {
-    Check { def: CheckDef { name, description, kinds, suggests: Some(extension), direction }, stat }
+    Check { def: CheckDef { name, description, kinds, suggests: Some(Suggestion { extension, direction }) }, stat }
 }
 
 /// Every check, in the order [`checks_for`] and [`statistics`] use.
@@ -538,7 +545,7 @@ pub struct CheckResult {
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
     /// For a check that suggests an extension, the p-value in the direction that
-    /// extension moves it ([`CheckDef::direction`]): the screen that makes the
+    /// extension moves it ([`Suggestion::direction`]): the screen that makes the
     /// extension plausible. `None` for a general check (and in reports written
     /// before the screen was one-sided).
     #[serde(default)]
@@ -598,13 +605,13 @@ pub fn calibrate(defs: &[&CheckDef], measured: &[Vec<f64>], replicated: &[Vec<f6
             let p = Direction::Either.p_value(z);
             CheckResult {
                 name: def.name.to_string(),
-                suggests: def.suggests.map(str::to_string),
+                suggests: def.suggests.map(|s| s.extension.to_string()),
                 measured: mean(pairs.iter().map(|p| p.0)),
                 replicated: mean(pairs.iter().map(|p| p.1)),
                 replicated_sd: sd(pairs.iter().map(|p| p.1)),
                 z,
                 p,
-                screen_p: def.suggests.map(|_| def.direction.p_value(z)),
+                screen_p: def.suggests.map(|s| s.direction.p_value(z)),
                 p_adjusted: p,
                 significant: false,
                 draws: pairs.len(),

@@ -16,6 +16,8 @@ use crate::stats::{log_sum_exp, sd};
 pub(super) struct EvalLikelihoods {
     /// Per object: the log of the mean of the runs' likelihood estimates.
     pub(super) object_ll: Vec<f64>,
+    /// Per object: the Monte Carlo sd of `object_ll` ([`monte_carlo_sd`]).
+    pub(super) object_mc_sd: Vec<f64>,
     /// Observed units (points, detections).
     pub(super) units: usize,
 }
@@ -37,7 +39,30 @@ pub(super) fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) 
     if let Some(bad) = object_ll.iter().position(|l| !l.is_finite()) {
         return Err(format!("the log-likelihood of evaluated object {bad} is not finite"));
     }
-    Ok(EvalLikelihoods { object_ll, units })
+    let object_mc_sd = per_object.iter().map(|l| monte_carlo_sd(l)).collect();
+    Ok(EvalLikelihoods { object_ll, object_mc_sd, units })
+}
+
+/// The Monte Carlo sd of an object's held-out log-likelihood from its runs'
+/// log-likelihood estimates `runs`: their sample sd over `sqrt(runs)` (NaN with
+/// fewer than two runs). Taken on the log scale, not by the delta method on the
+/// likelihoods, because two runs that disagree by tens of nats say the estimate
+/// is that imprecise, where the delta method would cap it near one nat.
+pub(super) fn monte_carlo_sd(runs: &[f64]) -> f64 {
+    sd(runs.iter().copied()) / (runs.len() as f64).sqrt()
+}
+
+/// The Monte Carlo error of the paired gain of model `a` over model `b`, from
+/// the filters' own noise: `(sd of the gain per unit, the largest sd of one
+/// object's gain in nats)`. Each object's sds under the two models are combined
+/// as if independent; the models share their filters' seeds, which correlates
+/// their errors positively, so this overstates the error rather than hides it.
+pub(super) fn gain_monte_carlo_sd(a: &EvalLikelihoods, b: &EvalLikelihoods) -> (f64, f64) {
+    let per_object: Vec<f64> =
+        a.object_mc_sd.iter().zip(&b.object_mc_sd).map(|(x, y)| (x * x + y * y).sqrt()).collect();
+    let total = per_object.iter().map(|s| s * s).sum::<f64>().sqrt() / b.units.max(1) as f64;
+    let worst = per_object.iter().copied().fold(f64::NAN, f64::max);
+    (total, worst)
 }
 
 /// `a_i - b_i`.
@@ -148,4 +173,31 @@ pub fn gains_by_group(
             GroupGain { group: g, objects: members.len(), units, gain, gain_se, positive }
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn monte_carlo_sd_is_the_runs_spread_on_the_log_scale() {
+        // Two runs 200 nats apart: the estimate is uncertain by about 100 nats,
+        // not the ~1 nat the delta method on the likelihoods would say.
+        assert!((monte_carlo_sd(&[-1000.0, -1200.0]) - 100.0).abs() < 1e-9);
+        // Four runs: sample sd 1.291 over 2.
+        let s = monte_carlo_sd(&[1.0, 2.0, 3.0, 4.0]);
+        assert!((s - (5.0f64 / 3.0).sqrt() / 2.0).abs() < 1e-12, "{s}");
+        assert!(monte_carlo_sd(&[-5.0]).is_nan());
+    }
+
+    #[test]
+    fn the_gains_monte_carlo_sd_combines_both_models_objects() {
+        let a = EvalLikelihoods { object_ll: vec![0.0; 3], object_mc_sd: vec![3.0, 0.0, 1.0], units: 10 };
+        let b = EvalLikelihoods { object_ll: vec![0.0; 3], object_mc_sd: vec![4.0, 0.0, 1.0], units: 10 };
+        let (per_unit, worst) = gain_monte_carlo_sd(&a, &b);
+        assert!((worst - 5.0).abs() < 1e-12);
+        assert!((per_unit - (25.0f64 + 2.0).sqrt() / 10.0).abs() < 1e-12);
+        let one_run = EvalLikelihoods { object_ll: vec![0.0], object_mc_sd: vec![f64::NAN], units: 1 };
+        assert!(gain_monte_carlo_sd(&one_run, &one_run).0.is_nan());
+    }
 }

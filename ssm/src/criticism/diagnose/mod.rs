@@ -57,10 +57,11 @@
 mod heldout;
 mod replicated;
 
-use heldout::{differences, likelihoods, top_two_share, EvalLikelihoods};
+use heldout::{differences, gain_monte_carlo_sd, likelihoods, top_two_share, EvalLikelihoods};
 pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 use replicated::{posterior_predictive_checks, ModelChecks};
 
+use std::borrow::Cow;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -359,6 +360,19 @@ pub struct CandidateReport {
     /// scale, the decision uses `p_adjusted`).
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_se: f64,
+    /// The gain's Monte Carlo error from the filters' own noise: per object, the
+    /// sample sd of the [`DiagnoseConfig::eval_runs`] runs' log-likelihoods over
+    /// `sqrt(runs)`, under both models, combined over objects, per unit (NaN with
+    /// one run, and in reports written before it was recorded). Where it is
+    /// comparable to `gain_se`, the comparison is limited by the filter's
+    /// precision rather than by the number of objects: more evaluation particles
+    /// or runs would sharpen it.
+    #[serde(default = "crate::stats::nan", deserialize_with = "crate::stats::nan_from_null")]
+    pub gain_mc_sd: f64,
+    /// The largest Monte Carlo sd of one object's gain (nats; as `gain_mc_sd`):
+    /// an object whose estimate is that imprecise can sway the sum alone.
+    #[serde(default = "crate::stats::nan", deserialize_with = "crate::stats::nan_from_null")]
+    pub worst_object_mc_sd: f64,
     /// One-sided sign-flip permutation p-value of the gain.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
@@ -376,8 +390,6 @@ pub struct CandidateReport {
     pub description: String,
     /// The checks whose p made it plausible (empty when fitted because of `fit_all`).
     pub flagged_by: Vec<String>,
-    /// Mean |z| of the flagging checks on the check part: reference, then extended.
-    pub flagged_z: (f64, f64),
     /// Rule (d): whether the extension lowers the |z| of a check that flagged it
     /// ([`improves_flagged_checks`]; only such an extension can be the cause).
     pub checks_improved: bool,
@@ -487,6 +499,16 @@ impl Report {
         gain_bar(self.config.min_gain, self.reference.as_ref().and_then(|r| r.reseeded.as_ref()))
     }
 
+    /// Every check calibrated on what the candidates were compared with: the
+    /// reference's, or the base's when the base is the reference (`--no-refit`,
+    /// or nothing fitted).
+    pub fn reference_checks(&self) -> Cow<'_, [CheckResult]> {
+        match &self.reference {
+            Some(r) => Cow::Borrowed(&r.checks),
+            None => Cow::Owned(self.checks.iter().map(|c| c.before.clone()).collect()),
+        }
+    }
+
     /// The outcome the current decision rules give on this report's candidates
     /// and reference checks, and the chosen candidate: reports written under an
     /// earlier rule (d) are decided again (those without the candidates' checks
@@ -497,11 +519,7 @@ impl Report {
         if self.candidates.is_empty() {
             return (self.cause.clone(), None);
         }
-        // The reference's checks, or the base's when the base is the reference.
-        let reference: Vec<CheckResult> = match &self.reference {
-            Some(r) => r.checks.clone(),
-            None => self.checks.iter().map(|c| c.before.clone()).collect(),
-        };
+        let reference = self.reference_checks();
         let bar = self.gain_bar();
         let improved = |c: &CandidateReport| {
             if c.checks_after.is_empty() {
@@ -819,21 +837,12 @@ fn run(
         .collect();
     let adjusted = holm(&p_values);
     let mut candidates = Vec::new();
-    let mut after_checks = Vec::new();
     for (i, f) in fits.iter().enumerate() {
         let ext = f.extension;
         let d = differences(&f.eval.object_ll, &reference_eval.object_ll);
         let (gain, gain_se) = paired_gain(&f.eval.object_ll, &reference_eval.object_ll, reference_eval.units);
+        let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
-        let flagged_z = |results: &[CheckResult]| {
-            let z: Vec<f64> = results.iter().filter(|c| f.flagged_by.contains(&c.name)).map(|c| c.z.abs()).collect();
-            if z.is_empty() {
-                f64::NAN
-            } else {
-                z.iter().sum::<f64>() / z.len() as f64
-            }
-        };
-        let flagged_z = (flagged_z(reference_checks), flagged_z(&after));
         let checks_improved = improves_flagged_checks(&f.flagged_by, reference_checks, &after);
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
@@ -842,6 +851,8 @@ fn run(
             cause: ext.id().into(),
             gain,
             gain_se,
+            gain_mc_sd,
+            worst_object_mc_sd,
             p: p_values[i],
             p_adjusted: adjusted[i],
             top_two_share: top_two_share(&d),
@@ -849,9 +860,8 @@ fn run(
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
-            flagged_z,
             checks_improved,
-            checks_after: after.clone(),
+            checks_after: after,
             material,
             qualifies: false,
             skipped_steps: f.run.skipped,
@@ -859,7 +869,6 @@ fn run(
         };
         candidate.qualifies = checks_improved && candidate.passes_gain_rules(gain_bar, config.cause_level);
         candidates.push(candidate);
-        after_checks.push(after);
     }
     let winner = choose(&candidates, |c| c.qualifies);
 
@@ -870,11 +879,11 @@ fn run(
         .map(|(c, def)| CheckReport {
             name: def.name.into(),
             description: def.description.into(),
-            suggests: def.suggests.map(str::to_string),
+            suggests: def.suggests.map(|s| s.extension.to_string()),
             z: before[c].z,
             p: before[c].p_adjusted,
             before: before[c].clone(),
-            after: winner.map(|i| after_checks[i][c].clone()),
+            after: winner.map(|i| candidates[i].checks_after[c].clone()),
             draws_before: base_checks.draws_of(c),
             draws_after: winner.map(|i| fits[i].checks.draws_of(c)).unwrap_or_default(),
         })
