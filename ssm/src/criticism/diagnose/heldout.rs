@@ -58,10 +58,9 @@ pub(super) fn monte_carlo_sd(runs: &[f64]) -> f64 {
 /// as if independent; the models share their filters' seeds, which correlates
 /// their errors positively, so this overstates the error rather than hides it.
 pub(super) fn gain_monte_carlo_sd(a: &EvalLikelihoods, b: &EvalLikelihoods) -> (f64, f64) {
-    let per_object: Vec<f64> =
-        a.object_mc_sd.iter().zip(&b.object_mc_sd).map(|(x, y)| (x * x + y * y).sqrt()).collect();
-    let total = per_object.iter().map(|s| s * s).sum::<f64>().sqrt() / b.units.max(1) as f64;
-    let worst = per_object.iter().copied().fold(f64::NAN, f64::max);
+    let variances = || a.object_mc_sd.iter().zip(&b.object_mc_sd).map(|(x, y)| x * x + y * y);
+    let total = variances().sum::<f64>().sqrt() / b.units.max(1) as f64;
+    let worst = variances().fold(f64::NAN, f64::max).sqrt();
     (total, worst)
 }
 
