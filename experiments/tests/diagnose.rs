@@ -55,6 +55,20 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         assert!(candidates.iter().all(|c| c["checks_after"].as_array().unwrap().len() == n));
         assert!(out.join("reference").join("train.csv").is_file(), "the reference's training run");
     }
+    // The held-out Monte Carlo error comes from the evaluation's own filter runs:
+    // with two or more runs per object it is a finite, non-negative number for
+    // every candidate, and the least precise object's error bounds the total's.
+    if report["config"]["eval_runs"].as_u64().unwrap() >= 2 {
+        for c in candidates {
+            let (total, worst) = (c["gain_mc_sd"].as_f64(), c["worst_object_mc_sd"].as_f64());
+            let finite = |v: Option<f64>| v.is_some_and(|v| v.is_finite() && v >= 0.0);
+            assert!(finite(total) && finite(worst), "MC sd of {}: {total:?}, worst {worst:?}", c["cause"]);
+            let units = report["eval_units"].as_f64().unwrap();
+            assert!(
+                total.unwrap() * units <= worst.unwrap() * (report["eval_objects"].as_f64().unwrap()).sqrt() + 1e-9
+            );
+        }
+    }
     (report, out)
 }
 
