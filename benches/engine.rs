@@ -45,11 +45,13 @@ fn forward_flops() -> f64 {
     2.0 * ROWS as f64 * SIZES.windows(2).map(|p| (p[0] * p[1]) as f64).sum::<f64>()
 }
 
+/// What a timed run does: the forward pass without a tape, on a recording tape,
+/// or on a recording tape followed by the backward pass.
 #[derive(Clone, Copy)]
 enum Pass {
-    ForwardNoTape,
-    ForwardTape,
-    ForwardBackward,
+    Untaped,
+    Taped,
+    Backward,
 }
 
 fn run_once<F: Float>(wl: &Workload<F>, tape: &mut Tape<F>, pass: Pass) -> f64 {
@@ -59,7 +61,7 @@ fn run_once<F: Float>(wl: &Workload<F>, tape: &mut Tape<F>, pass: Pass) -> f64 {
     let w = tape.constant(wl.w.clone());
     let loss = (wl.mlp.forward(&params, x) * w).sum();
     let v = loss.item().to_f64();
-    if let Pass::ForwardBackward = pass {
+    if let Pass::Backward = pass {
         let g = tape.backward(loss);
         std::hint::black_box(params.gradients(&g));
     }
@@ -68,7 +70,7 @@ fn run_once<F: Float>(wl: &Workload<F>, tape: &mut Tape<F>, pass: Pass) -> f64 {
 
 fn median_seconds<F: Float>(wl: &Workload<F>, pass: Pass, reps: usize) -> f64 {
     let mut tape = match pass {
-        Pass::ForwardNoTape => Tape::no_record(),
+        Pass::Untaped => Tape::no_record(),
         _ => Tape::new(),
     };
     run_once(wl, &mut tape, pass); // warm-up (fills the buffer pool)
@@ -86,12 +88,12 @@ fn median_seconds<F: Float>(wl: &Workload<F>, pass: Pass, reps: usize) -> f64 {
 fn report<F: Float>(reps: usize) {
     let wl = workload::<F>();
     let cores = rayon::current_num_threads();
-    let fwd = median_seconds(&wl, Pass::ForwardNoTape, reps);
-    let fwd_tape = median_seconds(&wl, Pass::ForwardTape, reps);
-    let fb = median_seconds(&wl, Pass::ForwardBackward, reps);
+    let fwd = median_seconds(&wl, Pass::Untaped, reps);
+    let fwd_tape = median_seconds(&wl, Pass::Taped, reps);
+    let fb = median_seconds(&wl, Pass::Backward, reps);
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
-    let fb1 = one.install(|| median_seconds(&wl, Pass::ForwardBackward, reps));
-    let fwd1 = one.install(|| median_seconds(&wl, Pass::ForwardNoTape, reps));
+    let fb1 = one.install(|| median_seconds(&wl, Pass::Backward, reps));
+    let fwd1 = one.install(|| median_seconds(&wl, Pass::Untaped, reps));
     // Backward GEMMs: weight gradients for every layer, input gradients for all but the first.
     let ff = forward_flops();
     let bf = 2.0 * ff - 2.0 * ROWS as f64 * (SIZES[0] * SIZES[1]) as f64;

@@ -103,7 +103,7 @@ fn exp_poly(r: f32) -> f32 {
     let p = mul_add_f32(p, r, 8.333_452e-3);
     let p = mul_add_f32(p, r, 4.166_579_6e-2);
     let p = mul_add_f32(p, r, 1.666_666_5e-1);
-    mul_add_f32(p, r, 5.000_000_1e-1)
+    mul_add_f32(p, r, 5e-1)
 }
 
 /// exp(x) for f32: range reduction to [-ln2/2, ln2/2] and a degree-6 polynomial (Cephes expf).
@@ -142,7 +142,7 @@ pub fn ln_f32(x: f32) -> f32 {
     for c in [1.167_699_9e-1, -1.242_014_1e-1, 1.424_932_3e-1, -1.666_805_8e-1, 2.000_071_4e-1, -2.499_999_4e-1] {
         y = mul_add_f32(y, m, c);
     }
-    let mut y = mul_add_f32(y, m, 3.333_333_1e-1) * m * z;
+    let mut y = mul_add_f32(y, m, 3.333_333e-1) * m * z;
     let ef = e as f32 - if tiny { 23.0 } else { 0.0 };
     y = mul_add_f32(LN2_LO, ef, y);
     y = mul_add_f32(-0.5, z, y);
@@ -171,8 +171,8 @@ pub fn tanh_f32(x: f32) -> f32 {
     const CLAMP: f32 = if cfg!(target_feature = "fma") { 8.005_163 } else { 7.905_311 };
     let xc = x.clamp(-CLAMP, CLAMP);
     let x2 = xc * xc;
-    let p = mul_add_f32(-2.760_768_5e-16, x2, 2.000_187_9e-13);
-    let p = mul_add_f32(p, x2, -8.604_671_5e-11);
+    let p = mul_add_f32(-2.760_768_5e-16, x2, 2.000_188e-13);
+    let p = mul_add_f32(p, x2, -8.604_672e-11);
     let p = mul_add_f32(p, x2, 5.122_297e-8);
     let p = mul_add_f32(p, x2, 1.485_722_4e-5);
     let p = mul_add_f32(p, x2, 6.372_619_3e-4);

@@ -153,6 +153,8 @@ fn row_offsets(mut row: usize, out: &[usize], sa: &[usize], sb: &[usize]) -> (us
 
 /// The broadcast binary map `dst = f(a, b)` where `a`, `b` have shapes broadcasting to
 /// `out` (the shape of `dst`).
+// The two operands, their shapes, the output and the map are all needed by every call site.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn broadcast_zip<F: Float>(
     par: Parallelism,
     a: &[F],
@@ -470,6 +472,8 @@ pub(crate) fn scatter_add_rows<F: Float>(
 
 /// Copies the blocks of a `[outer, n, inner]` array into (or out of) a sub-range of
 /// axis positions `start..start + n` of a `[outer, total, inner]` array.
+// Source and destination each need their slice, dims and start; bundling them would only move the count.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn copy_axis_range<F: Float>(
     src: &[F],
     src_dims: AxisDims,

@@ -208,6 +208,8 @@ impl<'t, F: Float> Var<'t, F> {
     }
 
     /// Element-wise `-x`.
+    // `Var` also implements `std::ops::Neg` (with the same result); this inherent method is public API.
+    #[allow(clippy::should_implement_trait)]
     pub fn neg(self) -> Var<'t, F> {
         self.unary(Unary::Neg)
     }

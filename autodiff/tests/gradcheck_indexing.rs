@@ -53,10 +53,10 @@ fn gather_and_index_select_every_axis_with_repeats() {
         assert_eq!(sel, y, "index_select is gather");
 
         let name = format!("gather axis {axis}");
-        check(&name, |_, v| v[0].gather(axis, &idx), &[x.clone()]);
-        check(&format!("index_select axis {axis}"), |_, v| v[0].index_select(axis, &idx), &[x.clone()]);
+        check(&name, |_, v| v[0].gather(axis, &idx), std::slice::from_ref(&x));
+        check(&format!("index_select axis {axis}"), |_, v| v[0].index_select(axis, &idx), std::slice::from_ref(&x));
         // The gradient of a sum counts how often each position was picked.
-        let (_, g) = grads(|_, v| v[0].gather(axis, &idx), &[x.clone()]);
+        let (_, g) = grads(|_, v| v[0].gather(axis, &idx), std::slice::from_ref(&x));
         for i in 0..x.numel() {
             let pos = unravel(i, &SHAPE)[axis];
             let count = idx.iter().filter(|&&j| j == pos).count() as f64;
@@ -157,7 +157,7 @@ fn concat_three_parts_every_axis() {
 #[test]
 fn concat_of_a_value_with_itself_accumulates() {
     let x = normal(&mut rng(34), &[2, 3]);
-    check("concat [x, x, x]", |tape, v| tape.concat(&[v[0], v[0].square(), v[0]], 1), &[x.clone()]);
+    check("concat [x, x, x]", |tape, v| tape.concat(&[v[0], v[0].square(), v[0]], 1), std::slice::from_ref(&x));
     let (_, g) = grads(|tape, v| tape.concat(&[v[0], v[0]], 0), &[x]);
     assert!(g[0].data().iter().all(|&v| v == 2.0));
 }
@@ -184,7 +184,7 @@ fn slice_every_axis() {
     }
     // Two overlapping slices of one value: gradients add where they overlap.
     let x = normal(&mut r, &[6, 2]);
-    let (_, g) = grads(|_, v| v[0].slice(0, 0, 4) + v[0].slice(0, 2, 4), &[x.clone()]);
+    let (_, g) = grads(|_, v| v[0].slice(0, 0, 4) + v[0].slice(0, 2, 4), std::slice::from_ref(&x));
     let expected: Vec<f64> = (0..12).map(|i| if (4..8).contains(&i) { 2.0 } else { 1.0 }).collect();
     assert_eq!(g[0].data(), &expected[..]);
 }
@@ -207,7 +207,7 @@ fn reshape_transpose_and_broadcast_to() {
             assert_eq!(t.at(&[j, i]), m.at(&[i, j]));
         }
     }
-    check("transpose", |_, v| v[0].t(), &[m.clone()]);
+    check("transpose", |_, v| v[0].t(), std::slice::from_ref(&m));
     check("x^T x", |_, v| v[0].t().matmul(v[0]), &[m]);
 
     for (from, to) in [
@@ -239,15 +239,15 @@ fn select_with_a_constant_mask() {
     let mask: Vec<bool> = (0..12).map(|i| i % 3 != 1).collect();
     let tape = Tape::<f64>::new();
     let y = tape.select(&mask, tape.constant(a.clone()), tape.constant(b.clone())).to_tensor();
-    for i in 0..12 {
-        let e = if mask[i] { a.data()[i] } else { b.data()[i] };
+    for (i, &m) in mask.iter().enumerate() {
+        let e = if m { a.data()[i] } else { b.data()[i] };
         assert_eq!(y.data()[i], e);
     }
     check("select", |tape, v| tape.select(&mask, v[0], v[1]), &[a.clone(), b.clone()]);
     let (_, g) = grads(|tape, v| tape.select(&mask, v[0], v[1]), &[a, b]);
-    for i in 0..12 {
-        assert_eq!(g[0].data()[i], if mask[i] { 1.0 } else { 0.0 });
-        assert_eq!(g[1].data()[i], if mask[i] { 0.0 } else { 1.0 });
+    for (i, &m) in mask.iter().enumerate() {
+        assert_eq!(g[0].data()[i], if m { 1.0 } else { 0.0 });
+        assert_eq!(g[1].data()[i], if m { 0.0 } else { 1.0 });
     }
     // Both branches from one value: the gradient is one everywhere.
     let x = normal(&mut r, &[3, 4]);

@@ -196,7 +196,7 @@ pub struct PrecisionArgs {
 fn load(data: &Path, params: &Path, scenes: Option<usize>) -> Result<(Dataset, ParamStore<f64>), String> {
     let dataset = Dataset::read(data).map_err(|e| format!("dataset {}: {e}", data.display()))?;
     let dataset = match scenes {
-        Some(k) if k == 0 => return Err("--scenes must be at least 1".into()),
+        Some(0) => return Err("--scenes must be at least 1".into()),
         Some(k) if k < dataset.scenes().len() => dataset.select_scenes(&(0..k).collect::<Vec<_>>()),
         _ => dataset,
     };

@@ -122,6 +122,9 @@ impl Scale {
     }
 }
 
+/// A curve of `(training step, value)` points.
+type Curve = Vec<(f64, f64)>;
+
 /// One method's results over seeds.
 #[derive(Clone)]
 struct MethodResult {
@@ -132,7 +135,7 @@ struct MethodResult {
     /// Test MLL against training step, per seed.
     curves: Vec<Vec<(f64, f64)>>,
     /// The policy's sds (accel, pinch) against training step, per seed.
-    sd_curves: Vec<(Vec<(f64, f64)>, Vec<(f64, f64)>)>,
+    sd_curves: Vec<(Curve, Curve)>,
     /// Training seconds, summed over seeds.
     seconds: f64,
 }

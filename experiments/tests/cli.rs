@@ -76,7 +76,7 @@ fn import_kitti_writes_readable_train_and_val_datasets() {
     let out = sefi().arg("import-kitti").arg(&root).arg("--out").arg(&dir).output().expect("runs");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     for split in ["train", "val"] {
-        let d = ssm::data::Dataset::read(&dir.join(split)).unwrap_or_else(|e| panic!("{split}: {e}"));
+        let d = ssm::data::Dataset::read(dir.join(split)).unwrap_or_else(|e| panic!("{split}: {e}"));
         assert!(d.objects().len() > 100, "{split}: {} objects", d.objects().len());
         assert!(d.boxes().is_some() && d.states().is_some());
     }

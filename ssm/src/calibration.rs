@@ -135,6 +135,10 @@ impl ModelVisitor for ObjectScore<'_> {
     }
 }
 
+/// One object's mean score per parameter tensor (in store order) and its number of
+/// collapsed filter steps.
+type ObjectScoreAt = (Vec<autodiff::Tensor<f64>>, usize);
+
 /// The mean of `estimator`'s score over `runs` filter runs (seeds `seed..`) of
 /// every object of `data` under the models of `params`, per parameter tensor.
 /// `progress` is called once per object done.
@@ -156,7 +160,7 @@ pub fn score_at(
     }
     let models = Models::from_store(params, data.kind()).map_err(|e| e.to_string())?;
     let clock = Instant::now();
-    let per_object: Vec<Result<(Vec<autodiff::Tensor<f64>>, usize), String>> = (0..objects)
+    let per_object: Vec<Result<ObjectScoreAt, String>> = (0..objects)
         .into_par_iter()
         .map(|o| {
             let one = data.select_objects(&[o]);
@@ -166,7 +170,7 @@ pub fn score_at(
             Ok((gradient_in_store_order(params, &names, gradient)?, collapsed))
         })
         .collect();
-    let per_object: Vec<(Vec<autodiff::Tensor<f64>>, usize)> = per_object.into_iter().collect::<Result<_, _>>()?;
+    let per_object: Vec<ObjectScoreAt> = per_object.into_iter().collect::<Result<_, _>>()?;
     let collapsed_steps = per_object.iter().map(|p| p.1).sum();
     let gradients: Vec<Vec<autodiff::Tensor<f64>>> = per_object.into_iter().map(|p| p.0).collect();
     Ok(ScoreAt {

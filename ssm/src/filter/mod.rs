@@ -511,7 +511,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                 let mut history: Vec<[Vec<f32>; 2]> =
                     if origin { (0..t - 1).map(|s| ring.take(ring.slot(s))).collect() } else { Vec::new() };
                 let grandparents = (t >= 2 && !origin).then(|| &ring.states[ring.slot(t - 2)][..]);
-                let parent = (t > 0).then(|| ParentStep {
+                let parent = (t > 0).then_some(ParentStep {
                     states: &mut p_states,
                     actions: &mut p_actions,
                     parents: &mut p_parents,

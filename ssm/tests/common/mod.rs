@@ -213,6 +213,8 @@ pub fn kink_free_rows(
 /// per pose) in context `ctx` and its per-item log-densities equal `reference(pose,
 /// item)` (summed over the items for `out`) within `tol` relative (floor 1).
 #[track_caller]
+// A test helper: the model, its inputs, the outputs under test, the tolerance and the reference are all needed.
+#[allow(clippy::too_many_arguments)]
 pub fn assert_plain_matches_reference<M: ObservationModel>(
     model: &M,
     store: &ParamStore<f64>,

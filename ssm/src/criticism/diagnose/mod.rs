@@ -605,14 +605,12 @@ pub struct Report {
     pub config: DiagnoseConfig,
 }
 
+/// Disjoint `(fit, check, evaluate)` object indices, as [`split_objects`] returns them.
+pub type ObjectSplit = (Vec<usize>, Vec<usize>, Vec<usize>);
+
 /// Splits `data`'s objects, seeded, into disjoint `(fit, check, evaluate)`
 /// object indices, each sorted and non-empty.
-pub fn split_objects(
-    data: &Dataset,
-    fit_fraction: f64,
-    check_fraction: f64,
-    seed: u64,
-) -> Result<(Vec<usize>, Vec<usize>, Vec<usize>), String> {
+pub fn split_objects(data: &Dataset, fit_fraction: f64, check_fraction: f64, seed: u64) -> Result<ObjectSplit, String> {
     let n = data.objects().len();
     if n < 3 {
         return Err(format!("the data hold {n} object(s): a diagnosis needs at least 3 (fit, check, evaluate)"));

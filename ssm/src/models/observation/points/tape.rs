@@ -49,7 +49,7 @@ impl PointObservationModel {
         let cc = clutter.map(|[l, s]| ClutterConsts::from_logits(l.item().to_f64(), s.item().to_f64(), op));
         let feats = av_features_on_tape(rows, av);
         let o = self.mlp.forward(params, feats);
-        let head = RowsHead::new(tape, &o.value().data(), r);
+        let head = RowsHead::new(tape, o.value().data(), r);
         let row_vars = [rows.x, rows.y, rows.yaw, rows.length, rows.width];
         let clutter_vars = clutter.as_ref().map_or(&[][..], |c| &c[..]);
         let grad =
@@ -231,7 +231,7 @@ impl<F: Float> RowsHead<F> {
             }
         }
         for v in mu.iter_mut() {
-            *v = *v * mu_scale;
+            *v *= mu_scale;
         }
         for (v, d) in b.iter_mut().zip(db.iter_mut()) {
             *d = b_scale * v.sigmoid();
@@ -310,6 +310,7 @@ impl<F: Float> Tile<F> {
         let lens = [&bc.sw, &bc.sl, &bc.sw, &bc.sl];
         let (n, rows_m) = (rows.x.len(), first..first + m);
         let h = |j: usize| &rows.head[j * n..(j + 1) * n][rows_m.clone()];
+        #[allow(clippy::needless_range_loop)] // `e` indexes the head columns and four per-edge arrays together
         for e in 0..NUM_EDGES {
             let (lnphi, mu, b) = (h(e), h(NUM_EDGES + e), h(2 * NUM_EDGES + e));
             for i in 0..m {
