@@ -133,7 +133,7 @@ struct MethodResult {
     /// Learned (sd accel, sd pinch) per seed, for the hand-crafted policy.
     sds: Vec<(f64, f64)>,
     /// Test MLL against training step, per seed.
-    curves: Vec<Vec<(f64, f64)>>,
+    curves: Vec<Curve>,
     /// The policy's sds (accel, pinch) against training step, per seed.
     sd_curves: Vec<(Curve, Curve)>,
     /// Training seconds, summed over seeds.
@@ -152,7 +152,7 @@ fn learned_sds(store: &ParamStore<f64>, data: &Dataset) -> Option<(f64, f64)> {
 }
 
 /// Median over seeds of the curves, at the steps of the first.
-fn median_curve(curves: &[Vec<(f64, f64)>]) -> Vec<(f64, f64)> {
+fn median_curve(curves: &[Curve]) -> Curve {
     let Some(first) = curves.first() else { return Vec::new() };
     first
         .iter()
@@ -468,7 +468,7 @@ fn write_outputs(
     let mut sd_series = Vec::new();
     for r in results.iter().filter(|r| !r.sd_curves.is_empty()) {
         for (label, pick, truth) in [("accel", 0, true_sd_a), ("pinch", 1, true_sd_p)] {
-            let curves: Vec<Vec<(f64, f64)>> = r
+            let curves: Vec<Curve> = r
                 .sd_curves
                 .iter()
                 .map(|c| if pick == 0 { &c.0 } else { &c.1 })

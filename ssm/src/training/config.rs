@@ -107,7 +107,6 @@ impl TrainConfig {
 }
 
 /// Whether `step` is a positive multiple of `period` (never, for period 0).
-#[allow(clippy::manual_is_multiple_of)] // `is_multiple_of` needs Rust 1.87; the workspace supports 1.82.
 fn every(step: usize, period: usize) -> bool {
     period > 0 && step % period == 0
 }

@@ -66,7 +66,6 @@ pub(crate) fn forward_feature_major<F: Float>(
             let (src, dst) = if l % 2 == 0 { (&*h0, &mut *h1) } else { (&*h1, &mut *h0) };
             dense_block(w, b, layer.act, layer.inputs, layer.outputs, src, dst);
         }
-        #[allow(clippy::manual_is_multiple_of)] // `is_multiple_of` needs Rust 1.87; the workspace supports 1.82.
         let last = if layers.len() % 2 == 0 { &*h0 } else { &*h1 };
         for j in 0..k_out {
             out[j * n + start..j * n + start + len].copy_from_slice(&last[j * NET_BLOCK..j * NET_BLOCK + len]);
