@@ -72,7 +72,7 @@ use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
-use crate::plot::{line_chart, Series};
+use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, TableArgs, CSV_HEADER};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
@@ -247,7 +247,7 @@ struct Row {
     /// Wall time of the final evaluation.
     eval_seconds: f64,
     #[serde(skip)]
-    curve: Vec<(f64, f64)>,
+    curve: Curve,
 }
 
 /// Imports KITTI into `OUT/data` unless an import is there, then returns the
@@ -728,7 +728,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         .iter()
         .filter(|r| !r.curve.is_empty())
         .map(|r| {
-            let points: Vec<(f64, f64)> =
+            let points: Curve =
                 r.curve.iter().copied().filter(|p| p.1.is_finite() && p.1 >= floor && p.1 <= bound).collect();
             omitted += r.curve.len() - points.len();
             Series { name: r.method.clone(), points }

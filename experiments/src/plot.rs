@@ -4,10 +4,13 @@ use std::path::Path;
 
 use plotters::prelude::*;
 
+/// A curve of `(x, y)` points, e.g. `(training step, value)`.
+pub type Curve = Vec<(f64, f64)>;
+
 /// One named curve of (x, y) points.
 pub struct Series {
     pub name: String,
-    pub points: Vec<(f64, f64)>,
+    pub points: Curve,
 }
 
 /// Draws `series` as lines on one chart and writes it to `path` as SVG.

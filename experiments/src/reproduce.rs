@@ -34,7 +34,7 @@ use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
-use crate::plot::{line_chart, Series};
+use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
@@ -121,9 +121,6 @@ impl Scale {
         s
     }
 }
-
-/// A curve of `(training step, value)` points.
-type Curve = Vec<(f64, f64)>;
 
 /// One method's results over seeds.
 #[derive(Clone)]

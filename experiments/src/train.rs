@@ -25,7 +25,7 @@ use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 use crate::calibrate::{method_settings, FilterArgs, FilterKind};
 use crate::cluster::Cluster;
 use crate::output::{ensure_dir, write_json};
-use crate::plot::{line_chart, Series};
+use crate::plot::{line_chart, Curve, Series};
 
 /// Arguments of `sefi train`.
 #[derive(clap::Args, Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -220,7 +220,7 @@ fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, St
 }
 
 /// Reads `eval.csv` in `dir`: the step column and the named metric.
-pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Vec<(f64, f64)>, String> {
+pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Curve, String> {
     let path = dir.join(EVAL_LOG);
     let mut reader = csv::Reader::from_path(&path).map_err(|e| format!("{}: {e}", path.display()))?;
     let headers = reader.headers().map_err(|e| format!("{}: {e}", path.display()))?.clone();
