@@ -4,7 +4,9 @@
 //! 2. Evaluates TRUE (the generating parameters) on the test scenes.
 //! 3. Trains PF-SEFI, DPF-SGR, PFNET and PF from the same initialisation per seed
 //!    (`OUT/runs/<method>-seed<k>`, each a `sefi train` directory; an interrupted
-//!    reproduce resumes every unfinished run from its checkpoint).
+//!    reproduce resumes every unfinished run from its checkpoint). Each run is
+//!    claimed while it trains, so several `reproduce` commands on one `OUT` (one
+//!    per core, say) share the runs: each skips the runs another is training.
 //! 4. Evaluates each learned model on the test scenes and writes the table of SPEC
 //!    §5 metrics (median and interquartile range over seeds) as `OUT/table.csv`
 //!    and `OUT/table.md`, the test-MLL curves as `OUT/curves.svg`, and everything
@@ -33,7 +35,7 @@ use crate::calibrate::check_method;
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
-use crate::output::{ensure_dir, write_atomic, write_json};
+use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
@@ -302,8 +304,21 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
         if !args.table_only {
             for method in &args.table.methods {
                 let dir = out.join("runs").join(format!("{method}-seed{seed}"));
+                // The claim covers training and the final evaluation; a run
+                // another `reproduce` holds is left to it (one process) or
+                // refused (a job of many, whose processes must train together).
+                let _claim = match claim_dir(&dir)? {
+                    Claim::Held(claim) => claim,
+                    Claim::Busy(holder) if cluster.size() == 1 => {
+                        eprintln!(
+                            "{method} seed {seed}: skipped, {holder} is training it (the table shows it once finished)"
+                        );
+                        continue;
+                    }
+                    Claim::Busy(holder) => return Err(train::busy_run(&dir, &holder)),
+                };
                 let bar = train::bar(&format!("{method} s{seed}"));
-                train::train_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;
+                train::train_claimed_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;
                 bar.finish_and_clear();
                 let m = evaluate_run(&dir, seed)?;
                 eprintln!(

@@ -108,5 +108,5 @@ impl TrainConfig {
 
 /// Whether `step` is a positive multiple of `period` (never, for period 0).
 fn every(step: usize, period: usize) -> bool {
-    period > 0 && step % period == 0
+    period > 0 && step.is_multiple_of(period)
 }

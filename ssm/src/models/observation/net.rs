@@ -66,7 +66,7 @@ pub(crate) fn forward_feature_major<F: Float>(
             let (src, dst) = if l % 2 == 0 { (&*h0, &mut *h1) } else { (&*h1, &mut *h0) };
             dense_block(w, b, layer.act, layer.inputs, layer.outputs, src, dst);
         }
-        let last = if layers.len() % 2 == 0 { &*h0 } else { &*h1 };
+        let last = if layers.len().is_multiple_of(2) { &*h0 } else { &*h1 };
         for j in 0..k_out {
             out[j * n + start..j * n + start + len].copy_from_slice(&last[j * NET_BLOCK..j * NET_BLOCK + len]);
         }
