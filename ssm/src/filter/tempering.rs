@@ -221,6 +221,8 @@ pub(super) struct Temperer {
     current: Proposal,
     previous: Proposal,
     weights: Vec<f64>,
+    /// `exp` of the log-weights while an increment is searched for.
+    exp_log_w: Vec<f64>,
     ancestors: Vec<usize>,
     resample_scratch: Vec<f64>,
     gather_f32: Vec<f32>,
@@ -259,6 +261,7 @@ impl Temperer {
             current: Proposal::default(),
             previous: Proposal::default(),
             weights: Vec::new(),
+            exp_log_w: Vec::new(),
             ancestors: Vec::new(),
             resample_scratch: Vec::new(),
             gather_f32: Vec::new(),
@@ -480,9 +483,13 @@ impl Temperer {
 
     /// The largest increment in `(0, remaining]` whose incremental weights keep
     /// the conditional ESS at the target (the whole `remaining` if it does).
-    fn increment(&self, log_w: &[f64], remaining: f64, n: usize) -> f64 {
+    fn increment(&mut self, log_w: &[f64], remaining: f64, n: usize) -> f64 {
         let target = self.config.ess_fraction * n as f64;
-        let cess = |delta: f64| conditional_ess(log_w, &self.loglik, delta);
+        // The weights do not depend on the increment: one exp per particle for
+        // the whole search, not one per bisection step.
+        self.exp_log_w.clear();
+        self.exp_log_w.extend(log_w.iter().map(|&lw| lw.exp()));
+        let cess = |delta: f64| conditional_ess(log_w, &self.exp_log_w, &self.loglik, delta);
         if cess(remaining) >= target {
             return remaining;
         }
@@ -862,9 +869,9 @@ pub(super) fn reweight(log_w: &mut [f64], loglik: &[f64], delta: f64) -> Option<
 }
 
 /// The conditional ESS `N (sum W w)^2 / sum W w^2` of incremental weights
-/// `w = g^delta` under normalised log-weights `log_w` (Zhou, Johansen and Aston
+/// `w = g^delta` under normalised log-weights `log_w` (whose exps are `exp_log_w`; Zhou, Johansen and Aston
 /// 2016); `N` for uniform increments, the ESS of the new weights when `W` is uniform.
-fn conditional_ess(log_w: &[f64], loglik: &[f64], delta: f64) -> f64 {
+fn conditional_ess(log_w: &[f64], exp_log_w: &[f64], loglik: &[f64], delta: f64) -> f64 {
     let max = loglik
         .iter()
         .zip(log_w)
@@ -875,12 +882,11 @@ fn conditional_ess(log_w: &[f64], loglik: &[f64], delta: f64) -> f64 {
         return 0.0;
     }
     let (mut first, mut second) = (0.0, 0.0);
-    for (&lw, &l) in log_w.iter().zip(loglik) {
+    for ((&lw, &big_w), &l) in log_w.iter().zip(exp_log_w).zip(loglik) {
         if l == f64::NEG_INFINITY || lw == f64::NEG_INFINITY {
             continue;
         }
         let w = (delta * l - max).exp();
-        let big_w = lw.exp();
         first += big_w * w;
         second += big_w * w * w;
     }
@@ -931,8 +937,9 @@ mod tests {
         let w: Vec<f64> = loglik.iter().map(|&l: &f64| (0.7 * l).exp()).collect();
         let s: f64 = w.iter().sum();
         let ess = 1.0 / w.iter().map(|x| (x / s).powi(2)).sum::<f64>();
-        assert!((conditional_ess(&log_w, &loglik, 0.7) - ess).abs() < 1e-12);
-        assert!((conditional_ess(&log_w, &loglik, 0.0) - n as f64).abs() < 1e-12);
+        let exp_log_w: Vec<f64> = log_w.iter().map(|lw| lw.exp()).collect();
+        assert!((conditional_ess(&log_w, &exp_log_w, &loglik, 0.7) - ess).abs() < 1e-12);
+        assert!((conditional_ess(&log_w, &exp_log_w, &loglik, 0.0) - n as f64).abs() < 1e-12);
     }
 
     #[test]
