@@ -15,7 +15,7 @@ use ssm::criticism::diagnose::{
 use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
 
 use crate::cluster::Cluster;
-use crate::output::{ensure_dir, write_atomic, write_json, write_with};
+use crate::output::{claim_or_refuse, write_atomic, write_json, write_with};
 use crate::train::bar;
 
 /// Checks plotted in the report (the largest |z| first).
@@ -130,9 +130,9 @@ pub fn run(args: &DiagnoseArgs, cluster: &Cluster) -> Result<(), String> {
     let config = args.config();
     config.validate()?;
     let root = cluster.is_root();
-    if root {
-        ensure_dir(&args.out)?;
-    }
+    // The first process holds `--out` for the whole diagnosis (its fits resume
+    // from checkpoints there): a second diagnosis into it is refused.
+    let _claim = if root { Some(claim_or_refuse(&args.out, "diagnosed")?) } else { None };
     let progress = if root { bar("diagnose") } else { ProgressBar::hidden() };
     let mut on_stage = stage_progress(&progress);
     let comm = cluster.collective();

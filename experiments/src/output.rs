@@ -95,6 +95,20 @@ pub fn claim_dir(dir: &Path) -> Result<Claim, String> {
     }
 }
 
+/// Claims `dir` (creating it), or fails naming the process that holds it
+/// while `doing` it ("trained", "diagnosed").
+pub fn claim_or_refuse(dir: &Path, doing: &str) -> Result<DirClaim, String> {
+    match claim_dir(dir)? {
+        Claim::Held(claim) => Ok(claim),
+        Claim::Busy(holder) => Err(busy_error(dir, doing, &holder)),
+    }
+}
+
+/// The error for directory `dir` that `holder` holds while `doing` it.
+pub fn busy_error(dir: &Path, doing: &str, holder: &str) -> String {
+    format!("{} is being {doing} by {holder}: wait for it to finish or choose another --out", dir.display())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -17,7 +17,7 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 
 use crate::cluster::Cluster;
-use crate::output::{ensure_dir, write_atomic, write_json};
+use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
 
 /// Arguments of `sefi power-study`.
 #[derive(Args, Debug)]
@@ -195,6 +195,19 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
         Ok(text) => serde_json::from_str(&text).map_err(|err| format!("{}: {err}", report_path.display()))?,
         Err(_) if table_only => return Ok(None),
         Err(_) => {
+            // A cell another `power-study` on the same `--out` is diagnosing is
+            // left to it: several processes share a study's cells.
+            let _claim = match claim_dir(&dir)? {
+                Claim::Held(claim) => claim,
+                Claim::Busy(holder) => {
+                    eprintln!("{} x{strength} seed {seed}: skipped, {holder} is diagnosing it", e.id);
+                    return Ok(None);
+                }
+            };
+            if report_path.is_file() {
+                // Finished by another process between the read and the claim.
+                return run_cell(out, e, strength, seed, table_only);
+            }
             let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
             let diagnose_config = DiagnoseConfig { seed, ..DiagnoseConfig::quick() };

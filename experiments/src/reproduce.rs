@@ -35,7 +35,7 @@ use crate::calibrate::check_method;
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
-use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
+use crate::output::{busy_error, claim_dir, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
@@ -315,7 +315,7 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
                         );
                         continue;
                     }
-                    Claim::Busy(holder) => return Err(train::busy_run(&dir, &holder)),
+                    Claim::Busy(holder) => return Err(busy_error(&dir, "trained", &holder)),
                 };
                 let bar = train::bar(&format!("{method} s{seed}"));
                 train::train_claimed_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;

@@ -24,7 +24,7 @@ use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
 use crate::calibrate::{method_settings, FilterArgs, FilterKind};
 use crate::cluster::Cluster;
-use crate::output::{claim_dir, ensure_dir, write_json, Claim, DirClaim};
+use crate::output::{claim_or_refuse, ensure_dir, write_json};
 use crate::plot::{line_chart, Curve, Series};
 
 /// Arguments of `sefi train`.
@@ -281,24 +281,10 @@ fn same_run(
 /// Runs one training run as one process of `cluster` (of one, but for `sefi
 /// train` under mpiexec); `bar` shows its progress (hidden for none). Only the
 /// first process writes files, and it claims `--out` for the run's length
-/// ([`claim_run`]): a directory another process is training is refused.
+/// ([`claim_or_refuse`]): a directory another process is training is refused.
 pub fn train_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster) -> Result<TrainOutcome, String> {
-    let _claim = if cluster.is_root() { Some(claim_run(&args.out)?) } else { None };
+    let _claim = if cluster.is_root() { Some(claim_or_refuse(&args.out, "trained")?) } else { None };
     train_claimed_run(args, bar, cluster)
-}
-
-/// Claims run directory `dir` (creating it) for this process, or says which
-/// process is training it.
-pub fn claim_run(dir: &Path) -> Result<DirClaim, String> {
-    match claim_dir(dir)? {
-        Claim::Held(claim) => Ok(claim),
-        Claim::Busy(holder) => Err(busy_run(dir, &holder)),
-    }
-}
-
-/// The error for run directory `dir` that `holder` is training.
-pub fn busy_run(dir: &Path, holder: &str) -> String {
-    format!("{} is being trained by {holder}: wait for it to finish or choose another --out", dir.display())
 }
 
 /// [`train_run`] for a caller that already holds the claim of `args.out` (or
@@ -445,7 +431,7 @@ mod tests {
     #[test]
     fn a_run_another_process_trains_is_refused() {
         let out = std::env::temp_dir().join(format!("sefi-claimed-run-{}", std::process::id()));
-        let _holder = claim_run(&out).unwrap();
+        let _holder = claim_or_refuse(&out, "trained").unwrap();
         let args = TrainArgs::with_defaults("no-train-data".into(), "no-test-data".into(), out.clone());
         let err = train_run(&args, &ProgressBar::hidden(), &Cluster::single()).unwrap_err();
         assert!(err.contains("is being trained by process"), "{err}");

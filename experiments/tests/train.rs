@@ -114,6 +114,33 @@ fn reproduce_quick_writes_the_table_curves_and_every_method() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A run held by another process (here the test, through the same operating-system
+/// lock `sefi` takes) is skipped by `reproduce`, which trains the rest, and refused
+/// by `sefi train`; once released, the next `reproduce` trains it.
+#[test]
+fn reproduce_skips_a_run_another_process_holds() {
+    let dir = temp("claimed");
+    let held = dir.join("runs").join("pf-seed0");
+    std::fs::create_dir_all(&held).unwrap();
+    let lock = std::fs::File::create(held.join(".sefi.lock")).unwrap();
+    lock.try_lock().expect("a fresh lock file is free");
+    let reproduce = ["reproduce", "--exp", "A", "--quick", "--methods", "pf-sefi,pf", "--seeds", "1", "--out", s(&dir)];
+    let first = sefi(&reproduce);
+    ok(&first);
+    assert!(String::from_utf8_lossy(&first.stderr).contains("pf seed 0: skipped"));
+    assert!(dir.join("runs/pf-sefi-seed0/final_metrics.json").is_file(), "the free run trained");
+    assert!(!held.join("checkpoint.bin").exists(), "the held run untouched");
+    let data = dir.join("data");
+    let refused =
+        sefi(&["train", "--data", s(&data.join("train")), "--test", s(&data.join("test")), "--out", s(&held)]);
+    let stderr = common::failed(&refused);
+    assert!(stderr.contains("is being trained by"), "{stderr}");
+    drop(lock);
+    ok(&sefi(&reproduce));
+    assert!(held.join("final_metrics.json").is_file(), "trained once released");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn score_check_prints_the_exact_score_and_names_bad_lines() {
     let dir = temp("score");
