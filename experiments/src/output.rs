@@ -1,7 +1,7 @@
 //! Writing results: every file goes to a temporary name in the same directory and
 //! is renamed into place, so an interrupted run never leaves a half-written file;
-//! a directory one process writes (a training run) is claimed with an exclusive
-//! lock, so two processes never write the same run.
+//! a directory one process writes for long (a training run, a diagnosis) is
+//! claimed with an exclusive lock, so two processes never write the same one.
 
 use std::fs::{File, OpenOptions, TryLockError};
 use std::io::{Read, Write};

@@ -869,8 +869,9 @@ pub(super) fn reweight(log_w: &mut [f64], loglik: &[f64], delta: f64) -> Option<
 }
 
 /// The conditional ESS `N (sum W w)^2 / sum W w^2` of incremental weights
-/// `w = g^delta` under normalised log-weights `log_w` (whose exps are `exp_log_w`; Zhou, Johansen and Aston
-/// 2016); `N` for uniform increments, the ESS of the new weights when `W` is uniform.
+/// `w = g^delta` under normalised log-weights `log_w`, whose exps are `exp_log_w`
+/// (Zhou, Johansen and Aston 2016); `N` for uniform increments, the ESS of the new
+/// weights when `W` is uniform.
 fn conditional_ess(log_w: &[f64], exp_log_w: &[f64], loglik: &[f64], delta: f64) -> f64 {
     let max = loglik
         .iter()
