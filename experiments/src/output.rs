@@ -100,13 +100,11 @@ pub fn claim_dir(dir: &Path) -> Result<Claim, String> {
 pub fn claim_or_refuse(dir: &Path, doing: &str) -> Result<DirClaim, String> {
     match claim_dir(dir)? {
         Claim::Held(claim) => Ok(claim),
-        Claim::Busy(holder) => Err(busy_error(dir, doing, &holder)),
+        Claim::Busy(holder) => Err(format!(
+            "{} is being {doing} by {holder}: wait for it to finish or choose another --out",
+            dir.display()
+        )),
     }
-}
-
-/// The error for directory `dir` that `holder` holds while `doing` it.
-pub fn busy_error(dir: &Path, doing: &str, holder: &str) -> String {
-    format!("{} is being {doing} by {holder}: wait for it to finish or choose another --out", dir.display())
 }
 
 #[cfg(test)]

@@ -35,7 +35,7 @@ use crate::calibrate::check_method;
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
 use crate::generate::{self, GenerateArgs};
-use crate::output::{busy_error, claim_dir, ensure_dir, write_atomic, write_json, Claim};
+use crate::output::{claim_dir, claim_or_refuse, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
 use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
@@ -307,15 +307,18 @@ pub fn run(args: &ReproduceArgs, cluster: &Cluster) -> Result<(), String> {
                 // The claim covers training and the final evaluation; a run
                 // another `reproduce` holds is left to it (one process) or
                 // refused (a job of many, whose processes must train together).
-                let _claim = match claim_dir(&dir)? {
-                    Claim::Held(claim) => claim,
-                    Claim::Busy(holder) if cluster.size() == 1 => {
-                        eprintln!(
-                            "{method} seed {seed}: skipped, {holder} is training it (the table shows it once finished)"
-                        );
-                        continue;
+                let _claim = if cluster.size() > 1 {
+                    claim_or_refuse(&dir, "trained")?
+                } else {
+                    match claim_dir(&dir)? {
+                        Claim::Held(claim) => claim,
+                        Claim::Busy(holder) => {
+                            eprintln!(
+                                "{method} seed {seed}: skipped, {holder} is training it (the table shows it once finished)"
+                            );
+                            continue;
+                        }
                     }
-                    Claim::Busy(holder) => return Err(busy_error(&dir, "trained", &holder)),
                 };
                 let bar = train::bar(&format!("{method} s{seed}"));
                 train::train_claimed_run(&run_args(args, &scale, &data_dir, method, seed, &dir), &bar, cluster)?;

@@ -943,6 +943,30 @@ mod tests {
         assert!((conditional_ess(&log_w, &exp_log_w, &loglik, 0.0) - n as f64).abs() < 1e-12);
     }
 
+    /// Under uneven weights (where the ESS is not invariant to how each particle's
+    /// weight enters) it is `N (sum W w)^2 / sum W w^2` with `W` read from
+    /// `exp_log_w` particle by particle; impossible particles count for nothing.
+    #[test]
+    fn conditional_ess_weighs_each_particle_by_its_own_weight() {
+        let big_w = [0.1, 0.2, 0.3, 0.4];
+        let log_w: Vec<f64> = big_w.iter().map(|w: &f64| w.ln()).collect();
+        let loglik = [2.0, f64::NEG_INFINITY, -1.0, 0.5];
+        let delta = 0.6;
+        let (mut first, mut second) = (0.0, 0.0);
+        for (w_big, l) in big_w.iter().zip(loglik) {
+            let w = (delta * l).exp();
+            first += w_big * w;
+            second += w_big * w * w;
+        }
+        let direct = 4.0 * first * first / second;
+        let got = conditional_ess(&log_w, &big_w, &loglik, delta);
+        assert!((got - direct).abs() < 1e-12 * direct, "{got} against {direct}");
+        // The same weights in another order give another ESS: each particle's own.
+        let reversed: Vec<f64> = big_w.iter().rev().copied().collect();
+        let log_reversed: Vec<f64> = reversed.iter().map(|w| w.ln()).collect();
+        assert!((conditional_ess(&log_reversed, &reversed, &loglik, delta) - direct).abs() > 1e-3);
+    }
+
     #[test]
     fn cloud_factor_reproduces_the_covariance() {
         // Points on a correlated 2-D cloud: L L^T equals their sample covariance.
