@@ -8,10 +8,8 @@
 //! * `Tape::reset` recycles buffers and the next computation is still exact, and no
 //!   op lets the stale contents of a recycled buffer into its results.
 
-mod common;
-
+use crate::common::*;
 use autodiff::{Float, Parallelism, Tape, Tensor, Var};
-use common::*;
 use rand::rngs::StdRng;
 use rand::Rng;
 

@@ -4,10 +4,8 @@
 //! gradients against finite differences in f64 and, where exact, against their
 //! closed form (a repeated gather index receives the sum of its cotangents).
 
-mod common;
-
+use crate::common::*;
 use autodiff::{Tape, Tensor};
-use common::*;
 
 const SHAPE: [usize; 3] = [3, 4, 5];
 

@@ -5,10 +5,8 @@
 //! that the ops are smooth within a finite-difference step; the subgradient
 //! conventions at kinks are asserted separately in `gradient_semantics.rs`.
 
-mod common;
-
+use crate::common::*;
 use autodiff::{broadcast_shapes, Tape, Tensor, Var};
-use common::*;
 
 /// Shape of the inputs of the unary checks (60 elements: checked per coordinate).
 const SHAPE: [usize; 3] = [3, 4, 5];

@@ -4,11 +4,9 @@
 //! against the same function composed from primitive ops; then its `-inf` guard,
 //! its behaviour with untracked inputs and its shape checks.
 
-mod common;
-
+use crate::common::*;
 use autodiff::dist::{normal_logpdf, HALF_LN_2PI};
 use autodiff::{Tape, Tensor, Var};
-use common::*;
 
 /// Rows of the checked inputs.
 const ROWS: usize = 7;

@@ -3,10 +3,8 @@
 //! ways), checked against finite differences in f64 and against direct computation;
 //! then their behaviour on `-inf` entries and on lanes that are entirely `-inf`.
 
-mod common;
-
+use crate::common::*;
 use autodiff::{Tape, Tensor};
-use common::*;
 
 const SHAPE: [usize; 3] = [3, 4, 5];
 const NEG_INF: f64 = f64::NEG_INFINITY;

@@ -3,11 +3,9 @@
 //! near-singular inputs (softplus at +-50, log at 1e-8), and vector-Jacobian products
 //! with a non-scalar cotangent.
 
-mod common;
-
+use crate::common::*;
 use autodiff::gradcheck::GradCheck;
 use autodiff::{Tape, Tensor, Var};
-use common::*;
 
 fn t(data: &[f64]) -> Tensor<f64> {
     Tensor::from_vec(data.to_vec())

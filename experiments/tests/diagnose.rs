@@ -7,9 +7,7 @@
 //! data beyond the files. The power study (`sefi power-study`, README) runs the
 //! same at three strengths and five seeds each.
 
-mod common;
-
-use common::{ok, s, sefi, temp};
+use crate::common::{ok, s, sefi, temp};
 use serde_json::Value;
 use ssm::criticism::diagnose::Report;
 

@@ -15,12 +15,10 @@ use ssm::models::params::Models;
 /// filter, and PF-SEFI on the tempered filter.
 const METHODS: [&str; 5] = ["pf-sefi", "dpf-sgr", "pfnet", "pf", "pf-sefi-tempered"];
 
-mod common;
-
-use common::{failed, ok, s, sefi};
+use crate::common::{failed, ok, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
-    common::temp("experiment-c", name)
+    crate::common::temp("experiment-c", name)
 }
 
 /// The KITTI folder, resolved from the workspace root as the `import-kitti`

@@ -4,12 +4,10 @@
 use std::path::PathBuf;
 use std::process::Command;
 
-mod common;
-
-use common::{ok, rows, s, sefi};
+use crate::common::{ok, rows, s, sefi};
 
 fn temp(name: &str) -> PathBuf {
-    common::temp("train", name)
+    crate::common::temp("train", name)
 }
 
 #[test]
@@ -133,7 +131,7 @@ fn reproduce_skips_a_run_another_process_holds() {
     let data = dir.join("data");
     let refused =
         sefi(&["train", "--data", s(&data.join("train")), "--test", s(&data.join("test")), "--out", s(&held)]);
-    let stderr = common::failed(&refused);
+    let stderr = crate::common::failed(&refused);
     assert!(stderr.contains("is being trained by"), "{stderr}");
     drop(lock);
     ok(&sefi(&reproduce));

@@ -2,9 +2,7 @@
 //! model: the identities that tie the code paths together, and the statistical
 //! properties the method stands on (SPEC §2).
 
-mod common;
-
-use common::assert_unbiased;
+use crate::common::assert_unbiased;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::{score_study, ScoreStudyRow};

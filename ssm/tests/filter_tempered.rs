@@ -6,9 +6,7 @@
 //! takes a step in one go when the observation is not sharp, and its results do
 //! not depend on the thread count.
 
-mod common;
-
-use common::assert_unbiased;
+use crate::common::assert_unbiased;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::estimators::study::score_study;

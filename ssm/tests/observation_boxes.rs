@@ -6,14 +6,12 @@
 
 use std::f64::consts::{PI, TAU};
 
-mod common;
-
-use autodiff::nn::ParamStore;
-use autodiff::Tape;
-use common::{
+use crate::common::{
     assert_finite_at, assert_plain_matches_reference, assert_tape_rows_match_plain, check_row_gradients, poses, soa,
     to32, Rows,
 };
+use autodiff::nn::ParamStore;
+use autodiff::Tape;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};

@@ -5,12 +5,10 @@
 //! `eps -> 0` and far-away points, finiteness at extreme `eps`, and the sampler
 //! against the density.
 
-mod common;
-
+use crate::common::{assert_finite_with_gradients, ctx, f32_row_params, kink_free_rows, model, poses, soa, to32, Rows};
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{assert_finite_with_gradients, ctx, f32_row_params, kink_free_rows, model, poses, soa, to32, Rows};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;

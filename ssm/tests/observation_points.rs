@@ -4,14 +4,12 @@
 //! engine ops, gradients against finite differences (parameters, states, extents),
 //! finiteness at extreme inputs, normalisation, and the sampler against the density.
 
-mod common;
-
-use autodiff::nn::{BoundParams, ParamStore};
-use autodiff::{Parallelism, Tape, Tensor, Var};
-use common::{
+use crate::common::{
     assert_finite_at, assert_plain_matches_reference, assert_tape_rows_match_plain, check_row_gradients, ctx,
     kink_free_rows, model, poses, soa, to32, Rows,
 };
+use autodiff::nn::{BoundParams, ParamStore};
+use autodiff::{Parallelism, Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::Pose;

@@ -1,5 +1,5 @@
 //! Timing of the observation models' hot paths (ignored by default; run with
-//! `cargo test --release -p ssm --test observation_timing -- --ignored --nocapture`).
+//! `cargo test --release -p ssm --test integration observation_timing -- --ignored --nocapture`).
 //! Prints medians: the filter's f32 point log-likelihood for 1024 particles x 20
 //! points on one thread (SPEC §10's inner loop), its network part hand-written vs
 //! on a non-recording tape with a GEMM, the box model, and the fused tape path.
