@@ -2,8 +2,8 @@
 //! from Debian's `mpich`): the same parameter file, bit for bit, on 1, 2 and 3
 //! processes and without MPI; a process that fails ends the job promptly with a
 //! clear error, and the run resumed on another number of processes ends where an
-//! uninterrupted one does.
-#![cfg(feature = "mpi")]
+//! uninterrupted one does. Built only with the feature (`required-features` in
+//! Cargo.toml).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};

@@ -1,6 +1,5 @@
 //! Shared helpers of the engine's test suite: seeded random tensors and a gradient
 //! check that contracts an op's (possibly non-scalar) output with fixed random weights.
-#![allow(dead_code)]
 
 use autodiff::gradcheck::{GradCheck, GradCheckReport};
 use autodiff::{Tape, Tensor, Var};

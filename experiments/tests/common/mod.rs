@@ -1,6 +1,6 @@
 //! Helpers shared by the `sefi` command-line tests: run the binary, require
 //! success or failure, make a fresh temporary directory.
-#![allow(dead_code)]
+#![allow(dead_code)] // the MPI tests' binary uses only some of them
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

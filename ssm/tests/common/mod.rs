@@ -3,8 +3,6 @@
 //! path gives the plain path's row log-densities, finiteness checks, and the
 //! point model's fixtures; and the score studies' bias criterion.
 
-#![allow(dead_code)] // each test file uses what it needs
-
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Tape, Tensor, Var};
