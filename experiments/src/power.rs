@@ -39,6 +39,11 @@ pub struct PowerArgs {
     /// Seeds per effect and strength (data and diagnosis).
     #[arg(long, default_value_t = 5)]
     seeds: u64,
+    /// Scenes of every effect's data (each has 6 objects), in place of the study's
+    /// per-effect setting (8 for points, 16 for heavy tails, 32 for boxes): the power
+    /// at another data size. Use a fresh `--out` for it.
+    #[arg(long)]
+    scenes: Option<usize>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none).
     #[arg(long)]
     table_only: bool,
@@ -54,7 +59,7 @@ pub struct StudyEffect {
     pub effect_id: &'static str,
     /// Points or boxes.
     pub kind: ObservationKind,
-    /// Scenes of 6 objects, 16 steps.
+    /// Scenes of the data (6 objects of 16 steps each).
     pub scenes: usize,
     /// The cause a correct diagnosis names (`none` for the controls).
     pub expected: &'static str,
@@ -115,7 +120,15 @@ struct Cell {
 
 /// Runs `sefi power-study`.
 pub fn run(args: &PowerArgs) -> Result<(), String> {
-    let effects: Vec<StudyEffect> = args.effects.iter().map(|e| StudyEffect::of(e)).collect::<Result<_, _>>()?;
+    let mut effects: Vec<StudyEffect> = args.effects.iter().map(|e| StudyEffect::of(e)).collect::<Result<_, _>>()?;
+    if args.scenes == Some(0) {
+        return Err("power-study: --scenes must be at least 1".into());
+    }
+    if let Some(scenes) = args.scenes {
+        for e in &mut effects {
+            e.scenes = scenes;
+        }
+    }
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
@@ -189,6 +202,7 @@ fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &
 /// else run (or, with `table_only`, `None`).
 fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: bool) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
+    let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
     let dir = out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"));
     let report_path = dir.join("report.json");
     let report: Report = match std::fs::read_to_string(&report_path) {
@@ -208,7 +222,6 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
                 // Finished by another process between the read and the claim.
                 return run_cell(out, e, strength, seed, table_only);
             }
-            let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
             let diagnose_config = DiagnoseConfig { seed, ..DiagnoseConfig::quick() };
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
@@ -222,6 +235,18 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
             report
         }
     };
+    // A study's directory holds one data size: a report of another (an `--out`
+    // reused with another `--scenes`) is refused rather than mixed in.
+    let objects = report.train_objects + report.check_objects + report.eval_objects;
+    if objects != config.scenes * config.objects_per_scene {
+        return Err(format!(
+            "{}: a diagnosis of {objects} objects, where this study's {} data have {} scenes of {} (another --scenes? use another --out)",
+            report_path.display(),
+            e.id,
+            config.scenes,
+            config.objects_per_scene
+        ));
+    }
     // Decided again under the current rules: cells diagnosed under an earlier
     // rule (d) count as the protocol would decide them now.
     let (cause, chosen) = report.decided(true);
@@ -249,8 +274,8 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
 /// `unexplained`, and the median |relative error| of the learned magnitude.
 fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> String {
     let mut s = String::from(
-        "| effect | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) | without rule (d): named | without rule (d): false cause |\n\
-         |---|---|---|---|---|---|---|---|---|---|\n",
+        "| effect | scenes | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) | without rule (d): named | without rule (d): false cause |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for e in effects {
         let mut list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
@@ -282,8 +307,9 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
                 / n;
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} | {:.0}% | {:.0}% |",
+                "| {} | {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} | {:.0}% | {:.0}% |",
                 e.id,
+                e.scenes,
                 if e.is_control() { "-".to_string() } else { format!("{st}") },
                 group.len(),
                 100.0 * named,
@@ -300,4 +326,30 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
          a catalogue cause other than the expected one.\n",
     );
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A finished cell is read back and decided again; a report of another data
+    /// size in the same study directory (an `--out` reused with another
+    /// `--scenes`) is refused with its path, not mixed into the table.
+    #[test]
+    fn a_report_of_another_data_size_is_refused() {
+        let out = std::env::temp_dir().join(format!("sefi-power-scenes-{}", std::process::id()));
+        let cell = out.join("heavy_tailed_accel").join("x1").join("seed0");
+        std::fs::create_dir_all(&cell).unwrap();
+        // A report of the committed study: 16 scenes of 6 objects.
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
+        std::fs::copy(&committed, cell.join("report.json")).unwrap();
+        let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
+        let read = run_cell(&out, &effect, 1.0, 0, true).unwrap().expect("the finished cell is read back");
+        assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
+        effect.scenes = 32;
+        let err = run_cell(&out, &effect, 1.0, 0, true).err().expect("a 16-scene report in a 32-scene study");
+        assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
+        std::fs::remove_dir_all(&out).unwrap();
+    }
 }
