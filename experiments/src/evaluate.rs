@@ -16,7 +16,7 @@ use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
 use ssm::models::extended::ExtensibleObservation;
-use ssm::models::params::{Models, ObservationVisitor};
+use ssm::models::params::{AnyObservation, Models, ObservationVisitor};
 
 use crate::birdseye;
 use crate::calibrate::FilterArgs;
@@ -205,6 +205,14 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
             }
         }
     }
+    let terms = match &models.observation {
+        AnyObservation::Boxes(model) if data.states().is_some() => {
+            let terms = metrics::box_aotll_terms(&data, model, &models.observation_params);
+            let _ = write!(text, "{}", describe_box_terms(&terms));
+            Some(terms)
+        }
+        _ => None,
+    };
     print!("{text}");
 
     // metrics.csv: one row per run.
@@ -228,11 +236,37 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         "particles": args.particles,
         "lag": args.lag,
         "summary": summary_json,
+        "aotll_terms": terms,
         "runs": runs,
     });
     write_json(&args.out.join("metrics.json"), &doc)?;
     eprintln!("wrote {} and {}", args.out.join("metrics.json").display(), args.out.join("metrics.csv").display());
     Ok(())
+}
+
+/// [`metrics::BoxAotllTerms`] in a few lines: what the reversed headings carry of
+/// the AOTLL, the other detections' factors, and the learned scales beside the
+/// offsets the labels show.
+fn describe_box_terms(t: &metrics::BoxAotllTerms) -> String {
+    let f = |m: &metrics::MeanOver| fmt_opt(m.mean);
+    let total = (t.reversed.count + t.others.count).max(1);
+    let (ba, bc, by) = t.mean_scales;
+    let (oa, oc, oy) = t.mean_abs_offsets;
+    format!(
+        "AOTLL by part (labelled detections):\n\
+         \x20 headings reversed against the label (> pi/2): {} of {total} ({:.1}%), mean {}, carrying {:.4} of the AOTLL\n\
+         \x20 the others: mean {} = along {} + across {} + yaw {}\n\
+         \x20 learned scales (mean over the others): along {ba:.4} m, across {bc:.4} m, yaw {by:.4} rad; \
+         mean |offset| from the learned means (the labels' Laplace scales): {oa:.4} m, {oc:.4} m, {oy:.4} rad\n",
+        t.reversed.count,
+        100.0 * t.reversed.count as f64 / total as f64,
+        f(&t.reversed),
+        t.reversed_contribution,
+        f(&t.others),
+        f(&t.along),
+        f(&t.across),
+        f(&t.yaw),
+    )
 }
 
 /// The estimates as a `states.csv` table (`scene,object,t,x,y,yaw,v,kappa`).

@@ -169,8 +169,9 @@ fn eval_writes_metrics_for_points() {
         assert_eq!(cells.len(), header.len());
         assert!(cells.iter().all(|c| c.parse::<f64>().is_ok()), "{row}");
     }
-    // The printed table names the metrics.
+    // The printed table names the metrics; the box-only split is absent.
     assert!(String::from_utf8_lossy(&r.stdout).contains("mll"));
+    assert!(doc["aotll_terms"].is_null());
 }
 
 #[test]
@@ -185,6 +186,13 @@ fn eval_boxes_with_a_neural_policy() {
     assert_eq!(doc["observation"], "boxes");
     assert_eq!(doc["runs"][0]["observed_units"], 2 * 4 * 8);
     assert!(doc["runs"][0]["aotll"]["mean"].as_f64().unwrap().is_finite());
+    // Box data with labels: AOTLL split into reversed headings and the factors,
+    // its counts those of AOTLL, printed and kept.
+    let terms = &doc["aotll_terms"];
+    let counted = terms["reversed"]["count"].as_u64().unwrap() + terms["others"]["count"].as_u64().unwrap();
+    assert_eq!(counted, doc["runs"][0]["aotll"]["count"].as_u64().unwrap());
+    assert!(terms["along"]["mean"].as_f64().unwrap().is_finite(), "{terms}");
+    assert!(String::from_utf8_lossy(&r.stdout).contains("AOTLL by part"));
 }
 
 #[test]

@@ -10,6 +10,8 @@
 //! * **AOTLL**: mean `log g(y_t | true x_t)` per observed item ([`aotll`]).
 //! * **APTLL**: mean `log pi(true a_t | true x_{t-1})` per step `t >= 1` where the
 //!   action and the previous state are known ([`aptll`]).
+//! * For box detections, AOTLL split into the reversed headings and the density's
+//!   factors ([`box_aotll_terms`]).
 //!
 //! [`evaluate`] computes all of them with one filter run ([`track`]); [`Summary`]
 //! and [`summarise_runs`] give the median and interquartile range of each over
@@ -27,8 +29,9 @@ use std::f64::consts::{PI, TAU};
 use autodiff::nn::ParamStore;
 use serde::Serialize;
 
-use crate::data::{Dataset, Pose, State, StepTable};
+use crate::data::{Dataset, ObservationKind, Pose, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary, Sampling};
+use crate::models::observation::boxes::BoxObservationModel;
 use crate::models::observation::{ObsContext, ObservationModel};
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
@@ -151,6 +154,72 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
         model.log_density_items(params, &ctx, pose, items, &mut per_item[start..]);
     }
     MeanOver::of(&per_item)
+}
+
+/// A box-detection model's AOTLL split by what it gets wrong ([`box_aotll_terms`]):
+/// the detections whose heading is reversed against the label, and over the
+/// others each factor of the density beside the scale the labels call for.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
+pub struct BoxAotllTerms {
+    /// `log g` of the detections whose heading is more than pi/2 from the label's.
+    pub reversed: MeanOver,
+    /// What they carry of the AOTLL: their sum over every detection's count.
+    pub reversed_contribution: f64,
+    /// `log g` of the other detections.
+    pub others: MeanOver,
+    /// The along-line-of-sight factor over the others.
+    pub along: MeanOver,
+    /// The across-line-of-sight factor over the others.
+    pub across: MeanOver,
+    /// The yaw factor over the others.
+    pub yaw: MeanOver,
+    /// Mean learned scales `(b_along, b_across, b_yaw)` over the others (m, m, rad).
+    pub mean_scales: (f64, f64, f64),
+    /// Mean absolute offsets from the learned means over the others (along, across,
+    /// yaw): the Laplace scales that the labels alone would give at those means.
+    pub mean_abs_offsets: (f64, f64, f64),
+}
+
+/// [`BoxAotllTerms`] of `model` on `data`'s labelled steps (empty without labels
+/// or box detections).
+pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &ParamStore<f64>) -> BoxAotllTerms {
+    let Some(truth) = data.states() else { return BoxAotllTerms::default() };
+    if data.kind() != ObservationKind::Boxes {
+        return BoxAotllTerms::default();
+    }
+    let (mut reversed, mut others, mut along, mut across, mut yaw) = (vec![], vec![], vec![], vec![], vec![]);
+    let (mut scales, mut offsets) = ([0.0; 3], [0.0; 3]);
+    for (ctx, pose, items) in labelled_steps::<BoxObservationModel>(data, truth) {
+        let d = model.distribution(params, &ctx, pose);
+        for det in items {
+            let terms = d.log_density_terms(&ctx.av, pose, det);
+            if wrapped_abs_diff(det.yaw, pose.yaw) > PI / 2.0 {
+                reversed.push(terms.total());
+                continue;
+            }
+            others.push(terms.total());
+            along.push(terms.along);
+            across.push(terms.across);
+            yaw.push(terms.yaw);
+            let (ra, rc, ry) = terms.residuals;
+            for (k, (b, r)) in [(d.b_along, ra), (d.b_across, rc), (d.b_yaw, ry)].into_iter().enumerate() {
+                scales[k] += b;
+                offsets[k] += r.abs();
+            }
+        }
+    }
+    let n = others.len().max(1) as f64;
+    let count = (reversed.len() + others.len()).max(1) as f64;
+    BoxAotllTerms {
+        reversed_contribution: reversed.iter().sum::<f64>() / count,
+        reversed: MeanOver::of(&reversed),
+        others: MeanOver::of(&others),
+        along: MeanOver::of(&along),
+        across: MeanOver::of(&across),
+        yaw: MeanOver::of(&yaw),
+        mean_scales: (scales[0] / n, scales[1] / n, scales[2] / n),
+        mean_abs_offsets: (offsets[0] / n, offsets[1] / n, offsets[2] / n),
+    }
 }
 
 /// Every object-step of `data` with a true state (from `truth`) and observations

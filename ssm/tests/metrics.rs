@@ -10,8 +10,8 @@ use rand::SeedableRng;
 use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{
-    aotll, aptll, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track, wrapped_abs_diff,
-    MeanOver, Summary,
+    aotll, aptll, box_aotll_terms, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track,
+    wrapped_abs_diff, MeanOver, Summary,
 };
 use ssm::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
@@ -419,4 +419,41 @@ fn params_errors_are_clear() {
     }
     let e = Models::from_store(&partial, ObservationKind::Points).unwrap_err();
     assert!(e.to_string().contains("policy.1.w") && e.to_string().contains("missing"), "{e}");
+}
+
+/// AOTLL split for box detections: on generated data with a known share of
+/// reversed headings (the hidden `heading_flip` effect, two strengths, two seeds;
+/// none without it), the split counts about that share as reversed, its parts
+/// add up to `aotll` itself, and the other detections' factors add up to their mean.
+#[test]
+fn box_aotll_terms_count_reversed_headings_and_add_up_to_aotll() {
+    use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+    for (strength, seed) in [(0.0, 1), (0.5, 2), (1.5, 3)] {
+        let effect = if strength > 0.0 {
+            HiddenEffect::at_strength("heading_flip", strength).unwrap()
+        } else {
+            HiddenEffect::None
+        };
+        let config = HiddenConfig { scenes: 6, ..HiddenConfig::quick(ObservationKind::Boxes, effect, seed) };
+        let data = generate_hidden(&config).unwrap();
+        let mut store = ParamStore::new();
+        let model = BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut StdRng::seed_from_u64(seed));
+        let terms = box_aotll_terms(&data, &model, &store);
+        let whole = aotll(&data, &model, &store);
+        let total = terms.reversed.count + terms.others.count;
+        assert_eq!(total, whole.count);
+        let share = terms.reversed.count as f64 / total as f64;
+        let expected = 0.2 * strength;
+        // Binomial sd over ~500 detections is <= 0.02; the generator's own yaw
+        // noise reverses almost none.
+        assert!((share - expected).abs() < 0.06, "strength {strength}: {share} reversed, expected {expected}");
+        let others = terms.others.mean.unwrap();
+        let recombined = terms.reversed_contribution + others * terms.others.count as f64 / total as f64;
+        assert!((recombined - whole.mean.unwrap()).abs() < 1e-9, "{recombined} vs {:?}", whole.mean);
+        let parts = terms.along.mean.unwrap() + terms.across.mean.unwrap() + terms.yaw.mean.unwrap();
+        assert!((parts - others).abs() < 1e-9, "{parts} vs {others}");
+        let (ba, bc, by) = terms.mean_scales;
+        let (oa, oc, oy) = terms.mean_abs_offsets;
+        assert!([ba, bc, by, oa, oc, oy].iter().all(|v| v.is_finite() && *v > 0.0));
+    }
 }

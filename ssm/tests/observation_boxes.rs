@@ -357,3 +357,34 @@ fn centred_model_has_zero_offsets_matches_its_reference_and_is_read_back_as_cent
         );
     }
 }
+
+/// The density's factors (`DetectionTerms`, which split AOTLL by what a network
+/// gets wrong) sum to the independent reference and to the filter's kernel, and
+/// their residuals are the detection's offsets from the distribution's means.
+#[test]
+fn density_terms_sum_to_the_density_and_give_the_offsets() {
+    for seed in [3, 4] {
+        let (model, store) = model(seed);
+        let c = ctx();
+        let mut rng = StdRng::seed_from_u64(seed);
+        for pose in poses(5, &mut rng) {
+            let mut dets = Vec::new();
+            model.sample(&store, &c, pose, 3, &mut rng, &mut dets);
+            dets.push(detection(&c, pose, 0.8, -0.4, PI - 0.05)); // a reversed heading
+            let mut kernel = vec![0.0; dets.len()];
+            model.log_density_items(&store, &c, pose, &dets, &mut kernel);
+            let dist = model.distribution(&store, &c, pose);
+            for (d, k) in dets.iter().zip(&kernel) {
+                let terms = dist.log_density_terms(&c.av, pose, d);
+                let reference = reference(&model, &store, &c, pose, d);
+                assert!((terms.total() - reference).abs() < 1e-9, "{} vs {reference}", terms.total());
+                assert!((terms.total() - k).abs() < 1e-9, "{} vs kernel {k}", terms.total());
+                let (a, x, y) = offsets(&c, pose, d);
+                let (ra, rc, ry) = terms.residuals;
+                assert!((ra - (a - dist.mu_along)).abs() < 1e-9 && (rc - (x - dist.mu_across)).abs() < 1e-9);
+                assert!((ry - wrap_angle(y - dist.mu_yaw)).abs() < 1e-9, "{ry} vs {y}");
+                assert!((terms.along - laplace(a, dist.mu_along, dist.b_along)).abs() < 1e-9);
+            }
+        }
+    }
+}

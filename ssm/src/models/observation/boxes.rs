@@ -95,6 +95,49 @@ pub struct DetectionDistribution {
     pub b_yaw: f64,
 }
 
+/// The three independent factors of `log g(det | x)`: the centre offset along and
+/// across the line of sight and the wrapped yaw offset (nats; they sum to the
+/// model's log-density). AOTLL split into them says which part of a detector's
+/// error a network gets wrong.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DetectionTerms {
+    /// `log Laplace(along; mu_a, b_a)`.
+    pub along: f64,
+    /// `log Laplace(across; mu_c, b_c)`.
+    pub across: f64,
+    /// `log WL(wrap(yaw_det - yaw - mu_y); b_y)`.
+    pub yaw: f64,
+    /// The offsets from the means: `(along - mu_a, across - mu_c, wrap(yaw_det - yaw - mu_y))`.
+    pub residuals: (f64, f64, f64),
+}
+
+impl DetectionTerms {
+    /// `log g(det | x)`.
+    pub fn total(&self) -> f64 {
+        self.along + self.across + self.yaw
+    }
+}
+
+impl DetectionDistribution {
+    /// The factors of `log g(det | pose)` for an AV at `av`, this being the
+    /// distribution at `pose` ([`BoxObservationModel::distribution`]); the same
+    /// closed forms as the filter's kernel.
+    pub fn log_density_terms(&self, av: &Pose, pose: Pose, det: &BoxDetection) -> DetectionTerms {
+        let (along, across) = los_offsets(pose.x - av.x, pose.y - av.y, det.x - pose.x, det.y - pose.y);
+        let laplace = |x: f64, mu: f64, b: f64| -(x - mu).abs() / b - (2.0 * b).ln();
+        let dyaw = wrap(det.yaw - pose.yaw - self.mu_yaw);
+        let a = dyaw.abs();
+        let yaw = -a / self.b_yaw - (2.0 * self.b_yaw).ln() - ln_one_minus_exp_neg(TAU / self.b_yaw)
+            + (2.0 * (a - PI) / self.b_yaw).softplus();
+        DetectionTerms {
+            along: laplace(along, self.mu_along, self.b_along),
+            across: laplace(across, self.mu_across, self.b_across),
+            yaw,
+            residuals: (along - self.mu_along, across - self.mu_across, dyaw),
+        }
+    }
+}
+
 /// `ln(1 - e^{-z})` for `z > 0`, accurate for small `z`.
 #[inline(always)]
 fn ln_one_minus_exp_neg<F: Float>(z: F) -> F {
