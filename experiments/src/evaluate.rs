@@ -245,28 +245,38 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
 }
 
 /// [`metrics::BoxAotllTerms`] in a few lines: what the reversed headings carry of
-/// the AOTLL, the other detections' factors, and the learned scales beside the
-/// offsets the labels show.
+/// the AOTLL, and the other detections' factors with the learned scales beside the
+/// offsets the labels show (all, cars moving along the line of sight, crossing it).
 fn describe_box_terms(t: &metrics::BoxAotllTerms) -> String {
     let f = |m: &metrics::MeanOver| fmt_opt(m.mean);
-    let total = (t.reversed.count + t.others.count).max(1);
-    let (ba, bc, by) = t.mean_scales;
-    let (oa, oc, oy) = t.mean_abs_offsets;
-    format!(
+    let total = (t.reversed.count + t.others.total.count).max(1);
+    let mut s = format!(
         "AOTLL by part (labelled detections):\n\
-         \x20 headings reversed against the label (> pi/2): {} of {total} ({:.1}%), mean {}, carrying {:.4} of the AOTLL\n\
-         \x20 the others: mean {} = along {} + across {} + yaw {}\n\
-         \x20 learned scales (mean over the others): along {ba:.4} m, across {bc:.4} m, yaw {by:.4} rad; \
-         mean |offset| from the learned means (the labels' Laplace scales): {oa:.4} m, {oc:.4} m, {oy:.4} rad\n",
+         \x20 headings reversed against the label (> pi/2): {} of {total} ({:.1}%), mean {}, carrying {:.4} of the AOTLL\n",
         t.reversed.count,
         100.0 * t.reversed.count as f64 / total as f64,
         f(&t.reversed),
         t.reversed_contribution,
-        f(&t.others),
-        f(&t.along),
-        f(&t.across),
-        f(&t.yaw),
-    )
+    );
+    for (name, g) in [
+        ("the others", &t.others),
+        ("  car within 45 deg of the line of sight", &t.in_line),
+        ("  car crossing it (> 45 deg)", &t.crossing),
+    ] {
+        let (ba, bc, by) = g.mean_scales;
+        let (oa, oc, oy) = g.mean_abs_offsets;
+        let _ = writeln!(
+            s,
+            "  {name}: {} detections, mean {} = along {} + across {} + yaw {}; learned scales {ba:.4} m, {bc:.4} m, \
+             {by:.4} rad; the labels' mean |offset| {oa:.4} m, {oc:.4} m, {oy:.4} rad",
+            g.total.count,
+            f(&g.total),
+            f(&g.along),
+            f(&g.across),
+            f(&g.yaw),
+        );
+    }
+    s
 }
 
 /// The estimates as a `states.csv` table (`scene,object,t,x,y,yaw,v,kappa`).

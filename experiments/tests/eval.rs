@@ -189,9 +189,12 @@ fn eval_boxes_with_a_neural_policy() {
     // Box data with labels: AOTLL split into reversed headings and the factors,
     // its counts those of AOTLL, printed and kept.
     let terms = &doc["aotll_terms"];
-    let counted = terms["reversed"]["count"].as_u64().unwrap() + terms["others"]["count"].as_u64().unwrap();
+    let counted = terms["reversed"]["count"].as_u64().unwrap() + terms["others"]["total"]["count"].as_u64().unwrap();
     assert_eq!(counted, doc["runs"][0]["aotll"]["count"].as_u64().unwrap());
-    assert!(terms["along"]["mean"].as_f64().unwrap().is_finite(), "{terms}");
+    assert!(terms["others"]["along"]["mean"].as_f64().unwrap().is_finite(), "{terms}");
+    let split =
+        terms["in_line"]["total"]["count"].as_u64().unwrap() + terms["crossing"]["total"]["count"].as_u64().unwrap();
+    assert_eq!(split, terms["others"]["total"]["count"].as_u64().unwrap());
     assert!(String::from_utf8_lossy(&r.stdout).contains("AOTLL by part"));
 }
 

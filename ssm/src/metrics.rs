@@ -31,7 +31,7 @@ use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind, Pose, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary, Sampling};
-use crate::models::observation::boxes::BoxObservationModel;
+use crate::models::observation::boxes::{BoxObservationModel, DetectionDistribution, DetectionTerms};
 use crate::models::observation::{ObsContext, ObservationModel};
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
@@ -157,27 +157,79 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
 }
 
 /// A box-detection model's AOTLL split by what it gets wrong ([`box_aotll_terms`]):
-/// the detections whose heading is reversed against the label, and over the
-/// others each factor of the density beside the scale the labels call for.
+/// the detections whose heading is reversed against the label, and the others by
+/// the density's factors — all of them, and apart for the cars moving along the
+/// line of sight and across it (where "along the line of sight" is the car's
+/// sideways direction).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct BoxAotllTerms {
     /// `log g` of the detections whose heading is more than pi/2 from the label's.
     pub reversed: MeanOver,
     /// What they carry of the AOTLL: their sum over every detection's count.
     pub reversed_contribution: f64,
-    /// `log g` of the other detections.
-    pub others: MeanOver,
-    /// The along-line-of-sight factor over the others.
+    /// The other detections.
+    pub others: FactorTerms,
+    /// Those of them whose car's labelled heading is within 45 degrees of the line
+    /// of sight (either way).
+    pub in_line: FactorTerms,
+    /// Those whose car's heading is more than 45 degrees from it: crossing it.
+    pub crossing: FactorTerms,
+}
+
+/// The factors of `log g` over a group of detections ([`BoxAotllTerms`]), with the
+/// network's scales beside the offsets the labels show.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
+pub struct FactorTerms {
+    /// `log g` of the group's detections.
+    pub total: MeanOver,
+    /// The along-line-of-sight factor.
     pub along: MeanOver,
-    /// The across-line-of-sight factor over the others.
+    /// The across-line-of-sight factor.
     pub across: MeanOver,
-    /// The yaw factor over the others.
+    /// The yaw factor.
     pub yaw: MeanOver,
-    /// Mean learned scales `(b_along, b_across, b_yaw)` over the others (m, m, rad).
+    /// Mean learned scales `(b_along, b_across, b_yaw)` (m, m, rad).
     pub mean_scales: (f64, f64, f64),
-    /// Mean absolute offsets from the learned means over the others (along, across,
-    /// yaw): the Laplace scales that the labels alone would give at those means.
+    /// Mean absolute offsets from the learned means (along, across, yaw): the
+    /// Laplace scales that the labels alone would give at those means.
     pub mean_abs_offsets: (f64, f64, f64),
+}
+
+/// The running sums of one [`FactorTerms`] group.
+#[derive(Default)]
+struct FactorSums {
+    total: Vec<f64>,
+    along: Vec<f64>,
+    across: Vec<f64>,
+    yaw: Vec<f64>,
+    scales: [f64; 3],
+    offsets: [f64; 3],
+}
+
+impl FactorSums {
+    fn push(&mut self, d: &DetectionDistribution, terms: &DetectionTerms) {
+        self.total.push(terms.total());
+        self.along.push(terms.along);
+        self.across.push(terms.across);
+        self.yaw.push(terms.yaw);
+        let (ra, rc, ry) = terms.residuals;
+        for (k, (b, r)) in [(d.b_along, ra), (d.b_across, rc), (d.b_yaw, ry)].into_iter().enumerate() {
+            self.scales[k] += b;
+            self.offsets[k] += r.abs();
+        }
+    }
+
+    fn finish(&self) -> FactorTerms {
+        let n = self.total.len().max(1) as f64;
+        FactorTerms {
+            total: MeanOver::of(&self.total),
+            along: MeanOver::of(&self.along),
+            across: MeanOver::of(&self.across),
+            yaw: MeanOver::of(&self.yaw),
+            mean_scales: (self.scales[0] / n, self.scales[1] / n, self.scales[2] / n),
+            mean_abs_offsets: (self.offsets[0] / n, self.offsets[1] / n, self.offsets[2] / n),
+        }
+    }
 }
 
 /// [`BoxAotllTerms`] of `model` on `data`'s labelled steps (empty without labels
@@ -187,38 +239,31 @@ pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &Par
     if data.kind() != ObservationKind::Boxes {
         return BoxAotllTerms::default();
     }
-    let (mut reversed, mut others, mut along, mut across, mut yaw) = (vec![], vec![], vec![], vec![], vec![]);
-    let (mut scales, mut offsets) = ([0.0; 3], [0.0; 3]);
+    let mut reversed = Vec::new();
+    let (mut others, mut in_line, mut crossing) = (FactorSums::default(), FactorSums::default(), FactorSums::default());
     for (ctx, pose, items) in labelled_steps::<BoxObservationModel>(data, truth) {
         let d = model.distribution(params, &ctx, pose);
+        let bearing = (pose.y - ctx.av.y).atan2(pose.x - ctx.av.x);
+        // The heading's angle to the line of sight, folded to [0, pi/2].
+        let off_line = wrapped_abs_diff(pose.yaw, bearing).min(PI - wrapped_abs_diff(pose.yaw, bearing));
+        let group = if off_line <= PI / 4.0 { &mut in_line } else { &mut crossing };
         for det in items {
             let terms = d.log_density_terms(&ctx.av, pose, det);
             if wrapped_abs_diff(det.yaw, pose.yaw) > PI / 2.0 {
                 reversed.push(terms.total());
-                continue;
-            }
-            others.push(terms.total());
-            along.push(terms.along);
-            across.push(terms.across);
-            yaw.push(terms.yaw);
-            let (ra, rc, ry) = terms.residuals;
-            for (k, (b, r)) in [(d.b_along, ra), (d.b_across, rc), (d.b_yaw, ry)].into_iter().enumerate() {
-                scales[k] += b;
-                offsets[k] += r.abs();
+            } else {
+                others.push(&d, &terms);
+                group.push(&d, &terms);
             }
         }
     }
-    let n = others.len().max(1) as f64;
-    let count = (reversed.len() + others.len()).max(1) as f64;
+    let count = (reversed.len() + others.total.len()).max(1) as f64;
     BoxAotllTerms {
         reversed_contribution: reversed.iter().sum::<f64>() / count,
         reversed: MeanOver::of(&reversed),
-        others: MeanOver::of(&others),
-        along: MeanOver::of(&along),
-        across: MeanOver::of(&across),
-        yaw: MeanOver::of(&yaw),
-        mean_scales: (scales[0] / n, scales[1] / n, scales[2] / n),
-        mean_abs_offsets: (offsets[0] / n, offsets[1] / n, offsets[2] / n),
+        others: others.finish(),
+        in_line: in_line.finish(),
+        crossing: crossing.finish(),
     }
 }
 

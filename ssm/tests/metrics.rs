@@ -440,20 +440,26 @@ fn box_aotll_terms_count_reversed_headings_and_add_up_to_aotll() {
         let model = BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut StdRng::seed_from_u64(seed));
         let terms = box_aotll_terms(&data, &model, &store);
         let whole = aotll(&data, &model, &store);
-        let total = terms.reversed.count + terms.others.count;
+        let total = terms.reversed.count + terms.others.total.count;
         assert_eq!(total, whole.count);
         let share = terms.reversed.count as f64 / total as f64;
         let expected = 0.2 * strength;
         // Binomial sd over ~500 detections is <= 0.02; the generator's own yaw
         // noise reverses almost none.
         assert!((share - expected).abs() < 0.06, "strength {strength}: {share} reversed, expected {expected}");
-        let others = terms.others.mean.unwrap();
-        let recombined = terms.reversed_contribution + others * terms.others.count as f64 / total as f64;
+        let others = terms.others.total.mean.unwrap();
+        let recombined = terms.reversed_contribution + others * terms.others.total.count as f64 / total as f64;
         assert!((recombined - whole.mean.unwrap()).abs() < 1e-9, "{recombined} vs {:?}", whole.mean);
-        let parts = terms.along.mean.unwrap() + terms.across.mean.unwrap() + terms.yaw.mean.unwrap();
+        let g = &terms.others;
+        let parts = g.along.mean.unwrap() + g.across.mean.unwrap() + g.yaw.mean.unwrap();
         assert!((parts - others).abs() < 1e-9, "{parts} vs {others}");
-        let (ba, bc, by) = terms.mean_scales;
-        let (oa, oc, oy) = terms.mean_abs_offsets;
+        let (ba, bc, by) = g.mean_scales;
+        let (oa, oc, oy) = g.mean_abs_offsets;
         assert!([ba, bc, by, oa, oc, oy].iter().all(|v| v.is_finite() && *v > 0.0));
+        // The cars along and across the line of sight split the others.
+        let (a, c) = (&terms.in_line.total, &terms.crossing.total);
+        assert_eq!(a.count + c.count, g.total.count);
+        let pooled = a.mean.unwrap_or(0.0) * a.count as f64 + c.mean.unwrap_or(0.0) * c.count as f64;
+        assert!((pooled / g.total.count as f64 - others).abs() < 1e-9);
     }
 }
