@@ -159,7 +159,7 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
 /// A box-detection model's AOTLL split by what it gets wrong ([`box_aotll_terms`]):
 /// the detections whose heading is reversed against the label, and the others by
 /// the density's factors — all of them, and apart for the cars moving along the
-/// line of sight and across it (where "along the line of sight" is the car's
+/// line of sight and across it (for a crossing car, along the line of sight is its
 /// sideways direction).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct BoxAotllTerms {
