@@ -205,14 +205,10 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
             }
         }
     }
-    let terms = match &models.observation {
-        AnyObservation::Boxes(model) if data.states().is_some() => {
-            let terms = metrics::box_aotll_terms(&data, model, &models.observation_params);
-            let _ = write!(text, "{}", describe_box_terms(&terms));
-            Some(terms)
-        }
-        _ => None,
-    };
+    let terms = aotll_terms(&data, &models);
+    if let Some(terms) = &terms {
+        let _ = write!(text, "{}", describe_box_terms(terms));
+    }
     print!("{text}");
 
     // metrics.csv: one row per run.
@@ -242,6 +238,17 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
     write_json(&args.out.join("metrics.json"), &doc)?;
     eprintln!("wrote {} and {}", args.out.join("metrics.json").display(), args.out.join("metrics.csv").display());
     Ok(())
+}
+
+/// AOTLL by part ([`metrics::box_aotll_terms`]) of `models` on `data`: `None`
+/// unless the data are labelled box detections.
+pub fn aotll_terms(data: &Dataset, models: &Models) -> Option<metrics::BoxAotllTerms> {
+    match &models.observation {
+        AnyObservation::Boxes(model) if data.states().is_some() => {
+            Some(metrics::box_aotll_terms(data, model, &models.observation_params))
+        }
+        _ => None,
+    }
 }
 
 /// [`metrics::BoxAotllTerms`] in a few lines: what the reversed headings carry of

@@ -78,11 +78,26 @@ fn quick_experiment_c_writes_the_table_and_reruns_identically() {
     Models::from_store(&store, ObservationKind::Boxes).unwrap();
     let sup_train_aotll = rows.last().unwrap()["train_aotll"].as_f64().unwrap();
     assert!((sup_train_aotll - after).abs() < 1e-9, "{sup_train_aotll} vs {after}");
+    // Every row's val AOTLL by part counts the detections AOTLL counts, and the
+    // table shows the split.
+    for row in rows {
+        let (terms, aotll) = (&row["aotll_terms"], &row["runs"][0]["aotll"]);
+        let counted =
+            terms["reversed"]["count"].as_u64().unwrap() + terms["others"]["total"]["count"].as_u64().unwrap();
+        assert_eq!(counted, aotll["count"].as_u64().unwrap(), "{}", row["method"]);
+    }
+    assert!(table.contains("Val AOTLL by part"), "{table}");
 
     // The AOTLL spread columns show each row's val AOTLL median and its mean
     // without the lowest 1%, which the mean's tail can only pull down.
-    // The header, then one line per row (the separator starts with "|-").
-    let lines: Vec<&str> = table.lines().filter(|l| l.starts_with("| ")).collect();
+    // The main table's header, then one line per row (the separator starts with
+    // "|-"; the AOTLL-by-part table comes after a blank line).
+    let lines: Vec<&str> = table
+        .lines()
+        .skip_while(|l| !l.starts_with("| "))
+        .take_while(|l| l.starts_with('|'))
+        .filter(|l| l.starts_with("| "))
+        .collect();
     fn cells(line: &str) -> Vec<&str> {
         line.split('|').map(str::trim).collect()
     }
