@@ -207,7 +207,8 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
     }
     let terms = aotll_terms(&data, &models);
     if let Some(terms) = &terms {
-        let _ = write!(text, "{}", describe_box_terms(terms));
+        let name = args.params.as_ref().map_or_else(String::new, |p| p.display().to_string());
+        let _ = write!(text, "\n{}", aotll_by_part_table("AOTLL by part (labelled detections)", &[(&name, terms)]));
     }
     print!("{text}");
 
@@ -244,46 +245,56 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
 /// unless the data are labelled box detections.
 pub fn aotll_terms(data: &Dataset, models: &Models) -> Option<metrics::BoxAotllTerms> {
     match &models.observation {
-        AnyObservation::Boxes(model) if data.states().is_some() => {
-            Some(metrics::box_aotll_terms(data, model, &models.observation_params))
-        }
-        _ => None,
+        AnyObservation::Boxes(model) => metrics::box_aotll_terms(data, model, &models.observation_params),
+        AnyObservation::Points(_) => None,
     }
 }
 
-/// [`metrics::BoxAotllTerms`] in a few lines: what the reversed headings carry of
-/// the AOTLL, and the other detections' factors with the learned scales beside the
-/// offsets the labels show (all, cars moving along the line of sight, crossing it).
-fn describe_box_terms(t: &metrics::BoxAotllTerms) -> String {
-    let f = |m: &metrics::MeanOver| fmt_opt(m.mean);
-    let total = (t.reversed.count + t.others.total.count).max(1);
-    let mut s = format!(
-        "AOTLL by part (labelled detections):\n\
-         \x20 headings reversed against the label (> pi/2): {} of {total} ({:.1}%), mean {}, carrying {:.4} of the AOTLL\n",
-        t.reversed.count,
-        100.0 * t.reversed.count as f64 / total as f64,
-        f(&t.reversed),
-        t.reversed_contribution,
+/// A markdown table of AOTLL by part, one row per `(name, terms)` under `title`
+/// (`sefi eval` and `sefi experiment-c` both print it): what the detections with
+/// reversed headings carry, and the others' mean with its factors, for every car,
+/// cars along the line of sight and cars crossing it, each with the network's mean
+/// scales beside the labels' mean absolute offsets.
+pub fn aotll_by_part_table(title: &str, rows: &[(&str, &metrics::BoxAotllTerms)]) -> String {
+    let mut md = format!(
+        "{title}: the detections whose heading is more than pi/2 from the label's (mean, and what they carry of \
+         AOTLL), and the others' mean with its along / across / yaw factors (they sum to it); beside each group of \
+         the others, its mean and the network's mean scales (along m / across m / yaw rad) against the labels' mean \
+         absolute offsets from the network's means.\n\n| model | reversed: mean (carried) | others: mean (along / \
+         across / yaw) | cars within 45 deg of the line of sight: mean, scales (labels) | cars crossing it: mean, \
+         scales (labels) |\n|---|---|---|---|---|\n",
     );
-    for (name, g) in [
-        ("the others", &t.others),
-        ("  car within 45 deg of the line of sight", &t.in_line),
-        ("  car crossing it (> 45 deg)", &t.crossing),
-    ] {
-        let (ba, bc, by) = g.mean_scales;
-        let (oa, oc, oy) = g.mean_abs_offsets;
-        let _ = writeln!(
-            s,
-            "  {name}: {} detections, mean {} = along {} + across {} + yaw {}; learned scales {ba:.4} m, {bc:.4} m, \
-             {by:.4} rad; the labels' mean |offset| {oa:.4} m, {oc:.4} m, {oy:.4} rad",
+    let num = |m: &metrics::MeanOver| m.mean.map_or_else(|| "-".into(), |v| format!("{v:.3}"));
+    let group = |g: &metrics::FactorTerms| {
+        let (b, o) = (g.mean_scales, g.mean_abs_offsets);
+        format!(
+            "{} ({} detections), {:.3} / {:.3} / {:.3} ({:.3} / {:.3} / {:.3})",
+            num(&g.total),
             g.total.count,
-            f(&g.total),
-            f(&g.along),
-            f(&g.across),
-            f(&g.yaw),
+            b.0,
+            b.1,
+            b.2,
+            o.0,
+            o.1,
+            o.2
+        )
+    };
+    for (name, t) in rows {
+        let _ = writeln!(
+            md,
+            "| {name} | {} ({:.3}; {} detections) | {} ({} / {} / {}) | {} | {} |",
+            num(&t.reversed),
+            t.reversed_contribution,
+            t.reversed.count,
+            num(&t.others.total),
+            num(&t.others.along),
+            num(&t.others.across),
+            num(&t.others.yaw),
+            group(&t.in_line),
+            group(&t.crossing)
         );
     }
-    s
+    md
 }
 
 /// The estimates as a `states.csv` table (`scene,object,t,x,y,yaw,v,kappa`).

@@ -59,7 +59,7 @@ use serde_json::json;
 use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, KittiOptions, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{BoxAotllTerms, FactorTerms, MeanOver, Metrics, Summary};
+use ssm::metrics::{BoxAotllTerms, Metrics, Summary};
 use ssm::models::extended::ExtensibleObservation;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
@@ -69,7 +69,7 @@ use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
 use crate::calibrate::check_method;
 use crate::cluster::Cluster;
-use crate::evaluate::{aotll_terms, metric_runs};
+use crate::evaluate::{aotll_by_part_table, aotll_terms, metric_runs};
 use crate::import;
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Curve, Series};
@@ -631,52 +631,6 @@ fn count_cell(n: Option<usize>) -> String {
     n.map_or_else(|| "-".into(), |n| n.to_string())
 }
 
-/// The val AOTLL of each row's box network by part (`sefi eval` prints the same
-/// split): what the detections with reversed headings carry, and the others'
-/// factors for every car, cars along the line of sight and cars crossing it.
-fn aotll_by_part(rows: &[Row]) -> String {
-    let mut md = String::from(
-        "\nVal AOTLL by part: the detections whose heading is reversed against the label (mean, and what they \
-         carry of AOTLL), and the others' mean with its along / across / yaw factors (they sum to it); beside each group of the others, its \
-         mean and the network's mean scales (along m / across m / yaw rad) against the labels' mean absolute \
-         offsets.\n\n| method | reversed: mean (carried) | others: mean (along / across / yaw) | cars along the line of \
-         sight: mean, scales (labels) | cars crossing it: mean, scales (labels) |\n|---|---|---|---|---|\n",
-    );
-    let num = |m: &MeanOver| m.mean.map_or_else(|| "-".into(), |v| format!("{v:.3}"));
-    let group = |g: &FactorTerms| {
-        let (b, o) = (g.mean_scales, g.mean_abs_offsets);
-        format!(
-            "{} ({} detections), {:.3} / {:.3} / {:.3} ({:.3} / {:.3} / {:.3})",
-            num(&g.total),
-            g.total.count,
-            b.0,
-            b.1,
-            b.2,
-            o.0,
-            o.1,
-            o.2
-        )
-    };
-    for r in rows {
-        let Some(t) = &r.aotll_terms else { continue };
-        let _ = writeln!(
-            md,
-            "| {} | {} ({:.3}; {} detections) | {} ({} / {} / {}) | {} | {} |",
-            r.method,
-            num(&t.reversed),
-            t.reversed_contribution,
-            t.reversed.count,
-            num(&t.others.total),
-            num(&t.others.along),
-            num(&t.others.across),
-            num(&t.others.yaw),
-            group(&t.in_line),
-            group(&t.crossing)
-        );
-    }
-    md
-}
-
 fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), String> {
     let s = c.scale;
     let detections = |d: &Dataset| d.observations().count();
@@ -765,7 +719,10 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         c.policy_from,
         c.supervised_seconds
     );
-    md.push_str(&aotll_by_part(rows));
+    let by_part: Vec<(&str, &BoxAotllTerms)> =
+        rows.iter().filter_map(|r| r.aotll_terms.as_ref().map(|t| (r.method.as_str(), t))).collect();
+    md.push('\n');
+    md.push_str(&aotll_by_part_table("Val AOTLL by part", &by_part));
     md.push_str(&validity_notes(rows));
     write_atomic(&c.args.out.join("table.md"), md.as_bytes())?;
     write_atomic(&c.args.out.join("table.csv"), csv.as_bytes())?;

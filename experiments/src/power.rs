@@ -121,10 +121,10 @@ struct Cell {
 /// Runs `sefi power-study`.
 pub fn run(args: &PowerArgs) -> Result<(), String> {
     let mut effects: Vec<StudyEffect> = args.effects.iter().map(|e| StudyEffect::of(e)).collect::<Result<_, _>>()?;
-    if args.scenes == Some(0) {
-        return Err("power-study: --scenes must be at least 1".into());
-    }
     if let Some(scenes) = args.scenes {
+        if scenes == 0 {
+            return Err("power-study: --scenes must be at least 1".into());
+        }
         for e in &mut effects {
             e.scenes = scenes;
         }

@@ -232,12 +232,12 @@ impl FactorSums {
     }
 }
 
-/// [`BoxAotllTerms`] of `model` on `data`'s labelled steps (empty without labels
-/// or box detections).
-pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &ParamStore<f64>) -> BoxAotllTerms {
-    let Some(truth) = data.states() else { return BoxAotllTerms::default() };
+/// [`BoxAotllTerms`] of `model` on `data`'s labelled steps; `None` without labels
+/// or box detections.
+pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &ParamStore<f64>) -> Option<BoxAotllTerms> {
+    let truth = data.states()?;
     if data.kind() != ObservationKind::Boxes {
-        return BoxAotllTerms::default();
+        return None;
     }
     let mut reversed = Vec::new();
     let (mut others, mut in_line, mut crossing) = (FactorSums::default(), FactorSums::default(), FactorSums::default());
@@ -258,13 +258,13 @@ pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &Par
         }
     }
     let count = (reversed.len() + others.total.len()).max(1) as f64;
-    BoxAotllTerms {
+    Some(BoxAotllTerms {
         reversed_contribution: reversed.iter().sum::<f64>() / count,
         reversed: MeanOver::of(&reversed),
         others: others.finish(),
         in_line: in_line.finish(),
         crossing: crossing.finish(),
-    }
+    })
 }
 
 /// Every object-step of `data` with a true state (from `truth`) and observations

@@ -10,8 +10,8 @@ use rand::SeedableRng;
 use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{
-    aotll, aptll, box_aotll_terms, evaluate, iqr, median, mll, quantile, state_errors, summarise_runs, track,
-    wrapped_abs_diff, MeanOver, Summary,
+    aotll, aptll, box_aotll_terms, evaluate, iqr, labelled_steps, median, mll, quantile, state_errors, summarise_runs,
+    track, wrapped_abs_diff, MeanOver, Summary,
 };
 use ssm::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
@@ -438,7 +438,7 @@ fn box_aotll_terms_count_reversed_headings_and_add_up_to_aotll() {
         let data = generate_hidden(&config).unwrap();
         let mut store = ParamStore::new();
         let model = BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut StdRng::seed_from_u64(seed));
-        let terms = box_aotll_terms(&data, &model, &store);
+        let terms = box_aotll_terms(&data, &model, &store).expect("labelled box detections");
         let whole = aotll(&data, &model, &store);
         let total = terms.reversed.count + terms.others.total.count;
         assert_eq!(total, whole.count);
@@ -461,5 +461,28 @@ fn box_aotll_terms_count_reversed_headings_and_add_up_to_aotll() {
         assert_eq!(a.count + c.count, g.total.count);
         let pooled = a.mean.unwrap_or(0.0) * a.count as f64 + c.mean.unwrap_or(0.0) * c.count as f64;
         assert!((pooled / g.total.count as f64 - others).abs() < 1e-9);
+        // Recounted from the labels another way (cosines rather than wrapped
+        // angles): a detection is reversed when its heading's cosine with the
+        // label's is negative; a car is within 45 degrees of the line of sight when
+        // |cos(heading - bearing)| >= cos 45 degrees.
+        let (mut reversed, mut in_line) = (0, 0);
+        for (ctx, pose, items) in labelled_steps::<BoxObservationModel>(&data, data.states().unwrap()) {
+            let bearing = (pose.y - ctx.av.y).atan2(pose.x - ctx.av.x);
+            let along_line = (pose.yaw - bearing).cos().abs() >= std::f64::consts::FRAC_1_SQRT_2;
+            for det in items {
+                if (det.yaw - pose.yaw).cos() < 0.0 {
+                    reversed += 1;
+                } else if along_line {
+                    in_line += 1;
+                }
+            }
+        }
+        assert_eq!((terms.reversed.count, terms.in_line.total.count), (reversed, in_line), "strength {strength}");
+        assert!(in_line > 0 && terms.crossing.total.count > 0, "both groups occur in generated scenes");
     }
+    // Point data have no box factors.
+    let (_, points) = models_and_data(ObservationKind::Points, 0, 2, 4, 0);
+    let mut store = ParamStore::new();
+    let model = BoxObservationModel::init_params(&mut store, OBS_PREFIX, &mut StdRng::seed_from_u64(0));
+    assert!(box_aotll_terms(&points, &model, &store).is_none());
 }

@@ -126,9 +126,7 @@ impl DetectionDistribution {
         let (along, across) = los_offsets(pose.x - av.x, pose.y - av.y, det.x - pose.x, det.y - pose.y);
         let laplace = |x: f64, mu: f64, b: f64| -(x - mu).abs() / b - (2.0 * b).ln();
         let dyaw = wrap(det.yaw - pose.yaw - self.mu_yaw);
-        let a = dyaw.abs();
-        let yaw = -a / self.b_yaw - (2.0 * self.b_yaw).ln() - ln_one_minus_exp_neg(TAU / self.b_yaw)
-            + (2.0 * (a - PI) / self.b_yaw).softplus();
+        let yaw = with_wrapped_laplace_shape(with_wrapped_laplace_norm(0.0, self.b_yaw), dyaw.abs(), 1.0 / self.b_yaw);
         DetectionTerms {
             along: laplace(along, self.mu_along, self.b_along),
             across: laplace(across, self.mu_across, self.b_across),
@@ -147,6 +145,21 @@ fn ln_one_minus_exp_neg<F: Float>(z: F) -> F {
     } else {
         (F::ONE - (-z).exp()).ln()
     }
+}
+
+/// `acc` plus the normalising part of the wrapped Laplace's log-density at scale
+/// `b`, `-ln(2b) - ln(1 - e^{-2 pi / b})`, added in that order (the plain kernel's
+/// per-particle constant and [`DetectionDistribution::log_density_terms`] share it).
+#[inline(always)]
+fn with_wrapped_laplace_norm<F: Float>(acc: F, b: F) -> F {
+    acc - (F::from_f64(2.0) * b).ln() - ln_one_minus_exp_neg(F::from_f64(TAU) / b)
+}
+
+/// `acc` plus the part of the wrapped Laplace's log-density that depends on the
+/// wrapped offset `a = |d|`, `-a/b + softplus(2 (a - pi) / b)`, with `inv_b = 1/b`.
+#[inline(always)]
+fn with_wrapped_laplace_shape<F: Float>(acc: F, a: F, inv_b: F) -> F {
+    acc - a * inv_b + (F::from_f64(2.0) * (a - F::from_f64(PI)) * inv_b).softplus()
 }
 
 /// `x` rounded to the nearest integer (|x| < 2^22 for f32), without branches: adding
@@ -290,7 +303,7 @@ impl BoxObservationModel {
         let f = F::from_f64;
         let (off, sc, mn) = (f(BOX_OFFSET_SCALE), f(BOX_SCALE_SCALE), f(BOX_MIN_SCALE));
         let (yoff, ysc, ymn) = (f(BOX_YAW_OFFSET_SCALE), f(BOX_YAW_SCALE_SCALE), f(BOX_MIN_YAW_SCALE));
-        let (two, tau) = (f(2.0), f(TAU));
+        let two = f(2.0);
         let rows = self.rows();
         let outputs = rows.iter().flatten().count();
         let o = &s.outputs[..outputs * n];
@@ -313,7 +326,7 @@ impl BoxObservationModel {
             h3[i] = F::ONE / bc;
             h4[i] = yoff * o4[i];
             h5[i] = F::ONE / by;
-            h6[i] = -(two * ba).ln() - (two * bc).ln() - (two * by).ln() - ln_one_minus_exp_neg(tau / by);
+            h6[i] = with_wrapped_laplace_norm(-(two * ba).ln() - (two * bc).ln(), by);
         }
     }
 }
@@ -331,15 +344,17 @@ fn detection_kernel<F: Float, const ACC: bool>(
     let f = F::from_f64;
     let (ax, ay) = (f(av.x), f(av.y));
     let (qx, qy, qyaw) = (f(det.x), f(det.y), f(det.yaw));
-    let (two, pi) = (f(2.0), f(PI));
     let (xs, ys, yaws) = (&poses.x[..n], &poses.y[..n], &poses.yaw[..n]);
     let h = |k: usize| &head[k * n..(k + 1) * n];
     let (mua, muc, iba, ibc, muy, iby, cst) = (h(0), h(1), h(2), h(3), h(4), h(5), h(6));
     for i in 0..n {
         let (along, across) = los_offsets(xs[i] - ax, ys[i] - ay, qx - xs[i], qy - ys[i]);
         let a = wrap(qyaw - yaws[i] - muy[i]).abs();
-        let lg = cst[i] - (along - mua[i]).abs() * iba[i] - (across - muc[i]).abs() * ibc[i] - a * iby[i]
-            + (two * (a - pi) * iby[i]).softplus();
+        let lg = with_wrapped_laplace_shape(
+            cst[i] - (along - mua[i]).abs() * iba[i] - (across - muc[i]).abs() * ibc[i],
+            a,
+            iby[i],
+        );
         out[i] = if ACC { out[i] + lg } else { lg };
     }
 }
