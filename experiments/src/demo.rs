@@ -185,8 +185,8 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
         let mut cfg = ssm::metrics::eval_config(ssm::metrics::EVAL_LAG, seed);
         cfg.sampling.particles = particles;
         let t = Instant::now();
-        let tracks = track(data, &truth.policy, &truth.obs, &truth.params, &cfg)?;
-        let m: Metrics = metrics_of(data, &tracks, &truth.policy, &truth.obs, &truth.params, &cfg);
+        let tracks = track(data, &truth.policy, &truth.obs, &truth.params, None, &cfg)?;
+        let m: Metrics = metrics_of(data, &tracks, &truth.policy, &truth.obs, &truth.params, None, &cfg);
         let secs = t.elapsed().as_secs_f64();
         let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
         println!(

@@ -119,7 +119,8 @@ fn run_track(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<T
     impl ObservationVisitor for Track<'_> {
         type Output = Result<Tracks, String>;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
-            metrics::track(self.data, &self.models.policy, o, &self.models.observation_params, self.config)
+            let m = self.models;
+            metrics::track(self.data, &m.policy, o, &m.observation_params, m.extension.as_ref(), self.config)
         }
     }
     models.observation.visit(Track { data, models, config })
@@ -136,7 +137,7 @@ fn metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterC
         type Output = Metrics;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Metrics {
             let (p, params) = (&self.models.policy, &self.models.observation_params);
-            metrics::metrics_of(self.data, self.tracks, p, o, params, self.config)
+            metrics::metrics_of(self.data, self.tracks, p, o, params, self.models.extension.as_ref(), self.config)
         }
     }
     models.observation.visit(Of { data, models, tracks, config })
@@ -175,12 +176,14 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
     }
     let (data, models) = load(&args.data, args.params.as_deref())?;
     ensure_dir(&args.out)?;
+    let extension = extension_described(&models)?;
     eprintln!(
-        "eval: {} objects x {} steps ({}), {} policy, {} particles, lag {}, {} run(s)",
+        "eval: {} objects x {} steps ({}), {} policy{}, {} particles, lag {}, {} run(s)",
         data.objects().len(),
         data.steps(),
         kind_name(data.kind()),
         models.policy.name(),
+        extension.as_ref().map_or_else(String::new, |e| format!(", extended: {e}")),
         args.particles,
         args.lag,
         args.runs
@@ -228,6 +231,11 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
         "params": args.params.as_ref().map(|p| p.display().to_string()),
         "observation": kind_name(data.kind()),
         "policy": models.policy.name(),
+        "extension": models.extension.as_ref().map(|e| json!({
+            "id": e.extension.id(),
+            "raw": e.raw,
+            "described": extension,
+        })),
         "objects": data.objects().len(),
         "steps": data.steps(),
         "particles": args.particles,
@@ -239,6 +247,13 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
     write_json(&args.out.join("metrics.json"), &doc)?;
     eprintln!("wrote {} and {}", args.out.join("metrics.json").display(), args.out.join("metrics.csv").display());
     Ok(())
+}
+
+/// The catalogue extension `models` were learned with, in one sentence
+/// ([`ssm::models::extended::Extension::describe`]); the filter, MLL and AOTLL
+/// use it.
+fn extension_described(models: &Models) -> Result<Option<String>, String> {
+    models.extension.as_ref().map(|e| e.extension.describe(&e.raw).map_err(|err| err.to_string())).transpose()
 }
 
 /// AOTLL by part ([`metrics::box_aotll_terms`]) of `models` on `data`: `None`

@@ -60,11 +60,11 @@ use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, KittiOptions, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{BoxAotllTerms, Metrics, Summary};
-use ssm::models::extended::ExtensibleObservation;
+use ssm::models::extended::{ExtensibleObservation, Extension};
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
-use ssm::models::params::{Models, ObservationVisitor};
-use ssm::supervised::{fit_observation, SupervisedReport};
+use ssm::models::params::{FittedExtension, Models, ObservationVisitor};
+use ssm::supervised::{fit_observation, fit_observation_with_flips, SupervisedReport};
 use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
 use crate::calibrate::check_method;
@@ -118,6 +118,14 @@ pub struct ExperimentCArgs {
     /// state, which pins where a track lies).
     #[arg(long, default_value_t = DetectionOffsets::Learned)]
     pub detection_offsets: DetectionOffsets,
+    /// A catalogue extension of the box model learned by every trained run
+    /// (`sefi train --extension`): `heading_flip` (a learnable fraction of
+    /// detections report the heading reversed) or `latency`. INIT starts it at the
+    /// catalogue's initial value; the supervised fit observes `heading_flip` in
+    /// the labels (the flipped detections turned back, the fraction their share)
+    /// and takes another extension's values from the learned run it is paired with.
+    #[arg(long)]
+    pub extension: Option<String>,
 }
 
 /// The sizes of the experiment.
@@ -313,21 +321,31 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 /// The store every training run starts from (what `sefi train --policy neural
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
 /// `seed + 1`, with `offsets` learned or fixed at zero.
-fn initial_models(seed: u64, offsets: DetectionOffsets) -> Models {
-    train::fresh_models("neural", "", ObservationKind::Boxes, offsets, seed)
-        .expect("the neural policy needs no settings")
+fn initial_models(args: &ExperimentCArgs) -> Result<Models, String> {
+    let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, args.seed)
+        .expect("the neural policy needs no settings");
+    models.extension =
+        extension_of(args)?.map(|extension| FittedExtension { extension, raw: extension.initial().data().to_vec() });
+    Ok(models)
+}
+
+/// The catalogue extension of `--extension`, refused where it means nothing for
+/// box detections.
+fn extension_of(args: &ExperimentCArgs) -> Result<Option<Extension>, String> {
+    args.extension.as_deref().map(|id| train::extension_for(id, ObservationKind::Boxes)).transpose()
 }
 
 /// AOTLL of `models`' observation network on `data`.
 fn aotll_on(data: &Dataset, models: &Models) -> Option<f64> {
-    struct Aotll<'a>(&'a Dataset, &'a ParamStore<f64>);
+    struct Aotll<'a>(&'a Dataset, &'a Models);
     impl ObservationVisitor for Aotll<'_> {
         type Output = Option<f64>;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Option<f64> {
-            ssm::metrics::aotll(self.0, o, self.1).mean
+            let m = self.1;
+            ssm::metrics::extended_aotll(self.0, &m.policy, o, &m.observation_params, m.extension.as_ref()).mean
         }
     }
-    models.observation.visit(Aotll(data, &models.observation_params))
+    models.observation.visit(Aotll(data, models))
 }
 
 /// Sums of the `skipped` and `collapsed_steps` columns of a run's `train.csv`.
@@ -396,6 +414,7 @@ fn run_args(
         chunk_objects: scale.chunk_objects,
         seed: args.seed,
         detection_offsets: args.detection_offsets,
+        extension: args.extension.clone(),
         ..TrainArgs::for_method(method, &args.table.filter, run, data.0, data.1, dir)
     }
 }
@@ -409,6 +428,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
     let started = Instant::now();
     let scale = Scale::of(args);
     scale.check()?;
+    extension_of(args)?;
     for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
     }
@@ -456,7 +476,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
 
     // INIT: where every run starts.
     let clock = Instant::now();
-    let init = initial_models(args.seed, args.detection_offsets);
+    let init = initial_models(args)?;
     let init_runs = evaluate(&init)?;
     let mut rows = vec![Row {
         method: "INIT".into(),
@@ -511,11 +531,12 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
     // SUPERVISED: the observation network fitted to the labelled train states, from
     // the same initial weights, beside PF-SEFI's learned policy.
     let clock = Instant::now();
-    let (policy_from, policy) = match learned.iter().find(|(m, _)| m == "pf-sefi").or(learned.first()) {
-        Some((m, models)) => (m.clone(), models.policy.clone()),
-        None => ("INIT".to_string(), init.policy.clone()),
+    let (policy_from, paired) = match learned.iter().find(|(m, _)| m == "pf-sefi").or(learned.first()) {
+        Some((m, models)) => (m.clone(), models),
+        None => ("INIT".to_string(), &init),
     };
-    let mut supervised = Models { policy, ..initial_models(args.seed, args.detection_offsets) };
+    let mut supervised =
+        Models { policy: paired.policy.clone(), extension: paired.extension.clone(), ..initial_models(args)? };
     let fit = FitConfig {
         steps: scale.supervised_steps,
         batch: scale.supervised_batch,
@@ -523,7 +544,10 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         clip: None,
         seed: args.seed,
     };
-    let report = fit_observation(&mut supervised, &train_data, &fit).map_err(|e| e.to_string())?;
+    let report = match extension_of(args)? {
+        Some(Extension::HeadingFlip) => fit_observation_with_flips(&mut supervised, &train_data, &fit)?,
+        _ => fit_observation(&mut supervised, &train_data, &fit).map_err(|e| e.to_string())?,
+    };
     let sup_dir = args.out.join("supervised");
     ensure_dir(&sup_dir)?;
     supervised.to_store().save(&sup_dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
@@ -557,6 +581,19 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         eval_every,
         supervised: &report,
         supervised_seconds: fit_seconds,
+        supervised_extension: match &supervised.extension {
+            None => None,
+            Some(e) => {
+                let described = e.extension.describe(&e.raw).map_err(|err| err.to_string())?;
+                Some(match e.extension {
+                    Extension::HeadingFlip => format!(
+                        "{described}, observed in the labels (the flipped detections turned back for the fit; the \
+                         train AOTLLs are theirs)"
+                    ),
+                    _ => format!("{described}, as the {policy_from} run learned it"),
+                })
+            }
+        },
         policy_from: &policy_from,
     };
     write_outputs(&context, &rows, started.elapsed().as_secs_f64())?;
@@ -575,6 +612,8 @@ struct Context<'a> {
     supervised: &'a SupervisedReport,
     supervised_seconds: f64,
     policy_from: &'a str,
+    /// The supervised model's extension in words, if any.
+    supervised_extension: Option<String>,
 }
 
 /// Notes on rows whose numbers are not what they seem: non-finite state estimates
@@ -637,7 +676,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
     let mut md = format!(
         "Experiment C on KITTI ({} scale: {} training / {} evaluation particles, {} epochs of {} steps \
          ({} scenes per step), L = {}, PFNET alpha = {}, Adam lr {}{} with global-norm clipping {}, neural \
-         policy, box-detection observation network; this session took {:.0} s).\n\
+         policy, box-detection observation network{}; this session took {:.0} s).\n\
          Train: {} scenes, {} objects, {} detections. Val: {} scenes, {} objects, {} detections.\n\
          Metrics on val, median [IQR] over {} filter runs ({} particles, smoothing lag {}); AOTLL median and AOTLL \
          without lowest 1% are the median of val's per-detection log-densities and their mean without the \
@@ -654,6 +693,9 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         s.lr,
         s.final_lr.map_or_else(String::new, |end| format!(" falling linearly to {end}")),
         s.clip,
+        c.args.extension.as_ref().map_or_else(String::new, |e| format!(
+            " extended by `{e}` (every row: MLL and AOTLL under the extended model; AOTLL by part: the base network)"
+        )),
         seconds,
         c.train.scenes().len(),
         c.train.objects().len(),
@@ -707,7 +749,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
     let _ = writeln!(
         md,
         "\nSupervised observation network: fitted by maximum AOTLL to {} labelled train object-steps ({} \
-         detections), {} Adam steps of {} (skipped {}); train AOTLL {:.4} -> {:.4}; paired with the {} policy \
+         detections), {} Adam steps of {} (skipped {}); train AOTLL {:.4} -> {:.4}; paired with the {} policy{} \
          ({:.1} s).",
         rep.examples,
         rep.items,
@@ -717,6 +759,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         rep.initial_aotll,
         rep.final_aotll,
         c.policy_from,
+        c.supervised_extension.as_ref().map_or_else(String::new, |e| format!("; extended: {e}")),
         c.supervised_seconds
     );
     let by_part: Vec<(&str, &BoxAotllTerms)> =

@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
+use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
@@ -51,6 +52,14 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = DetectionOffsets::Learned)]
     #[serde(default)]
     pub detection_offsets: DetectionOffsets,
+    /// A catalogue extension learned with the model (`sefi diagnose`'s
+    /// catalogue: `heading_flip` on box data, `heavy_tailed_accel`, ...): the
+    /// filter, the score and the test MLL use the extended model, and the
+    /// extension's parameter starts at the catalogue's initial value and is saved
+    /// with the others under `ext.<id>`.
+    #[arg(long)]
+    #[serde(default)]
+    pub extension: Option<String>,
     /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet.
     #[arg(long, default_value = "pf-sefi")]
     pub estimator: String,
@@ -219,6 +228,16 @@ fn initial_store(args: &TrainArgs, data: &Dataset) -> Result<ParamStore<f64>, St
     Ok(fresh_models(&args.policy, &args.init_sd, data.kind(), args.detection_offsets, args.seed)?.to_store())
 }
 
+/// The catalogue extension `id`, refused with the reason where it means nothing
+/// for observations of `kind`.
+pub fn extension_for(id: &str, kind: ObservationKind) -> Result<Extension, String> {
+    let extension = Extension::from_id(id).map_err(|e| format!("--extension: {e}"))?;
+    if !extension.applies_to(kind) {
+        return Err(format!("--extension {id}: not an extension of a model of {kind:?} observations"));
+    }
+    Ok(extension)
+}
+
 /// Reads `eval.csv` in `dir`: the step column and the named metric.
 pub fn read_eval_curve(dir: &Path, metric: &str) -> Result<Curve, String> {
     let path = dir.join(EVAL_LOG);
@@ -314,6 +333,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         eval_tempering: None,
     };
     let (data, test) = read_data(args, &config, cluster)?;
+    config.extension = args.extension.as_deref().map(|id| extension_for(id, data.kind())).transpose()?;
     if args.resume {
         let text = std::fs::read_to_string(&run_file).map_err(|e| format!("{}: {e}", run_file.display()))?;
         let before: TrainArgs =
@@ -327,7 +347,12 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
     }
     config.estimator_config.sampling.tempering = args.filter.tempering_for(&estimator, data.kind())?;
     config.eval_tempering = args.filter.tempering_of(args.eval_filter, data.kind())?;
-    let initial = initial_store(args, &data)?;
+    let mut initial = initial_store(args, &data)?;
+    if let Some(e) = config.extension {
+        if initial.id(&e.param_name()).is_none() {
+            initial.add(&e.param_name(), e.initial());
+        }
+    }
     let mut objective = SceneObjective::new(&data, test, config)?.with_collective(cluster.collective());
     let train_config = TrainConfig {
         lr: args.lr,

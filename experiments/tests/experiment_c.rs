@@ -163,3 +163,83 @@ fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
     assert!(out.join("data/train/meta.json").is_file());
     std::fs::remove_dir_all(&out).ok();
 }
+
+/// `--extension heading_flip`: every trained run learns the flip fraction with
+/// its model; the supervised fit takes it from the labels (the share of train
+/// detections reversed against their label, recounted here with cosines); every
+/// row's val AOTLL is the mixture's density at the labels (recomputed here from
+/// the plain density); an extension that means nothing for boxes is refused
+/// before anything is imported.
+#[test]
+fn quick_experiment_c_learns_and_scores_reversed_headings() {
+    use ssm::data::{BoxDetection, Dataset};
+    use ssm::metrics::labelled_steps;
+    use ssm::models::extended::Extension;
+    use ssm::models::observation::BoxObservationModel;
+    use ssm::models::params::AnyObservation;
+
+    let out = temp("flip");
+    let refused = failed(&sefi(&["experiment-c", "--quick", "--extension", "clutter", "--out", s(&out)]));
+    assert!(refused.contains("--extension clutter"), "{refused}");
+    assert!(!out.join("data").exists(), "nothing imported");
+    let Some(kitti) = kitti() else { return };
+    let args = ["experiment-c", "--quick", "--kitti", s(&kitti), "--out", s(&out), "--methods", "pf-sefi"];
+    ok(&sefi(&[&args[..], &["--extension", "heading_flip"]].concat()));
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.contains("extended by `heading_flip`"), "{table}");
+    let load = |path: &str| {
+        let store = ParamStore::<f64>::load(&out.join(path)).unwrap();
+        Models::from_store(&store, ObservationKind::Boxes).unwrap()
+    };
+    let learned = load("runs/pf-sefi/params.bin");
+    assert_eq!(learned.extension.as_ref().map(|e| e.extension), Some(Extension::HeadingFlip));
+
+    let fraction = |m: &Models| {
+        let e = m.extension.as_ref().expect("an extension");
+        e.extension.natural(&e.raw).unwrap()[0].1
+    };
+    let supervised = load("supervised/params.bin");
+    // The quick scale's evenly spaced subsets of the import.
+    let subset = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.file_name().unwrap().to_string_lossy().starts_with("subset-"))
+        .expect("the quick scale's subset");
+    let train = Dataset::read(subset.join("train")).unwrap();
+    let (mut reversed, mut all) = (0usize, 0usize);
+    for (_, pose, items) in labelled_steps::<BoxObservationModel>(&train, train.states().unwrap()) {
+        for d in items {
+            all += 1;
+            reversed += usize::from((d.yaw - pose.yaw).cos() < 0.0);
+        }
+    }
+    let p = fraction(&supervised);
+    assert!(reversed > 0 && (p - reversed as f64 / all as f64).abs() < 1e-12, "{p} vs {reversed} of {all}");
+
+    let val = Dataset::read(subset.join("val")).unwrap();
+    let doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("experiment_c.json")).unwrap()).unwrap();
+    let rows = doc["rows"].as_array().unwrap();
+    for (row, models) in [(&rows[1], &learned), (rows.last().unwrap(), &supervised)] {
+        let AnyObservation::Boxes(obs) = &models.observation else { panic!("a box model") };
+        let p = fraction(models);
+        let (mut sum, mut n) = (0.0, 0usize);
+        for (ctx, pose, items) in labelled_steps::<BoxObservationModel>(&val, val.states().unwrap()) {
+            let d = obs.distribution(&models.observation_params, &ctx, pose);
+            for det in items {
+                let back = BoxDetection { yaw: det.yaw + std::f64::consts::PI, ..*det };
+                let (g, r) = (
+                    d.log_density_terms(&ctx.av, pose, det).total(),
+                    d.log_density_terms(&ctx.av, pose, &back).total(),
+                );
+                let m = g.max(r);
+                sum += m + ((1.0 - p) * (g - m).exp() + p * (r - m).exp()).ln();
+                n += 1;
+            }
+        }
+        let got = row["runs"][0]["aotll"]["mean"].as_f64().unwrap();
+        let want = sum / n as f64;
+        assert!((got - want).abs() < 1e-4 * want.abs().max(1.0), "{}: AOTLL {got} vs mixture {want}", row["method"]);
+    }
+    std::fs::remove_dir_all(&out).ok();
+}

@@ -31,10 +31,13 @@ use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind, Pose, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary, Sampling};
+use crate::models::extended::{ExtendedSsm, ExtensibleObservation};
 use crate::models::observation::boxes::{BoxObservationModel, DetectionDistribution, DetectionTerms};
 use crate::models::observation::{ObsContext, ObservationModel};
+use crate::models::params::FittedExtension;
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
+use crate::models::{Batch, ParticleModel};
 
 /// Particles of an evaluation run (SPEC §5).
 pub const EVAL_PARTICLES: usize = 4096;
@@ -156,6 +159,47 @@ pub fn aotll<O: ObservationModel>(data: &Dataset, model: &O, params: &ParamStore
     MeanOver::of(&per_item)
 }
 
+/// AOTLL of the observation model, extended by `extension` if given: [`aotll`]
+/// for the base model, [`model_aotll`] of the extended one otherwise (empty if
+/// the extension does not apply to the data).
+pub fn extended_aotll<P: GaussianPolicy, O: ExtensibleObservation>(
+    data: &Dataset,
+    policy: &P,
+    observation: &O,
+    observation_params: &ParamStore<f64>,
+    extension: Option<&FittedExtension>,
+) -> MeanOver {
+    let Some(e) = extension else { return aotll(data, observation, observation_params) };
+    VehicleSsm::new(data, policy, observation, observation_params)
+        .and_then(|base| ExtendedSsm::new(&base, Some(e.extension), &e.raw).map(|m| model_aotll(data, &m)))
+        .unwrap_or_default()
+}
+
+/// AOTLL under `model`'s observation density exactly as its filter weighs
+/// particles (in f32, with any catalogue extension, e.g. a heading-flip mixture):
+/// every labelled object-step's log-density of its items at the true state,
+/// shared evenly among its items (so the mean over items is [`aotll`]'s for a
+/// model whose items are independent given the state).
+pub fn model_aotll<M: ParticleModel>(data: &Dataset, model: &M) -> MeanOver {
+    let Some(truth) = data.states() else { return MeanOver::default() };
+    let mut scratch = model.new_scratch();
+    let mut per_item = Vec::new();
+    for object in 0..data.objects().len() {
+        for t in 0..data.steps() {
+            let (Some(state), items) = (truth.get(object, t), model.observation_count(object, t)) else { continue };
+            if items == 0 {
+                continue;
+            }
+            let states = state.to_array().map(|v| v as f32);
+            let mut out = [0.0f32];
+            if model.observation_loglik(Batch { object, t, n: 1 }, &states, &mut out, &mut scratch) {
+                per_item.extend(std::iter::repeat_n(out[0] as f64 / items as f64, items));
+            }
+        }
+    }
+    MeanOver::of(&per_item)
+}
+
 /// A box-detection model's AOTLL split by what it gets wrong ([`box_aotll_terms`]):
 /// the detections whose heading is reversed against the label, and the others by
 /// the density's factors — all of them, and apart for the cars moving along the
@@ -249,7 +293,7 @@ pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &Par
         let group = if off_line <= PI / 4.0 { &mut in_line } else { &mut crossing };
         for det in items {
             let terms = d.log_density_terms(&ctx.av, pose, det);
-            if wrapped_abs_diff(det.yaw, pose.yaw) > PI / 2.0 {
+            if BoxObservationModel::heading_reversed(det, pose) {
                 reversed.push(terms.total());
             } else {
                 others.push(&d, &terms);
@@ -349,14 +393,17 @@ fn to_states(rows: Vec<Vec<f64>>) -> Vec<State> {
 /// Runs the particle filter over every object of `data` and returns the filtering
 /// and fixed-lag smoothed means (yaw averaged on the circle) with the filter's
 /// summaries. Fails if the dataset's kind is not the one `observation` reads.
-pub fn track<P: GaussianPolicy, O: ObservationModel>(
+pub fn track<P: GaussianPolicy, O: ExtensibleObservation>(
     data: &Dataset,
     policy: &P,
     observation: &O,
     observation_params: &ParamStore<f64>,
+    extension: Option<&FittedExtension>,
     config: &FilterConfig,
 ) -> Result<Tracks, String> {
-    let model = VehicleSsm::new(data, policy, observation, observation_params)?;
+    let base = VehicleSsm::new(data, policy, observation, observation_params)?;
+    let (ext, raw) = extension.map_or((None, &[][..]), |e| (Some(e.extension), e.raw.as_slice()));
+    let model = ExtendedSsm::new(&base, ext, raw).map_err(|e| e.to_string())?;
     let run = run_filter(&model, config, |_| Moments::new(STATE_DIM, &[YAW]));
     let mut tracks = Tracks { summaries: run.objects, ..Tracks::default() };
     for m in run.observers {
@@ -416,26 +463,28 @@ impl Metrics {
 /// Computes every metric: one filter run with `config` (MLL, ADE/AYE of smoothed
 /// and filtering means) plus AOTLL and APTLL at the true states and actions (which
 /// need no filter). Fails if the dataset's kind is not the one `observation` reads.
-pub fn evaluate<P: GaussianPolicy, O: ObservationModel>(
+pub fn evaluate<P: GaussianPolicy, O: ExtensibleObservation>(
     data: &Dataset,
     policy: &P,
     observation: &O,
     observation_params: &ParamStore<f64>,
     config: &FilterConfig,
 ) -> Result<Metrics, String> {
-    let tracks = track(data, policy, observation, observation_params, config)?;
-    Ok(metrics_of(data, &tracks, policy, observation, observation_params, config))
+    let tracks = track(data, policy, observation, observation_params, None, config)?;
+    Ok(metrics_of(data, &tracks, policy, observation, observation_params, None, config))
 }
 
 /// The metrics of an existing filter run `tracks` (made with `config`) on `data`.
-pub fn metrics_of<P: GaussianPolicy, O: ObservationModel>(
+pub fn metrics_of<P: GaussianPolicy, O: ExtensibleObservation>(
     data: &Dataset,
     tracks: &Tracks,
     policy: &P,
     observation: &O,
     observation_params: &ParamStore<f64>,
+    extension: Option<&FittedExtension>,
     config: &FilterConfig,
 ) -> Metrics {
+    let aotll = extended_aotll(data, policy, observation, observation_params, extension);
     let (smoothed, filtered) = match data.states() {
         Some(truth) => (state_errors(&tracks.smoothed, truth), state_errors(&tracks.filtered, truth)),
         None => (StateErrors::default(), StateErrors::default()),
@@ -446,7 +495,7 @@ pub fn metrics_of<P: GaussianPolicy, O: ObservationModel>(
         observed_units: tracks.observed_units(),
         smoothed,
         filtered,
-        aotll: aotll(data, observation, observation_params),
+        aotll,
         aptll: aptll(data, policy),
         collapsed_steps: tracks.collapsed_steps(),
         particles: config.sampling.particles,

@@ -17,6 +17,12 @@
 //! * [`fit_observation`]: the same for the observation part of [`Models`] of
 //!   either kind, in place (warm-started from its current parameters), so a
 //!   supervised observation network can be paired with any policy.
+//! * [`fit_observation_with_flips`]: the supervised fit of the box model
+//!   extended by reversed headings (the catalogue's `heading_flip`). With the
+//!   states labelled, which detections are flipped is observed (their heading
+//!   is more than pi/2 from the label's), so the complete-data maximum-likelihood
+//!   fit is the network fitted to every detection with the flipped ones turned
+//!   back, and the flip fraction is their share.
 //!
 //! The AOTLL reported is the one [`crate::metrics::aotll`] computes on the same
 //! dataset (the same items, the same per-item densities).
@@ -45,9 +51,9 @@ use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind};
 use crate::metrics::labelled_steps;
-use crate::models::extended::ExtensibleObservation;
+use crate::models::extended::{ExtensibleObservation, Extension};
 use crate::models::observation::{fit_network, Example, FitConfig, ObservationModel};
-use crate::models::params::{Models, ObservationVisitor, OBS_PREFIX};
+use crate::models::params::{FittedExtension, Models, ObservationVisitor, OBS_PREFIX};
 
 /// Why a supervised fit cannot run.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -152,11 +158,20 @@ pub fn fit_supervised_params<O: ObservationModel>(
     data: &Dataset,
     fit: &FitConfig,
 ) -> Result<SupervisedReport, SupervisedError> {
-    let examples = labelled_examples::<O>(data)?;
+    fit_params_on(model, params, &labelled_examples::<O>(data)?, fit)
+}
+
+/// [`fit_network`] on `examples`, reported.
+fn fit_params_on<O: ObservationModel>(
+    model: &O,
+    params: &mut ParamStore<f64>,
+    examples: &[Example<O::Item>],
+    fit: &FitConfig,
+) -> Result<SupervisedReport, SupervisedError> {
     if examples.is_empty() {
         return Err(SupervisedError::NoExamples);
     }
-    let report = fit_network(model, params, &examples, fit);
+    let report = fit_network(model, params, examples, fit);
     Ok(SupervisedReport {
         examples: examples.len(),
         items: examples.iter().map(|e| e.items.len()).sum(),
@@ -201,4 +216,70 @@ pub fn fit_observation(
         }
     }
     models.observation.visit(Fit { params: &mut models.observation_params, data, fit })
+}
+
+/// Labelled examples with the items reversed against their labels turned back
+/// ([`examples_with_flips_turned_back`]).
+pub struct TurnedBack<I> {
+    /// The examples, every item's heading within pi/2 of its label's.
+    pub examples: Vec<Example<I>>,
+    /// How many items were turned back.
+    pub flipped: usize,
+}
+
+/// The labelled examples of `data` ([`labelled_examples`]) with every item whose
+/// heading is reversed against its label turned back, and how many items were.
+pub fn examples_with_flips_turned_back<O: ExtensibleObservation>(
+    data: &Dataset,
+) -> Result<TurnedBack<O::Item>, SupervisedError> {
+    let mut examples = labelled_examples::<O>(data)?;
+    let mut flipped = 0;
+    for e in &mut examples {
+        for item in &mut e.items {
+            if O::heading_reversed(item, e.pose) {
+                *item = O::reverse_heading(item);
+                flipped += 1;
+            }
+        }
+    }
+    Ok(TurnedBack { examples, flipped })
+}
+
+/// The supervised fit of `models`' observation network extended by reversed
+/// headings, in place (see the module documentation): the network fitted to the
+/// labelled detections of `data` with the flipped ones turned back, and
+/// [`Models::extension`] set to `heading_flip` at their share of the detections.
+/// The report's AOTLLs are the network's on the turned-back detections. Fails on
+/// data without flipped detections (a fraction of zero has no stored value) or
+/// as [`fit_observation`].
+pub fn fit_observation_with_flips(
+    models: &mut Models,
+    data: &Dataset,
+    fit: &FitConfig,
+) -> Result<SupervisedReport, String> {
+    /// The turned-back fit of the visited model and its flip fraction.
+    struct Fit<'a> {
+        params: &'a mut ParamStore<f64>,
+        data: &'a Dataset,
+        fit: &'a FitConfig,
+    }
+    impl ObservationVisitor for Fit<'_> {
+        type Output = Result<(SupervisedReport, f64), SupervisedError>;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+            let TurnedBack { examples, flipped } = examples_with_flips_turned_back::<O>(self.data)?;
+            let report = fit_params_on(o, self.params, &examples, self.fit)?;
+            let fraction = flipped as f64 / report.items.max(1) as f64;
+            Ok((report, fraction))
+        }
+    }
+    let (report, fraction) = models
+        .observation
+        .visit(Fit { params: &mut models.observation_params, data, fit })
+        .map_err(|e| e.to_string())?;
+    let flip = Extension::HeadingFlip;
+    let raw = flip.stored(&[fraction]).map_err(|_| {
+        format!("no detection of the data reports its heading reversed (fraction {fraction}): nothing to fit")
+    })?;
+    models.extension = Some(FittedExtension { extension: flip, raw });
+    Ok(report)
 }

@@ -14,6 +14,7 @@ mod estimators_lgssm;
 mod estimators_pitfalls;
 mod filter_lgssm;
 mod filter_tempered;
+mod fitted_extension;
 mod hidden_effects;
 mod lgssm;
 mod metrics;

@@ -242,6 +242,29 @@ impl Extension {
         })
     }
 
+    /// The stored values whose [`Extension::natural`] values are `natural` (in
+    /// its order and units): the inverse of `natural`. Fails on the wrong number
+    /// of values or one outside its range (a fraction in (0, 1), a delay, sd or
+    /// factor > 0, an sd ratio > 1).
+    pub fn stored(self, natural: &[f64]) -> Result<Vec<f64>, ModelError> {
+        let expected = self.initial().numel();
+        let logit = |p: f64| (p > 0.0 && p < 1.0).then(|| (p / (1.0 - p)).ln() / LOGIT_SCALE);
+        let log = |x: f64| (x > 0.0).then(|| x.ln() / LOG_SCALE);
+        let raw: Option<Vec<f64>> = (natural.len() == expected && natural.iter().all(|x| x.is_finite()))
+            .then(|| match self {
+                Extension::Latency => {
+                    let d = natural[0];
+                    (d > 0.0).then(|| vec![(DELAY_SHARPNESS * d).exp_m1().ln() / DELAY_SHARPNESS])
+                }
+                Extension::Clutter => Some(vec![logit(natural[0])?, log(natural[1])?]),
+                Extension::SizeBias => Some(vec![log(natural[0])?, log(natural[1])?]),
+                Extension::HeavyTailedAccel => Some(vec![logit(natural[0])?, log(natural[1] - 1.0)?]),
+                Extension::HeadingFlip => Some(vec![logit(natural[0])?]),
+            })
+            .flatten();
+        raw.ok_or_else(|| ModelError::ExtensionValues { param: self.param_name(), expected, got: natural.to_vec() })
+    }
+
     /// Whether stored values `raw` make a material change to the base model: a
     /// delay of at least 30 ms, a mixture fraction of at least 3% (above the 2%
     /// start) with, for heavy tails, an sd ratio of at least 2, or an extent off by
@@ -297,6 +320,10 @@ pub trait ExtensibleObservation: ObservationModel {
     /// The item with its heading reversed by pi (items without a heading: unchanged).
     fn reverse_heading(item: &Self::Item) -> Self::Item;
 
+    /// Whether `item` reports the heading of an object at `pose` reversed: more
+    /// than pi/2 from it (items without a heading: never).
+    fn heading_reversed(item: &Self::Item, pose: Pose) -> bool;
+
     /// One object's observations from its items per step.
     fn to_observations(per_step: Vec<Vec<Self::Item>>) -> ObjectObservations;
 
@@ -342,6 +369,10 @@ pub trait ExtensibleObservation: ObservationModel {
 impl ExtensibleObservation for PointObservationModel {
     fn reverse_heading(item: &[f64; 2]) -> [f64; 2] {
         *item
+    }
+
+    fn heading_reversed(_item: &[f64; 2], _pose: Pose) -> bool {
+        false
     }
 
     fn to_observations(per_step: Vec<Vec<[f64; 2]>>) -> ObjectObservations {
@@ -400,6 +431,10 @@ impl ExtensibleObservation for PointObservationModel {
 impl ExtensibleObservation for BoxObservationModel {
     fn reverse_heading(item: &BoxDetection) -> BoxDetection {
         BoxDetection { yaw: wrap_angle(item.yaw + std::f64::consts::PI), ..*item }
+    }
+
+    fn heading_reversed(item: &BoxDetection, pose: Pose) -> bool {
+        wrap_angle(item.yaw - pose.yaw).abs() > std::f64::consts::FRAC_PI_2
     }
 
     fn to_observations(per_step: Vec<Vec<BoxDetection>>) -> ObjectObservations {

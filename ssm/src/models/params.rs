@@ -16,8 +16,10 @@
 //! kind (points or boxes); a network of the other kind is rejected with a message
 //! that says so. A box network whose last layer has the centred width (4
 //! outputs, [`DetectionOffsets::Zero`](crate::models::observation::boxes::DetectionOffsets))
-//! is read as the centred box model. Names outside `policy.*` and `obs.*` (optimiser state, extension
-//! parameters) are ignored.
+//! is read as the centred box model. A catalogue extension learned with the
+//! model (`ext.<id>`, [`crate::models::extended`]; at most one, of the right
+//! shape, for the dataset's kind) is read into [`Models::extension`]. Other names
+//! (optimiser state) are ignored.
 //!
 //! ```
 //! use autodiff::nn::ParamStore;
@@ -44,7 +46,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 
 use crate::data::{Dataset, ObservationKind};
-use crate::models::extended::ExtensibleObservation;
+use crate::models::extended::{ExtensibleObservation, Extension, EXTENSION_PREFIX};
 use crate::models::observation::boxes::DetectionOffsets;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::models::road_user::VehicleSsm;
@@ -314,6 +316,53 @@ pub struct Models {
     pub observation: AnyObservation,
     /// The observation network's parameters, laid out as `observation` expects.
     pub observation_params: ParamStore<f64>,
+    /// The catalogue extension learned with the model, if any (`sefi train
+    /// --extension`): filters, likelihoods and AOTLL use the extended model.
+    pub extension: Option<FittedExtension>,
+}
+
+/// A catalogue extension with its stored values, as a parameter file holds it
+/// (`ext.<id>`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FittedExtension {
+    /// The catalogue entry.
+    pub extension: Extension,
+    /// Its stored (scaled) values; [`Extension::natural`] gives them in units.
+    pub raw: Vec<f64>,
+}
+
+impl FittedExtension {
+    /// The extension `store` holds for data of `kind`, if any. Fails on an
+    /// unknown id, a second extension, one that means nothing for `kind`, a wrong
+    /// shape or a value that is not finite, naming the parameter.
+    pub fn from_store(store: &ParamStore<f64>, kind: ObservationKind) -> Result<Option<Self>, ParamsError> {
+        let prefix = format!("{EXTENSION_PREFIX}.");
+        let mut found: Option<FittedExtension> = None;
+        for (name, value) in store.iter().filter(|(n, _)| n.starts_with(&prefix)) {
+            let unexpected = |model: String| ParamsError::Unexpected { name: name.to_string(), model };
+            let extension = Extension::from_id(&name[prefix.len()..])
+                .map_err(|_| unexpected("catalogue of model extensions".into()))?;
+            if let Some(other) = &found {
+                return Err(unexpected(format!("model extended by {} (at most one extension)", other.extension.id())));
+            }
+            if !extension.applies_to(kind) {
+                return Err(unexpected(format!("model of {kind:?} observations")));
+            }
+            let expected = extension.initial().shape().to_vec();
+            if value.shape() != expected.as_slice() {
+                let model = format!("{} extension", extension.id());
+                return Err(ParamsError::Shape {
+                    name: name.to_string(),
+                    expected,
+                    found: value.shape().to_vec(),
+                    model,
+                });
+            }
+            check_finite(name, value)?;
+            found = Some(FittedExtension { extension, raw: value.data().to_vec() });
+        }
+        Ok(found)
+    }
 }
 
 impl Models {
@@ -334,7 +383,7 @@ impl Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
         let observation = AnyObservation::init_with_offsets(kind, offsets, &mut observation_params, &mut rng);
-        Models { policy, observation, observation_params }
+        Models { policy, observation, observation_params, extension: None }
     }
 
     /// Reads the policy and the observation model for a dataset of `kind` from
@@ -354,7 +403,8 @@ impl Models {
             ObservationKind::Boxes => "box-detection observation model (this dataset holds boxes.csv)",
         };
         copy_exact(&mut observation_params, store, OBS_PREFIX, model)?;
-        Ok(Models { policy, observation, observation_params })
+        let extension = FittedExtension::from_store(store, kind)?;
+        Ok(Models { policy, observation, observation_params, extension })
     }
 
     /// Builds the [`VehicleSsm`] of `data` under these models and hands it to
@@ -384,6 +434,9 @@ impl Models {
         self.policy.add_to_store(&mut store);
         for (name, value) in self.observation_params.iter() {
             store.add(name, value.clone());
+        }
+        if let Some(e) = &self.extension {
+            store.add(&e.extension.param_name(), Tensor::from_vec(e.raw.clone()));
         }
         store
     }
