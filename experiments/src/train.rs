@@ -18,7 +18,7 @@ use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
 use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
-use ssm::models::params::{AnyPolicy, Models};
+use ssm::models::params::{AnyPolicy, FittedExtension, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
@@ -348,6 +348,14 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
     config.estimator_config.sampling.tempering = args.filter.tempering_for(&estimator, data.kind())?;
     config.eval_tempering = args.filter.tempering_of(args.eval_filter, data.kind())?;
     let mut initial = initial_store(args, &data)?;
+    let held = FittedExtension::from_store(&initial, data.kind()).map_err(|e| e.to_string())?.map(|e| e.extension);
+    if let Some(h) = held.filter(|h| Some(*h) != config.extension) {
+        return Err(format!(
+            "--init holds the extension `{}`: pass --extension {} to go on learning it (a model is extended by one)",
+            h.id(),
+            h.id()
+        ));
+    }
     if let Some(e) = config.extension {
         if initial.id(&e.param_name()).is_none() {
             initial.add(&e.param_name(), e.initial());

@@ -194,6 +194,10 @@ fn train_learns_a_catalogue_extension_with_the_model() {
     let dir = temp("extension");
     let flip = Extension::HeadingFlip;
     let start = flip.natural(flip.initial().data()).unwrap()[0].1;
+    let train_on = |data: &std::path::Path, out: &std::path::Path, extra: &[&str]| {
+        let data = s(data);
+        sefi(&[&["train", "--data", data, "--test", data, "--out", s(out)][..], extra].concat())
+    };
     let learned = |hidden: &str, seed: &str| -> f64 {
         let data = dir.join(format!("{hidden}-{seed}"));
         let out = dir.join(format!("run-{hidden}-{seed}"));
@@ -213,29 +217,26 @@ fn train_learns_a_catalogue_extension_with_the_model() {
             "--out",
             s(&data),
         ]));
-        ok(&sefi(&[
-            "train",
-            "--data",
-            s(&data),
-            "--test",
-            s(&data),
-            "--out",
-            s(&out),
-            "--extension",
-            "heading_flip",
-            "--epochs",
-            "6",
-            "--particles",
-            "128",
-            "--eval-particles",
-            "128",
-            "--eval-every",
-            "100",
-            "--lr",
-            "0.05",
-            "--seed",
-            seed,
-        ]));
+        ok(&train_on(
+            &data,
+            &out,
+            &[
+                "--extension",
+                "heading_flip",
+                "--epochs",
+                "6",
+                "--particles",
+                "128",
+                "--eval-particles",
+                "128",
+                "--eval-every",
+                "100",
+                "--lr",
+                "0.05",
+                "--seed",
+                seed,
+            ],
+        ));
         let run: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(out.join("run.json")).unwrap()).unwrap();
         assert_eq!(run["extension"], "heading_flip");
@@ -251,18 +252,12 @@ fn train_learns_a_catalogue_extension_with_the_model() {
     }
     let data = dir.join("none-1");
     for (ext, says) in [("clutter", "not an extension of a model of Boxes"), ("flips", "heading_flip")] {
-        let err = crate::common::failed(&sefi(&[
-            "train",
-            "--data",
-            s(&data),
-            "--test",
-            s(&data),
-            "--out",
-            s(&dir.join("refused")),
-            "--extension",
-            ext,
-        ]));
+        let err = crate::common::failed(&train_on(&data, &dir.join("refused"), &["--extension", ext]));
         assert!(err.contains(says), "{ext}: {err}");
     }
+    // Starting from an extended model without its extension is refused.
+    let init = dir.join("run-none-1/params.bin");
+    let err = crate::common::failed(&train_on(&data, &dir.join("refused"), &["--init", s(&init)]));
+    assert!(err.contains("--extension heading_flip"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -203,19 +203,32 @@ pub fn fit_observation(
     data: &Dataset,
     fit: &FitConfig,
 ) -> Result<SupervisedReport, SupervisedError> {
-    /// [`fit_supervised_params`] of the visited model.
-    struct Fit<'a> {
-        params: &'a mut ParamStore<f64>,
-        data: &'a Dataset,
-        fit: &'a FitConfig,
+    let fitted = Fit { params: &mut models.observation_params, data, fit, turn_back_flips: false };
+    models.observation.visit(fitted).map(|(report, _)| report)
+}
+
+/// The supervised fit of the visited observation model to `data`'s labelled
+/// examples, with the items reversed against their labels turned back if
+/// `turn_back_flips`: its report and the share of items turned back.
+struct Fit<'a> {
+    params: &'a mut ParamStore<f64>,
+    data: &'a Dataset,
+    fit: &'a FitConfig,
+    turn_back_flips: bool,
+}
+
+impl ObservationVisitor for Fit<'_> {
+    type Output = Result<(SupervisedReport, f64), SupervisedError>;
+    fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+        let TurnedBack { examples, flipped } = if self.turn_back_flips {
+            examples_with_flips_turned_back::<O>(self.data)?
+        } else {
+            TurnedBack { examples: labelled_examples::<O>(self.data)?, flipped: 0 }
+        };
+        let report = fit_params_on(o, self.params, &examples, self.fit)?;
+        let fraction = flipped as f64 / report.items.max(1) as f64;
+        Ok((report, fraction))
     }
-    impl ObservationVisitor for Fit<'_> {
-        type Output = Result<SupervisedReport, SupervisedError>;
-        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
-            fit_supervised_params(o, self.params, self.data, self.fit)
-        }
-    }
-    models.observation.visit(Fit { params: &mut models.observation_params, data, fit })
 }
 
 /// Labelled examples with the items reversed against their labels turned back
@@ -257,25 +270,8 @@ pub fn fit_observation_with_flips(
     data: &Dataset,
     fit: &FitConfig,
 ) -> Result<SupervisedReport, String> {
-    /// The turned-back fit of the visited model and its flip fraction.
-    struct Fit<'a> {
-        params: &'a mut ParamStore<f64>,
-        data: &'a Dataset,
-        fit: &'a FitConfig,
-    }
-    impl ObservationVisitor for Fit<'_> {
-        type Output = Result<(SupervisedReport, f64), SupervisedError>;
-        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
-            let TurnedBack { examples, flipped } = examples_with_flips_turned_back::<O>(self.data)?;
-            let report = fit_params_on(o, self.params, &examples, self.fit)?;
-            let fraction = flipped as f64 / report.items.max(1) as f64;
-            Ok((report, fraction))
-        }
-    }
-    let (report, fraction) = models
-        .observation
-        .visit(Fit { params: &mut models.observation_params, data, fit })
-        .map_err(|e| e.to_string())?;
+    let fitted = Fit { params: &mut models.observation_params, data, fit, turn_back_flips: true };
+    let (report, fraction) = models.observation.visit(fitted).map_err(|e| e.to_string())?;
     let flip = Extension::HeadingFlip;
     let raw = flip.stored(&[fraction]).map_err(|_| {
         format!("no detection of the data reports its heading reversed (fraction {fraction}): nothing to fit")
