@@ -282,6 +282,13 @@ fn prepare_data(args: &ExperimentCArgs, scale: &Scale) -> Result<(PathBuf, PathB
                 args.steps
             ));
         }
+        if !meta.prior_from_detection && extension_of(args)? == Some(Extension::HeadingFlip) {
+            return Err(format!(
+                "{} holds an import made before meta.json marked priors read from a detection, which \
+                 --extension heading_flip needs (its prior is axial there): remove that import, it regenerates",
+                data_dir.display()
+            ));
+        }
         eprintln!("reusing the KITTI import in {}", data_dir.display());
     } else {
         let options = KittiOptions { steps: args.steps, stride: args.stride, ..KittiOptions::default() };

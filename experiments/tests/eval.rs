@@ -46,7 +46,7 @@ fn tiny(kind: ObservationKind, store: &ParamStore<f64>, n: usize, steps: usize, 
     let models = Models::from_store(store, kind).unwrap();
     let policy = HandCraftedPolicy::truth();
     let mut rng = StdRng::seed_from_u64(seed);
-    let mut b = Dataset::builder(Meta { dt: DT, steps }, kind);
+    let mut b = Dataset::builder(Meta::new(DT, steps), kind);
     let motion = MotionModel::new(DT, Default::default()).unwrap();
     let mut g = ActionGaussians::default();
     for scene in [3i64, 7] {

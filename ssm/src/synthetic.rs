@@ -615,7 +615,7 @@ pub(crate) fn ground_truth_builder(meta: Meta, kind: ObservationKind, scenes: &[
 /// Assembles simulated scenes into a validated point [`Dataset`] with ground-truth
 /// states and actions.
 pub fn build_dataset(config: &SceneConfig, scenes: &[SyntheticScene]) -> Result<Dataset, SyntheticError> {
-    let meta = Meta { dt: config.dt, steps: config.steps };
+    let meta = Meta::new(config.dt, config.steps);
     let mut b = ground_truth_builder(meta, ObservationKind::Points, scenes);
     for s in scenes {
         for (o, points) in s.objects.iter().zip(&s.points) {

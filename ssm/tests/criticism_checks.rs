@@ -18,7 +18,7 @@ const STEPS: usize = 6;
 
 /// One scene, the AV at rest at the origin, `objects` objects of 4 m x 2 m.
 fn dataset(kind: ObservationKind, objects: usize) -> Dataset {
-    let mut b = Dataset::builder(Meta { dt: DT, steps: STEPS }, kind);
+    let mut b = Dataset::builder(Meta::new(DT, STEPS), kind);
     b.scene(0, &[Pose::default(); STEPS]);
     for id in 0..objects {
         let mean = State { x: 10.0, ..State::default() };
@@ -387,7 +387,7 @@ fn a_row_of_the_wrong_length_panics() {
 fn initial_lag_is_the_initial_offset_from_the_prior_over_the_prior_speed() {
     // Two objects with prior speeds 8 and 4 m/s heading north; their initial states
     // lie 0.15 s of travel behind the prior means.
-    let mut b = Dataset::builder(Meta { dt: DT, steps: STEPS }, ObservationKind::Points);
+    let mut b = Dataset::builder(Meta::new(DT, STEPS), ObservationKind::Points);
     b.scene(0, &[Pose::default(); STEPS]);
     let sd = State { x: 1.0, y: 1.0, yaw: 0.1, v: 1.0, kappa: 0.01 };
     for (id, v) in [(0, 8.0), (1, 4.0), (2, 0.5)] {

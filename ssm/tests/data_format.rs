@@ -25,7 +25,7 @@ fn prior(x: f64, y: f64) -> Prior {
 /// objects with empty and multi-point cells, partial ground truth.
 fn synthetic(kind: ObservationKind) -> Dataset {
     let steps = 5;
-    let mut b = Dataset::builder(Meta { dt: 1.0 / 3.0, steps }, kind);
+    let mut b = Dataset::builder(Meta::new(1.0 / 3.0, steps), kind);
     let av: Vec<Pose> =
         (0..steps).map(|t| Pose { x: t as f64 * AWKWARD[0], y: AWKWARD[(t + 2) % 8], yaw: -AWKWARD[t] }).collect();
     b.scene(9, &av);
@@ -528,7 +528,7 @@ fn malformed_meta() {
 
 #[test]
 fn builder_errors_name_the_record() {
-    let meta = Meta { dt: 0.1, steps: 2 };
+    let meta = Meta::new(0.1, 2);
     let pose = [Pose::default(); 2];
     let obj = |scene, id, length| Object { scene, id, length, width: 2.0, prior: prior(0.0, 0.0) };
 
@@ -553,7 +553,7 @@ fn builder_errors_name_the_record() {
     b.point(1, 1, 0, [0.0, 0.0]);
     assert!(b.build().is_err());
 
-    let mut b = Dataset::builder(Meta { dt: f64::NAN, steps: 2 }, ObservationKind::Boxes);
+    let mut b = Dataset::builder(Meta::new(f64::NAN, 2), ObservationKind::Boxes);
     b.scene(1, &pose);
     let msg = b.build().unwrap_err().to_string();
     assert!(msg.contains("`dt`"), "{msg}");

@@ -70,6 +70,8 @@ fn report_counts_are_plausible() {
         assert!(r.association_rate() > 0.4, "{name}");
     }
     assert_eq!(imp.train.meta().dt, 0.1);
+    // Each prior is read from the object's first detection, and the data say so.
+    assert!(imp.train.meta().prior_from_detection && imp.val.meta().prior_from_detection);
     assert_eq!(imp.report.val.sequences, KITTI_VAL_SEQUENCES.to_vec());
     assert!(imp.report.train.sequences.iter().all(|s| !KITTI_VAL_SEQUENCES.contains(s)));
 }

@@ -41,7 +41,7 @@ fn store_for(kind: ObservationKind, seed: u64) -> ParamStore<f64> {
 fn tiny(kind: ObservationKind, models: &Models, n: usize, steps: usize, seed: u64) -> Dataset {
     let mut rng = StdRng::seed_from_u64(seed);
     let av: Vec<Pose> = (0..steps).map(|t| Pose { x: 5.0 * DT * t as f64, y: 0.0, yaw: 0.0 }).collect();
-    let mut b = Dataset::builder(Meta { dt: DT, steps }, kind);
+    let mut b = Dataset::builder(Meta::new(DT, steps), kind);
     b.scene(1, &av);
     let motion = MotionModel::new(DT, Default::default()).unwrap();
     let mut g = ActionGaussians::default();
@@ -147,7 +147,7 @@ fn state_errors_of_perfect_and_shifted_estimates() {
 /// A points dataset of `steps` steps under construction: scene 0 with the AV at the
 /// origin throughout, and object 0 (4 x 2 m) with prior mean `mean` and unit sds.
 fn one_object(steps: usize, mean: State) -> DatasetBuilder {
-    let mut b = Dataset::builder(Meta { dt: DT, steps }, ObservationKind::Points);
+    let mut b = Dataset::builder(Meta::new(DT, steps), ObservationKind::Points);
     b.scene(0, &vec![Pose::default(); steps]);
     b.object(Object {
         scene: 0,

@@ -179,7 +179,7 @@ fn true_state_loglik<M: ObservationModel>(model: &M, store: &ParamStore<f64>, da
 }
 
 fn dataset(kind: ObservationKind) -> Dataset {
-    let meta = Meta { dt: 1.0 / 3.0, steps: 3 };
+    let meta = Meta::new(1.0 / 3.0, 3);
     let mut b = Dataset::builder(meta, kind);
     b.scene(
         1,

@@ -630,7 +630,7 @@ pub fn generate_hidden(config: &HiddenConfig) -> Result<Dataset, SyntheticError>
     match config.kind {
         ObservationKind::Points => build_dataset(&scene_config, &scenes),
         ObservationKind::Boxes => {
-            let meta = Meta { dt: scene_config.dt, steps: scene_config.steps };
+            let meta = Meta::new(scene_config.dt, scene_config.steps);
             let mut b = ground_truth_builder(meta, ObservationKind::Boxes, &scenes);
             for (s, dets) in scenes.iter().zip(&boxes) {
                 for (o, per_step) in s.objects.iter().zip(dets) {

@@ -1,4 +1,5 @@
-//! `meta.json`: a flat JSON object `{"format": 1, "dt": <positive>, "steps": <int >= 1>}`.
+//! `meta.json`: a flat JSON object `{"format": 1, "dt": <positive>, "steps": <int >= 1>}`,
+//! optionally with `"prior_from_detection": true` or `false` (absent: `false`).
 //!
 //! A small dedicated parser rather than `serde_json`: it knows the line of
 //! every key (for error messages) and parses numbers with the standard
@@ -40,6 +41,9 @@ enum Value {
     Number(String),
     Other(String),
 }
+
+/// The optional boolean field `prior_from_detection`.
+const PRIOR_FROM_DETECTION: &str = "prior_from_detection";
 
 struct Lexer<'a> {
     s: &'a [u8],
@@ -181,8 +185,12 @@ pub(crate) fn parse_meta(text: &str) -> Result<Meta, DataError> {
     }
 
     for (key, line, _) in &fields {
-        if !matches!(key.as_str(), "format" | "dt" | "steps") {
-            return Err(err(*line, key, "unknown field (expected only `format`, `dt` and `steps`)"));
+        if !matches!(key.as_str(), "format" | "dt" | "steps" | PRIOR_FROM_DETECTION) {
+            return Err(err(
+                *line,
+                key,
+                "unknown field (expected only `format`, `dt`, `steps` and `prior_from_detection`)",
+            ));
         }
     }
     let get = |name: &str| -> Result<(usize, &str), DataError> {
@@ -212,12 +220,26 @@ pub(crate) fn parse_meta(text: &str) -> Result<Meta, DataError> {
     check_dt(dt, dt_line)?;
     let (steps_line, steps) = integer("steps")?;
     check_steps(steps, steps_line)?;
-    Ok(Meta { dt, steps: steps as usize })
+    let prior_from_detection = match fields.iter().find(|(k, _, _)| k == PRIOR_FROM_DETECTION) {
+        None => false,
+        Some((_, _, Value::Other(t))) if t == "true" => true,
+        Some((_, _, Value::Other(t))) if t == "false" => false,
+        Some((_, line, Value::Number(t) | Value::Other(t))) => {
+            return Err(err(*line, PRIOR_FROM_DETECTION, format!("expected true or false, found {t}")))
+        }
+    };
+    Ok(Meta { dt, steps: steps as usize, prior_from_detection })
 }
 
 /// The text of `meta.json` for `meta` (numbers in shortest round-trip form).
+/// The optional field is written only when `true`, so other datasets keep their
+/// three-field file.
 pub(crate) fn render_meta(meta: &Meta) -> String {
-    format!("{{\n  \"format\": {FORMAT_VERSION},\n  \"dt\": {:?},\n  \"steps\": {}\n}}\n", meta.dt, meta.steps)
+    let prior = if meta.prior_from_detection { format!(",\n  \"{PRIOR_FROM_DETECTION}\": true") } else { String::new() };
+    format!(
+        "{{\n  \"format\": {FORMAT_VERSION},\n  \"dt\": {:?},\n  \"steps\": {}{prior}\n}}\n",
+        meta.dt, meta.steps
+    )
 }
 
 #[cfg(test)]
@@ -226,14 +248,19 @@ mod tests {
 
     #[test]
     fn parses_and_renders() {
-        let m = Meta { dt: 1.0 / 3.0, steps: 26 };
+        let m = Meta::new(1.0 / 3.0, 26);
         let back = parse_meta(&render_meta(&m)).unwrap();
         assert_eq!(back.dt.to_bits(), m.dt.to_bits());
         assert_eq!(back.steps, 26);
         let m = parse_meta(r#"{"format": 1, "dt": 0.3333, "steps": 26}"#).unwrap();
         assert_eq!(m.steps, 26);
-        let tiny = Meta { dt: 1e-300, steps: 1 };
+        let tiny = Meta::new(1e-300, 1);
         assert_eq!(parse_meta(&render_meta(&tiny)).unwrap(), tiny);
+        assert!(!render_meta(&tiny).contains(PRIOR_FROM_DETECTION));
+        let from_detection = Meta { prior_from_detection: true, ..m };
+        assert_eq!(parse_meta(&render_meta(&from_detection)).unwrap(), from_detection);
+        let m = parse_meta(r#"{"format": 1, "dt": 0.1, "steps": 2, "prior_from_detection": false}"#).unwrap();
+        assert!(!m.prior_from_detection);
     }
 
     #[test]
@@ -248,6 +275,8 @@ mod tests {
         assert_eq!(e.column(), Some("steps"));
         let e = parse_meta("{\"format\": 1, \"dt\": NaN, \"steps\": 2}").unwrap_err();
         assert_eq!(e.column(), Some("dt"));
+        let e = parse_meta("{\"format\": 1, \"dt\": 1, \"steps\": 2, \"prior_from_detection\": 1}").unwrap_err();
+        assert_eq!(e.column(), Some("prior_from_detection"));
         let e = parse_meta("{\"format\": 1, \"dt\": 1, \"steps\": 2, \"x\": 1}").unwrap_err();
         assert_eq!(e.column(), Some("x"));
         assert!(parse_meta("{\"format\": 1, \"dt\": 1, \"steps\": 2").is_err());

@@ -5,7 +5,7 @@
 //!
 //! | file | columns | required |
 //! |---|---|---|
-//! | `meta.json` | `{"format": 1, "dt": 0.3333, "steps": T+1}` | yes |
+//! | `meta.json` | `{"format": 1, "dt": 0.3333, "steps": T+1}`, optionally `"prior_from_detection": true` | yes |
 //! | `av.csv` | `scene,t,x,y,yaw` | yes |
 //! | `objects.csv` | `scene,object,length,width,prior_x,prior_y,prior_yaw,prior_v,prior_kappa,sd_x,sd_y,sd_yaw,sd_v,sd_kappa` | yes |
 //! | `points.csv` | `scene,object,t,x,y` | one of these two |
@@ -26,7 +26,7 @@
 //!
 //! ```
 //! use ssm::data::{Dataset, Meta, ObservationKind, Object, Pose, Prior, State};
-//! let meta = Meta { dt: 0.5, steps: 3 };
+//! let meta = Meta::new(0.5, 3);
 //! let mut b = Dataset::builder(meta, ObservationKind::Points);
 //! b.scene(7, &[Pose { x: 0.0, y: 0.0, yaw: 0.0 }; 3]);
 //! let prior = Prior {
@@ -118,6 +118,20 @@ pub struct Meta {
     pub dt: f64,
     /// Number of steps per scene, `T + 1` (at least 1).
     pub steps: usize,
+    /// Each object's prior was read from its first detection (as
+    /// [`import_kitti`] does), not known apart from the observations. A model
+    /// in which a detection's heading may be reversed
+    /// ([`crate::models::Extension::HeadingFlip`]) then takes the prior's
+    /// heading as known only up to pi. `false` when absent from `meta.json`.
+    #[serde(default)]
+    pub prior_from_detection: bool,
+}
+
+impl Meta {
+    /// Metadata with `dt` and `steps` and a prior not read from a detection.
+    pub fn new(dt: f64, steps: usize) -> Meta {
+        Meta { dt, steps, prior_from_detection: false }
+    }
 }
 
 /// A planar pose in the world frame (metres, radians).

@@ -15,6 +15,18 @@
 //! a simulator of replicated observations and actions (the checks). With no
 //! extension it is the base model, value for value.
 //!
+//! `heading_flip` also changes the prior where the data's priors were read from
+//! each object's first detection ([`crate::data::Meta::prior_from_detection`],
+//! KITTI's import): a model that says a detection's heading may be reversed
+//! cannot take the prior built from one at its word, so `x_0`'s heading is the
+//! prior's or its reverse, each with probability 1/2 (an axial prior). The first
+//! detection is scored by the likelihood as every other one, so the two
+//! directions leave `t = 0` weighted `1 - p` and `p`, which is what that
+//! detection says under the model; a fixed 1/2 keeps the prior free of the
+//! model's parameters (its score is zero). Without it a track whose first
+//! detection is reversed starts reversed, follows the car with a negative speed
+//! and calls every later detection a flip.
+//!
 //! The extension's parameters live in the parameter store under
 //! [`Extension::param_name`] (`ext.<id>`), after the base model's. They are stored
 //! *scaled*: a stored value `r` means a natural value through a fixed map (for
@@ -637,11 +649,18 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         ctx
     }
 
-    /// Draws an initial state of `object` from its prior.
+    /// Draws an initial state of `object` from its prior (axial under
+    /// `heading_flip` on priors read from a detection; module docs).
     pub fn sample_initial_state(&self, object: usize, rng: &mut SmallRng) -> State {
         let mut x = [0.0f32; STATE_DIM];
-        self.base.sample_prior(object, 1, rng, &mut x);
+        self.sample_prior(object, 1, rng, &mut x);
         state_at(&x, 1, 0)
+    }
+
+    /// Whether `x_0`'s heading is axial: `heading_flip` on data whose priors were
+    /// read from a detection (module docs).
+    pub fn axial_prior(&self) -> bool {
+        matches!(self.active, Active::HeadingFlip { .. }) && self.data().meta().prior_from_detection
     }
 
     /// Draws an action at `state` from the policy (with the extension's heavy
@@ -743,6 +762,15 @@ fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
     a + (b - a).softplus()
 }
 
+/// The heading `yaw + pi`, kept in `[-pi, pi]` for a `yaw` there.
+fn reversed_heading(yaw: f32) -> f32 {
+    if yaw > 0.0 {
+        yaw - std::f32::consts::PI
+    } else {
+        yaw + std::f32::consts::PI
+    }
+}
+
 /// `ln N(z; 0, sd^2)`.
 fn normal_log_density(z: f64, sd: f64) -> f64 {
     -0.5 * (z / sd).powi(2) - sd.ln() - 0.5 * LN_2PI
@@ -797,20 +825,37 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     }
 
     fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
-        self.base.sample_prior(object, n, rng, states)
+        self.base.sample_prior(object, n, rng, states);
+        if self.axial_prior() {
+            for yaw in &mut states[YAW * n..(YAW + 1) * n] {
+                if rng.random::<bool>() {
+                    *yaw = reversed_heading(*yaw);
+                }
+            }
+        }
     }
 
     /// The base model's noise; heavy-tailed accelerations add a third transition
-    /// component whose normal CDF picks the mixture's wide component. The noise
+    /// component whose normal CDF picks the mixture's wide component, an axial
+    /// prior a last prior component whose sign picks the direction. The noise
     /// form draws from the transition: a defensive proposal does not apply to it.
     fn noise_dims(&self) -> Option<NoiseDims> {
         let base = self.base.noise_dims()?;
         let extra = usize::from(matches!(self.active, Active::HeavyTailedAccel { .. }));
-        Some(NoiseDims { prior: base.prior, transition: base.transition + extra })
+        Some(NoiseDims { prior: base.prior + usize::from(self.axial_prior()), transition: base.transition + extra })
     }
 
     fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
-        self.base.prior_from_noise(object, n, noise, states)
+        if !self.axial_prior() {
+            return self.base.prior_from_noise(object, n, noise, states);
+        }
+        let (base, pick) = noise.split_at(noise.len() - n);
+        self.base.prior_from_noise(object, n, base, states);
+        for (yaw, &z) in states[YAW * n..(YAW + 1) * n].iter_mut().zip(pick) {
+            if z < 0.0 {
+                *yaw = reversed_heading(*yaw);
+            }
+        }
     }
 
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {

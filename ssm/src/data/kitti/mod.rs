@@ -304,7 +304,7 @@ pub fn import_kitti(root: &Path, options: &KittiOptions) -> Result<KittiImport, 
         }
         None => list_sequences(&root.join("label_02"))?,
     };
-    let meta = Meta { dt: KITTI_FRAME_DT * options.stride as f64, steps: options.steps };
+    let meta = Meta { prior_from_detection: true, ..Meta::new(KITTI_FRAME_DT * options.stride as f64, options.steps) };
     let mut train = Split::new(meta, options.actions);
     let mut val = Split::new(meta, options.actions);
     for seq in sequences {
