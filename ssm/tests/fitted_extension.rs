@@ -13,12 +13,12 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, Meta, Object, ObservationKind, Prior, State};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{aotll, extended_aotll, labelled_steps, model_aotll, track};
-use ssm::models::ParticleModel;
 use ssm::models::extended::{ExtendedSsm, Extension};
 use ssm::models::observation::{BoxObservationModel, FitConfig, ObservationModel, PointObservationModel};
 use ssm::models::params::{AnyObservation, AnyPolicy, FittedExtension, Models, OBS_PREFIX};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::HandCraftedPolicy;
+use ssm::models::ParticleModel;
 use ssm::supervised::fit_observation_with_flips;
 
 fn hidden_boxes(effect: HiddenEffect, seed: u64) -> Dataset {
@@ -255,9 +255,13 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         };
         let axial = prior_from_first_detection(&hidden, true);
         let taken_at_its_word = prior_from_first_detection(&hidden, false);
-        let (fixed, kept) = (pointing_right(&axial, &reversed_first), pointing_right(&taken_at_its_word, &reversed_first));
+        let (fixed, kept) =
+            (pointing_right(&axial, &reversed_first), pointing_right(&taken_at_its_word, &reversed_first));
         let stay = pointing_right(&axial, &right_first);
-        eprintln!("strength {strength}: {} reversed starts, turned {fixed} (at its word {kept}); right starts kept {stay}", reversed_first.len());
+        eprintln!(
+            "strength {strength}: {} reversed starts, turned {fixed} (at its word {kept}); right starts kept {stay}",
+            reversed_first.len()
+        );
         assert!(fixed >= 0.6, "strength {strength}: axial prior, {fixed} of reversed starts end the labelled way");
         assert!(kept <= 0.1, "strength {strength}: prior at its word, {kept} of reversed starts end the labelled way");
         assert!(stay >= 0.9, "strength {strength}: {stay} of right starts stay right");

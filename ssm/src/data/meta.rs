@@ -235,11 +235,9 @@ pub(crate) fn parse_meta(text: &str) -> Result<Meta, DataError> {
 /// The optional field is written only when `true`, so other datasets keep their
 /// three-field file.
 pub(crate) fn render_meta(meta: &Meta) -> String {
-    let prior = if meta.prior_from_detection { format!(",\n  \"{PRIOR_FROM_DETECTION}\": true") } else { String::new() };
-    format!(
-        "{{\n  \"format\": {FORMAT_VERSION},\n  \"dt\": {:?},\n  \"steps\": {}{prior}\n}}\n",
-        meta.dt, meta.steps
-    )
+    let prior =
+        if meta.prior_from_detection { format!(",\n  \"{PRIOR_FROM_DETECTION}\": true") } else { String::new() };
+    format!("{{\n  \"format\": {FORMAT_VERSION},\n  \"dt\": {:?},\n  \"steps\": {}{prior}\n}}\n", meta.dt, meta.steps)
 }
 
 #[cfg(test)]
