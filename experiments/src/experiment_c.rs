@@ -284,8 +284,9 @@ fn prepare_data(args: &ExperimentCArgs, scale: &Scale) -> Result<(PathBuf, PathB
         }
         if !meta.prior_from_detection && extension_of(args)? == Some(Extension::HeadingFlip) {
             return Err(format!(
-                "{} holds an import made before meta.json marked priors read from a detection, which \
-                 --extension heading_flip needs (its prior is axial there): remove that import, it regenerates",
+                "{} holds an import whose meta.json lacks `prior_from_detection` (made before imports marked \
+                 their priors as read from a detection), which --extension heading_flip needs (its prior is \
+                 axial there): remove that import, it regenerates",
                 data_dir.display()
             ));
         }

@@ -161,6 +161,16 @@ fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
     let err = failed(&sefi(&[&base[..], &["--stride", "2", "--steps", "12"]].concat()));
     assert!(err.contains("--stride 2") && err.contains("dt = 0.3"), "{err}");
     assert!(out.join("data/train/meta.json").is_file());
+    // The import marks its priors as read from a detection; an import without the
+    // mark is refused where `heading_flip` needs it.
+    assert_eq!(meta["prior_from_detection"], true);
+    let meta_file = out.join("data/train/meta.json");
+    let text = std::fs::read_to_string(&meta_file).unwrap();
+    std::fs::write(&meta_file, text.replace(",\n  \"prior_from_detection\": true", "")).unwrap();
+    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&meta_file).unwrap()).unwrap();
+    assert!(meta.get("prior_from_detection").is_none(), "{meta}");
+    let err = failed(&sefi(&[&base[..], &["--stride", "3", "--steps", "12", "--extension", "heading_flip"]].concat()));
+    assert!(err.contains("prior_from_detection") && err.contains("remove that import"), "{err}");
     std::fs::remove_dir_all(&out).ok();
 }
 
