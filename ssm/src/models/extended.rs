@@ -762,12 +762,13 @@ fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
     a + (b - a).softplus()
 }
 
-/// The heading `yaw + pi`, kept in `[-pi, pi]` for a `yaw` there.
-fn reversed_heading(yaw: f32) -> f32 {
-    if yaw > 0.0 {
-        yaw - std::f32::consts::PI
-    } else {
-        yaw + std::f32::consts::PI
+/// Turns each heading in `yaws` whose `reversed` is true by pi (wrapped as the
+/// detections' reversed headings are).
+fn reverse_headings(yaws: &mut [f32], reversed: impl Iterator<Item = bool>) {
+    for (yaw, r) in yaws.iter_mut().zip(reversed) {
+        if r {
+            *yaw = wrap_angle(f64::from(*yaw) + std::f64::consts::PI) as f32;
+        }
     }
 }
 
@@ -827,11 +828,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
         self.base.sample_prior(object, n, rng, states);
         if self.axial_prior() {
-            for yaw in &mut states[YAW * n..(YAW + 1) * n] {
-                if rng.random::<bool>() {
-                    *yaw = reversed_heading(*yaw);
-                }
-            }
+            reverse_headings(&mut states[YAW * n..(YAW + 1) * n], std::iter::repeat_with(|| rng.random::<bool>()));
         }
     }
 
@@ -851,11 +848,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         }
         let (base, pick) = noise.split_at(noise.len() - n);
         self.base.prior_from_noise(object, n, base, states);
-        for (yaw, &z) in states[YAW * n..(YAW + 1) * n].iter_mut().zip(pick) {
-            if z < 0.0 {
-                *yaw = reversed_heading(*yaw);
-            }
-        }
+        reverse_headings(&mut states[YAW * n..(YAW + 1) * n], pick.iter().map(|&z| z < 0.0));
     }
 
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
