@@ -388,3 +388,16 @@ fn density_terms_sum_to_the_density_and_give_the_offsets() {
         }
     }
 }
+
+/// A reversed heading stays in `(-pi, pi]`, is pi from the heading, and turned
+/// around again is the heading itself; at the wrap's edges too.
+#[test]
+fn reversed_heading_turns_around_within_the_wrapped_range() {
+    use ssm::models::observation::boxes::reversed_heading;
+    for &yaw in &[0.0, 0.3, -0.3, 3.0, -3.0, std::f64::consts::PI, -std::f64::consts::PI + 1e-12, 1e-15] {
+        let r = reversed_heading(yaw);
+        assert!(r > -std::f64::consts::PI && r <= std::f64::consts::PI, "{yaw} -> {r}");
+        assert!((wrap_angle(r - yaw).abs() - std::f64::consts::PI).abs() < 1e-12, "{yaw} -> {r}");
+        assert!(wrap_angle(reversed_heading(r) - wrap_angle(yaw)).abs() < 1e-12, "{yaw} -> {r}");
+    }
+}

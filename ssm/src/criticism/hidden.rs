@@ -46,8 +46,6 @@
 //! assert!(generate_hidden(&boxes).is_err());
 //! ```
 
-use std::f64::consts::PI;
-
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal, StandardNormal};
@@ -55,7 +53,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
 use crate::models::extended::lagged_pose;
-use crate::models::observation::boxes::wrap_angle;
+use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::edges::sample_laplace;
 use crate::models::observation::{ObsContext, PointGenerator};
 use crate::models::vehicle::HandCraftedPolicy;
@@ -807,7 +805,7 @@ fn hidden_box(
     let mut d = generator.sample(ctx, observed_pose(effect, x), rng)?;
     if let HiddenEffect::HeadingFlip { fraction } = effect {
         if rng.random::<f64>() < fraction {
-            d.yaw = wrap_angle(d.yaw + PI);
+            d.yaw = reversed_heading(d.yaw);
         }
     }
     Some(d)

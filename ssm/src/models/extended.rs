@@ -48,7 +48,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
-use crate::models::observation::boxes::wrap_angle;
+use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::points::Clutter;
 use crate::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
@@ -442,7 +442,7 @@ impl ExtensibleObservation for PointObservationModel {
 /// plain model, and [`ExtendedSsm::new`] refuses `clutter` for box data.
 impl ExtensibleObservation for BoxObservationModel {
     fn reverse_heading(item: &BoxDetection) -> BoxDetection {
-        BoxDetection { yaw: wrap_angle(item.yaw + std::f64::consts::PI), ..*item }
+        BoxDetection { yaw: reversed_heading(item.yaw), ..*item }
     }
 
     fn heading_reversed(item: &BoxDetection, pose: Pose) -> bool {
@@ -762,12 +762,12 @@ fn log_add_exp<'t, F: Float>(a: Var<'t, F>, b: Var<'t, F>) -> Var<'t, F> {
     a + (b - a).softplus()
 }
 
-/// Turns each heading in `yaws` whose `reversed` is true by pi (wrapped as the
-/// detections' reversed headings are).
+/// Turns around each heading in `yaws` whose `reversed` is true
+/// ([`reversed_heading`], as a detection's heading is reversed).
 fn reverse_headings(yaws: &mut [f32], reversed: impl Iterator<Item = bool>) {
     for (yaw, r) in yaws.iter_mut().zip(reversed) {
         if r {
-            *yaw = wrap_angle(f64::from(*yaw) + std::f64::consts::PI) as f32;
+            *yaw = reversed_heading(f64::from(*yaw)) as f32;
         }
     }
 }

@@ -525,3 +525,9 @@ pub fn wrap_angle(a: f64) -> f64 {
         w
     }
 }
+
+/// The heading `yaw` turned around, wrapped to `(-pi, pi]`: how a detector that
+/// reverses a box reports it, and how a reversed state or prior draw is turned.
+pub fn reversed_heading(yaw: f64) -> f64 {
+    wrap_angle(yaw + PI)
+}
