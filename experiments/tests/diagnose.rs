@@ -53,6 +53,13 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         assert_eq!(reference["checks"].as_array().unwrap().len(), n);
         assert!(candidates.iter().all(|c| c["checks_after"].as_array().unwrap().len() == n));
         assert!(out.join("reference").join("train.csv").is_file(), "the reference's training run");
+        // The reseeded refit keeps its per-object gains, which sum to its gain.
+        let reseeded = &reference["reseeded"];
+        let gains = reseeded["object_gains"].as_array().expect("the reseeded refit's object gains");
+        assert_eq!(gains.len() as u64, report["eval_objects"].as_u64().unwrap());
+        let sum: f64 = gains.iter().map(|g| g.as_f64().unwrap()).sum();
+        let (gain, units) = (reseeded["gain"].as_f64().unwrap(), report["eval_units"].as_f64().unwrap());
+        assert!((sum / units - gain).abs() <= 1e-9 * (1.0 + gain.abs()), "{sum} / {units} against {gain}");
     }
     // The held-out Monte Carlo error comes from the evaluation's own filter runs:
     // two runs with different seeds never agree to the last bit, so with two or

@@ -485,6 +485,12 @@ pub struct ReseededReport {
     pub gain: f64,
     /// The gain's standard error over objects.
     pub gain_se: f64,
+    /// Per evaluated object (in the order of the candidates' `object_gains`),
+    /// its log-likelihood gain over the reference (nats): a candidate's gain
+    /// over this refit, paired by object, is its `object_gains` minus these
+    /// (empty in reports written before they were kept).
+    #[serde(default)]
+    pub object_gains: Vec<f64>,
     /// Training time (s).
     pub train_seconds: f64,
     /// Training steps skipped (non-finite estimates).
@@ -805,7 +811,8 @@ fn run(
             progress(&Stage::Evaluating { model: TRAINING_RUN_DIRS[2].into() });
             let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
             let (gain, gain_se) = paired_gain(&eval.object_ll, &reference_eval.object_ll, reference_eval.units);
-            Some(ReseededReport { gain, gain_se, train_seconds: run.seconds, skipped_steps: run.skipped })
+            let object_gains = differences(&eval.object_ll, &reference_eval.object_ll);
+            Some(ReseededReport { gain, gain_se, object_gains, train_seconds: run.seconds, skipped_steps: run.skipped })
         }
         _ => None,
     };
