@@ -553,21 +553,8 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
     }
     let (rsa, csa) = a.strides();
     let (rsb, csb) = b.strides();
-    // Narrow products (every layer of the models' networks) skip the GEMM
-    // library's packing, which costs them as much as the multiply; `b` is read as
-    // contiguous rows, copied so once when it is stored transposed.
-    let narrow = n <= NARROW_GEMM_COLS;
-    let b_rows: std::borrow::Cow<'_, [F]> = match (narrow, b.transposed) {
-        (true, true) => (0..k * n).map(|i| b.data[(i % n) * k + i / n]).collect::<Vec<F>>().into(),
-        _ => b.data.into(),
-    };
     let run = |r0: usize, nr: usize, cblock: &mut [F]| {
         let (pa, _) = a.row_block(r0, nr);
-        if narrow {
-            let a_block = &a.data[(r0 as isize * rsa) as usize..];
-            narrow_gemm(nr, k, n, a_block, rsa as usize, csa as usize, &b_rows, beta, cblock);
-            return;
-        }
         // SAFETY: strides describe the valid matrices built by MatRef; c does not alias.
         unsafe {
             F::gemm(nr, k, n, F::ONE, pa, rsa, csa, b.data.as_ptr(), rsb, csb, beta, cblock.as_mut_ptr(), n as isize, 1)
@@ -584,110 +571,6 @@ pub(crate) fn gemm<F: Float>(par: Parallelism, a: MatRef<F>, b: MatRef<F>, beta:
         });
     } else {
         run(0, m, c);
-    }
-}
-
-/// Widest product (columns of `c`) that [`gemm`] computes with [`narrow_gemm`].
-const NARROW_GEMM_COLS: usize = 128;
-/// Inner-dimension block of the GEMM library (matrixmultiply's `kc`, 256 for
-/// `f32` and `f64`): [`narrow_gemm`] sums in the same blocks, so both give the
-/// same bits.
-const GEMM_INNER_BLOCK: usize = 256;
-/// Rows of `c` per register tile of [`narrow_gemm`].
-const TILE_ROWS: usize = 8;
-/// Columns of `c` per register tile of [`narrow_gemm`] (one AVX-512 `f32` vector).
-const TILE_COLS: usize = 16;
-
-/// `c = a b + beta c` for row-major `c` (`m x n`), `a` read at `a[i rsa + l csa]`
-/// and `b` row-major (`k x n`), without packing: register tiles of
-/// [`TILE_ROWS`] x [`TILE_COLS`] accumulators, each `c` element the fused
-/// multiply-adds of its products in inner-index order from zero, in blocks of
-/// [`GEMM_INNER_BLOCK`] (the first block's sum `s` stored as `s + beta c`, or
-/// `s` when `beta` is 0, each later one added to `c`). That is the GEMM
-/// library's arithmetic on a CPU with fused multiply-add (its micro-kernels
-/// accumulate the same way, in the same blocks), so which of the two computes a
-/// product never changes a result.
-#[allow(clippy::too_many_arguments)]
-fn narrow_gemm<F: Float>(m: usize, k: usize, n: usize, a: &[F], rsa: usize, csa: usize, b: &[F], beta: F, c: &mut [F]) {
-    let tiles = Tiles { a, rsa, csa, b, n };
-    for l0 in (0..k).step_by(GEMM_INNER_BLOCK) {
-        let inner = l0..(l0 + GEMM_INNER_BLOCK).min(k);
-        let beta = if l0 == 0 { beta } else { F::ONE };
-        let mut i0 = 0;
-        while i0 < m {
-            let rows = if m - i0 >= TILE_ROWS { TILE_ROWS } else { 1 };
-            let mut j0 = 0;
-            while j0 < n {
-                let cols = [TILE_COLS, 8, 4, 1].into_iter().find(|&w| n - j0 >= w).unwrap_or(1);
-                let at = (i0, j0, inner.clone());
-                match (rows, cols) {
-                    (TILE_ROWS, TILE_COLS) => tiles.store(tiles.sum::<TILE_ROWS, TILE_COLS>(at), i0, j0, beta, c),
-                    (TILE_ROWS, 8) => tiles.store(tiles.sum::<TILE_ROWS, 8>(at), i0, j0, beta, c),
-                    (TILE_ROWS, 4) => tiles.store(tiles.sum::<TILE_ROWS, 4>(at), i0, j0, beta, c),
-                    (TILE_ROWS, _) => tiles.store(tiles.sum::<TILE_ROWS, 1>(at), i0, j0, beta, c),
-                    (_, TILE_COLS) => tiles.store(tiles.sum::<1, TILE_COLS>(at), i0, j0, beta, c),
-                    (_, 8) => tiles.store(tiles.sum::<1, 8>(at), i0, j0, beta, c),
-                    (_, 4) => tiles.store(tiles.sum::<1, 4>(at), i0, j0, beta, c),
-                    _ => tiles.store(tiles.sum::<1, 1>(at), i0, j0, beta, c),
-                }
-                j0 += cols;
-            }
-            i0 += rows;
-        }
-    }
-}
-
-/// The operands of [`narrow_gemm`].
-struct Tiles<'a, F> {
-    a: &'a [F],
-    rsa: usize,
-    csa: usize,
-    b: &'a [F],
-    n: usize,
-}
-
-impl<F: Float> Tiles<'_, F> {
-    /// The `R x S` tile of `a b` at rows `i0..`, columns `j0..`, summed over
-    /// the inner indices `inner` in order.
-    #[inline(always)]
-    #[allow(clippy::needless_range_loop)] // index loops over fixed-size arrays vectorise
-    fn sum<const R: usize, const S: usize>(&self, (i0, j0, inner): (usize, usize, std::ops::Range<usize>)) -> [[F; S]; R] {
-        let mut acc = [[F::ZERO; S]; R];
-        if inner.is_empty() {
-            return acc;
-        }
-        // Every index the loop reads, checked once: the last row and inner index
-        // of `a`, the last inner row's last column of `b`.
-        let last = inner.end - 1;
-        assert!((i0 + R - 1) * self.rsa + last * self.csa < self.a.len(), "narrow_gemm: a too short");
-        assert!(last * self.n + j0 + S <= self.b.len(), "narrow_gemm: b too short");
-        let (a, b) = (self.a.as_ptr(), self.b.as_ptr());
-        for l in inner {
-            for r in 0..R {
-                // SAFETY: both indices are at most the ones checked above.
-                let x = unsafe { *a.add((i0 + r) * self.rsa + l * self.csa) };
-                for s in 0..S {
-                    let y = unsafe { *b.add(l * self.n + j0 + s) };
-                    acc[r][s] = x.mul_add(y, acc[r][s]);
-                }
-            }
-        }
-        acc
-    }
-
-    /// Writes a tile's sums into `c` (`s + beta c`, or `s` when `beta` is 0).
-    #[inline(always)]
-    fn store<const R: usize, const S: usize>(&self, acc: [[F; S]; R], i0: usize, j0: usize, beta: F, c: &mut [F]) {
-        for (r, sums) in acc.iter().enumerate() {
-            let out = &mut c[(i0 + r) * self.n + j0..(i0 + r) * self.n + j0 + S];
-            if beta == F::ZERO {
-                out.copy_from_slice(sums);
-            } else {
-                for (o, &v) in out.iter_mut().zip(sums) {
-                    *o = v + *o * beta;
-                }
-            }
-        }
     }
 }
 
@@ -782,40 +665,6 @@ mod tests {
                     }
                 }
             }
-        }
-    }
-
-    /// The narrow kernel gives the GEMM library's bits (on a CPU with fused
-    /// multiply-add, which the build targets) for every shape, orientation and
-    /// `beta`, in `f32` and `f64`, including inner dimensions over one block.
-    #[test]
-    fn narrow_products_are_the_gemm_librarys_to_the_bit() {
-        fn check<F: Float + std::fmt::Debug>(to: fn(f64) -> F) {
-            for &(m, k, n) in &[(1, 1, 1), (37, 5, 3), (130, 16, 12), (67, 7, 16), (9, 64, 33), (21, 300, 20), (5, 600, 128)] {
-                for (ta, tb) in [(false, false), (true, false), (false, true), (true, true)] {
-                    for beta in [0.0, 0.5, 1.0] {
-                        let a: Vec<F> = (0..m * k).map(|i| to((i as f64 * 0.37).sin())).collect();
-                        let b: Vec<F> = (0..k * n).map(|i| to((i as f64 * 0.11).cos())).collect();
-                        let av = if ta { MatRef::t(&a, k, m) } else { MatRef::new(&a, m, k) };
-                        let bv = if tb { MatRef::t(&b, n, k) } else { MatRef::new(&b, k, n) };
-                        let c0: Vec<F> = (0..m * n).map(|i| to((i as f64 * 0.05).cos())).collect();
-                        let mut ours = c0.clone();
-                        gemm(Parallelism::Serial, av, bv, to(beta), &mut ours);
-                        let mut library = c0.clone();
-                        let ((rsa, csa), (rsb, csb)) = (av.strides(), bv.strides());
-                        // SAFETY: the strides describe the matrices above; c does not alias.
-                        unsafe {
-                            F::gemm(m, k, n, F::ONE, a.as_ptr(), rsa, csa, b.as_ptr(), rsb, csb, to(beta), library.as_mut_ptr(), n as isize, 1)
-                        };
-                        let same = ours.iter().zip(&library).all(|(x, y)| x == y);
-                        assert!(same, "{} {m}x{k}x{n} {ta} {tb} beta {beta}", F::NAME);
-                    }
-                }
-            }
-        }
-        if cfg!(target_feature = "fma") {
-            check::<f32>(|x| x as f32);
-            check::<f64>(|x| x);
         }
     }
 
