@@ -187,13 +187,19 @@ pub fn print_outcome(report: &Report, out: &Path) {
     println!("report: {}", out.join("report.md").display());
 }
 
-/// How rule (b)'s least gain was set: the stated minimum, or the refits' noise.
+/// How rule (b) met the refits' own noise: by a paired comparison with the
+/// reseeded refit, or (reports from before it) by the size of that refit's gain.
 fn noise_note(r: &Report) -> String {
     match r.reference.as_ref().and_then(|reference| reference.reseeded.as_ref()) {
-        Some(n) => format!(
+        Some(n) if n.object_gains.is_empty() => format!(
             " (the larger of {} and the refits' own noise: the base refitted alone with another seed gains {:+.4} \
              ± {:.4} over the reference)",
             r.config.min_gain, n.gain, n.gain_se
+        ),
+        Some(n) => format!(
+            ", and beat the base refitted alone with another seed (which gains {:+.4} ± {:.4} over the reference) \
+             by as much, with the same test, paired by object (column `over refit`)",
+            n.gain, n.gain_se
         ),
         None => String::new(),
     }
@@ -377,9 +383,9 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     );
     let _ = writeln!(
         s,
-        "| extension | gain (nats/unit) | SE | MC sd | p adj. | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
+        "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
     let reference_checks = r.reference_checks();
     let abs_z = |results: &[CheckResult], name: &str| {
         results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
@@ -396,12 +402,13 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {flagged} | {} |",
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",
             cand.cause,
             cand.gain,
             cand.gain_se,
             fmt(cand.gain_mc_sd),
             fmt(cand.p_adjusted),
+            cand.over_reseeded.map_or("-".to_string(), |(gain, p)| format!("{gain:+.4} ({})", fmt(p))),
             fmt(cand.top_two_share),
             cand.description,
             if cand.material { "yes" } else { "no" },

@@ -37,9 +37,10 @@
 //!    no normality, robust to a few objects carrying the sum), Holm-adjusted over
 //!    the fitted candidates. The cause is the extension with the largest gain
 //!    among those that (a) pass at [`DiagnoseConfig::cause_level`], (b) gain at
-//!    least [`DiagnoseConfig::min_gain`] nats per unit and more than the refits'
-//!    own noise ([`DiagnoseConfig::refit_noise`]: the base refitted alone with
-//!    another seed, its held-out gain over the reference), (c) change the model
+//!    least [`DiagnoseConfig::min_gain`] nats per unit and beat the refits' own
+//!    noise ([`DiagnoseConfig::refit_noise`]: the base refitted alone with
+//!    another seed; the candidate's gain over that refit, paired by object,
+//!    passes the same test and the same minimum, [`beats_reseeded`]), (c) change the model
 //!    materially and (d) improve a check that flagged them (its |z| on the check
 //!    part falls below the reference's: [`improves_flagged_checks`]).
 //! 6. **The outcome**: the cause; else `unexplained` when some check of the
@@ -381,6 +382,13 @@ pub struct CandidateReport {
     pub p_adjusted: f64,
     /// Per evaluated object, its log-likelihood gain (nats).
     pub object_gains: Vec<f64>,
+    /// Its gain over the reseeded refit ([`DiagnoseConfig::refit_noise`]; nats
+    /// per observed unit, paired over the evaluation objects) and that gain's
+    /// one-sided sign-flip p, Holm-adjusted over the candidates: rule (b)'s
+    /// second comparison ([`beats_reseeded`]). `None` without the refit, and in
+    /// reports written before it was made.
+    #[serde(default)]
+    pub over_reseeded: Option<(f64, f64)>,
     /// The share of the total gain carried by the two objects with the largest gains.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub top_two_share: f64,
@@ -411,13 +419,45 @@ pub struct CandidateReport {
 impl CandidateReport {
     /// Whether the candidate passes the decision's rules on its learned
     /// parameters and its gain — material, a finite gain of at least `gain_bar`
-    /// ([`Report::gain_bar`]) and a Holm-adjusted p below `cause_level` — leaving
+    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`, and,
+    /// where it was compared with the reseeded refit, a gain over that refit of
+    /// at least `min_gain` with its adjusted p below `cause_level` too — leaving
     /// out only rule (d), that it lowers a flagging check's |z|.
     /// `qualifies` is this and `checks_improved`.
-    pub fn passes_gain_rules(&self, gain_bar: f64, cause_level: f64) -> bool {
-        self.material && self.gain.is_finite() && self.gain >= gain_bar && self.p_adjusted < cause_level
+    pub fn passes_gain_rules(&self, gain_bar: f64, min_gain: f64, cause_level: f64) -> bool {
+        let beats_refits = self.over_reseeded.is_none_or(|(gain, p)| gain >= min_gain && p < cause_level);
+        self.material && self.gain.is_finite() && self.gain >= gain_bar && self.p_adjusted < cause_level && beats_refits
     }
 }
+
+/// Rule (b)'s comparison with the reseeded refit: per candidate (its
+/// `object_gains` over the reference), its gain over the refit — per object,
+/// its gain minus the refit's, summed per observed unit — and that sum's
+/// one-sided sign-flip p, Holm-adjusted over the candidates. A cause must beat
+/// both refits of the base: the reference and this one (an intersection–union
+/// test, so no further multiplicity control). Paired by object, it is robust to
+/// what undid the earlier bar (the size of the refit's mean gain), one refit
+/// that lost a few objects, and it turns away a candidate that gains no more
+/// than another refit of the base does.
+pub fn beats_reseeded(
+    object_gains: &[&[f64]],
+    reseeded: &[f64],
+    units: usize,
+    config: &DiagnoseConfig,
+) -> Vec<(f64, f64)> {
+    let over: Vec<Vec<f64>> = object_gains.iter().map(|g| differences(g, reseeded)).collect();
+    let p: Vec<f64> = over
+        .iter()
+        .enumerate()
+        .map(|(i, d)| sign_flip_p(d, config.permutations, stream_seed(config.seed ^ RESEEDED_PERMUTATIONS, i as u64)))
+        .collect();
+    let adjusted = holm(&p);
+    over.iter().zip(adjusted).map(|(d, p)| (d.iter().sum::<f64>() / units.max(1) as f64, p)).collect()
+}
+
+/// Seeds the sign-flip permutations of [`beats_reseeded`] (with the diagnosis
+/// seed and the candidate's index).
+const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
 
 /// Rule (d) of the decision: the extension lowers the |z| of at least one check
 /// that flagged it (`flagged_by`) below the reference's, both calibrated on the
@@ -534,19 +574,40 @@ impl Report {
                 improves_flagged_checks(&c.flagged_by, &reference, &c.checks_after)
             }
         };
-        let qualifies =
-            |c: &CandidateReport| c.passes_gain_rules(bar, self.config.cause_level) && (!check_rule || improved(c));
-        match choose(&self.candidates, qualifies) {
+        // Reports whose candidates were not compared with the reseeded refit
+        // (written before that comparison) but that kept its per-object gains
+        // are compared now.
+        let reseeded = self.reference.as_ref().and_then(|r| r.reseeded.as_ref()).filter(|r| !r.object_gains.is_empty());
+        let compared: Option<Vec<CandidateReport>> = match reseeded {
+            Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
+                let gains: Vec<&[f64]> = self.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
+                let over = beats_reseeded(&gains, &r.object_gains, self.eval_units, &self.config);
+                Some(
+                    self.candidates
+                        .iter()
+                        .zip(over)
+                        .map(|(c, o)| CandidateReport { over_reseeded: Some(o), ..c.clone() })
+                        .collect(),
+                )
+            }
+            _ => None,
+        };
+        let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
+        let qualifies = |c: &CandidateReport| c.passes_gain_rules(bar, min_gain, level) && (!check_rule || improved(c));
+        match choose(compared.as_deref().unwrap_or(&self.candidates), qualifies) {
             Some(i) => (self.candidates[i].cause.clone(), Some(&self.candidates[i])),
             None => (outcome_without_cause(&reference).0, None),
         }
     }
 }
 
-/// Rule (b)'s least gain: `min_gain`, or the size of the reseeded reference's
-/// gain when that is larger.
+/// Rule (b)'s least gain over the reference: `min_gain`; in reports whose
+/// reseeded refit did not keep its per-object gains (before 2026-11-27, so no
+/// candidate could be compared with it by object), the size of its gain when
+/// that is larger.
 fn gain_bar(min_gain: f64, reseeded: Option<&ReseededReport>) -> f64 {
-    min_gain.max(reseeded.map_or(0.0, |r| r.gain.abs()))
+    let earlier_bar = reseeded.filter(|r| r.object_gains.is_empty()).map_or(0.0, |r| r.gain.abs());
+    min_gain.max(earlier_bar)
 }
 
 /// The result of [`diagnose`].
@@ -832,19 +893,25 @@ fn run(
     }
 
     // 5. The decision on the evaluation part.
-    let p_values: Vec<f64> = fits
+    let object_gains: Vec<Vec<f64>> =
+        fits.iter().map(|f| differences(&f.eval.object_ll, &reference_eval.object_ll)).collect();
+    let p_values: Vec<f64> = object_gains
         .iter()
         .enumerate()
-        .map(|(i, f)| {
-            let d = differences(&f.eval.object_ll, &reference_eval.object_ll);
-            sign_flip_p(&d, config.permutations, stream_seed(config.seed ^ 0x5f1b, i as u64))
-        })
+        .map(|(i, d)| sign_flip_p(d, config.permutations, stream_seed(config.seed ^ 0x5f1b, i as u64)))
         .collect();
     let adjusted = holm(&p_values);
+    let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded {
+        Some(r) => {
+            let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
+            beats_reseeded(&gains, &r.object_gains, reference_eval.units, config).into_iter().map(Some).collect()
+        }
+        None => vec![None; fits.len()],
+    };
     let mut candidates = Vec::new();
     for (i, f) in fits.iter().enumerate() {
         let ext = f.extension;
-        let d = differences(&f.eval.object_ll, &reference_eval.object_ll);
+        let d = object_gains[i].clone();
         let (gain, gain_se) = paired_gain(&f.eval.object_ll, &reference_eval.object_ll, reference_eval.units);
         let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
@@ -862,6 +929,7 @@ fn run(
             p_adjusted: adjusted[i],
             top_two_share: top_two_share(&d),
             object_gains: d,
+            over_reseeded: over_reseeded[i],
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
@@ -872,7 +940,8 @@ fn run(
             skipped_steps: f.run.skipped,
             train_seconds: f.run.seconds,
         };
-        candidate.qualifies = checks_improved && candidate.passes_gain_rules(gain_bar, config.cause_level);
+        candidate.qualifies =
+            checks_improved && candidate.passes_gain_rules(gain_bar, config.min_gain, config.cause_level);
         candidates.push(candidate);
     }
     let winner = choose(&candidates, |c| c.qualifies);
@@ -1118,6 +1187,66 @@ mod tests {
             })
             .count();
         assert!((8..=36).contains(&rejections), "{rejections} of 400 null draws rejected at 5%");
+    }
+
+    /// Rule (b) against the reseeded refit: a candidate that gains what another
+    /// refit of the base gains (the same objects up and down) does not beat it,
+    /// one that gains more on every object does, and one refit that lost a few
+    /// objects badly makes no candidate look like noise; the p-values are
+    /// Holm-adjusted over the candidates, and a candidate without the
+    /// comparison is judged by the other rules alone.
+    #[test]
+    fn a_cause_must_beat_the_reseeded_refit_by_object() {
+        let config = DiagnoseConfig { seed: 5, ..DiagnoseConfig::quick() };
+        let n = 30;
+        let wobble = |i: usize| ((i * 37 % 11) as f64 - 5.0) * 0.2;
+        let reseeded: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i)).collect();
+        let like_the_refit: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
+        let beyond_it: Vec<f64> = (0..n).map(|i| 1.6 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
+        let units = 3 * n;
+        let over = beats_reseeded(&[&like_the_refit, &beyond_it], &reseeded, units, &config);
+        assert!(over[0].1 > 0.05 && over[1].1 < 1e-3, "{over:?}");
+        assert!((over[1].0 - 0.8 * n as f64 / units as f64).abs() < 0.02, "{over:?}");
+        let alone = beats_reseeded(&[&beyond_it], &reseeded, units, &config);
+        assert!(alone[0].1 <= over[1].1, "Holm over two candidates: {} against {}", alone[0].1, over[1].1);
+        // A refit that lost three objects by 50 nats: its mean gain (-5 per
+        // object) would have set the old bar above the candidate's gain.
+        let mut lost = vec![0.0; n];
+        lost[3] = -50.0;
+        lost[11] = -50.0;
+        lost[20] = -50.0;
+        let candidate: Vec<f64> = (0..n).map(|i| 0.6 + 0.1 * wobble(i)).collect();
+        let over = beats_reseeded(&[&candidate], &lost, units, &config);
+        assert!(over[0].1 < 0.05 && over[0].0 > 0.0, "{over:?}");
+        // The rules with and without the comparison.
+        let cand = |over_reseeded| CandidateReport {
+            cause: "latency".into(),
+            gain: 0.2,
+            gain_se: 0.01,
+            gain_mc_sd: 0.001,
+            worst_object_mc_sd: 0.01,
+            p: 0.001,
+            p_adjusted: 0.001,
+            object_gains: vec![],
+            over_reseeded,
+            top_two_share: 0.1,
+            params: vec![],
+            description: String::new(),
+            flagged_by: vec![],
+            checks_improved: true,
+            checks_after: vec![],
+            material: true,
+            qualifies: true,
+            skipped_steps: 0,
+            train_seconds: 0.0,
+        };
+        assert!(cand(None).passes_gain_rules(0.003, 0.003, 0.05));
+        assert!(cand(Some((0.1, 0.001))).passes_gain_rules(0.003, 0.003, 0.05));
+        assert!(!cand(Some((0.1, 0.2))).passes_gain_rules(0.003, 0.003, 0.05), "not significantly beyond the refit");
+        assert!(
+            !cand(Some((0.001, 0.001))).passes_gain_rules(0.003, 0.003, 0.05),
+            "beyond it by less than the minimum"
+        );
     }
 
     fn check_with_z(name: &str, z: f64) -> CheckResult {
