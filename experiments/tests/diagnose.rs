@@ -10,7 +10,7 @@
 
 use crate::common::{ok, s, sefi, temp};
 use serde_json::Value;
-use ssm::criticism::diagnose::Report;
+use ssm::criticism::diagnose::{beats_reseeded, Report};
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
 /// `generate` arguments such as `--boxes --scenes 32`), runs `diagnose --quick`
@@ -37,6 +37,27 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         Some(c) => assert_eq!((c.cause.as_str(), c.gain), (typed.cause.as_str(), typed.gain), "the chosen candidate"),
         None => assert_eq!(typed.gain, 0.0, "no candidate chosen, no gain"),
     }
+    // A report whose candidates lack their comparison with the reseeded refit
+    // (written before it) is compared again from the refit's per-object gains,
+    // with the same seeds: the same outcome.
+    if let Some(reseeded) = typed.reference.as_ref().and_then(|r| r.reseeded.as_ref()) {
+        let gains: Vec<&[f64]> = typed.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
+        let again = beats_reseeded(&gains, &reseeded.object_gains, typed.eval_units, &typed.config);
+        // The same p-values; the gains to rounding (the per-object gains went
+        // through JSON's decimal text).
+        for ((gain, p), c) in again.into_iter().zip(&typed.candidates) {
+            let (stored_gain, stored_p) = c.over_reseeded.expect("the comparison with the reseeded refit");
+            assert_eq!(p, stored_p, "{}", c.cause);
+            assert!(
+                (gain - stored_gain).abs() <= 1e-12 * (1.0 + gain.abs()),
+                "{}: {gain} against {stored_gain}",
+                c.cause
+            );
+        }
+    }
+    let mut uncompared = typed.clone();
+    uncompared.candidates.iter_mut().for_each(|c| c.over_reseeded = None);
+    assert_eq!(uncompared.decided(true).0, typed.cause, "decided again with the comparison made anew");
     assert!(stdout.contains(&format!("cause: {}", report["cause"].as_str().unwrap())), "stdout: {stdout}");
     // The filters' defaults for the data's observations: origin moves in the
     // checks and evaluations of boxes only, none in training.

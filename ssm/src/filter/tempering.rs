@@ -493,9 +493,8 @@ impl Temperer {
         // the whole search, not one per bisection step.
         self.exp_log_w.clear();
         self.exp_log_w.extend(log_w.iter().map(|&lw| lw.exp()));
-        let margin = deciding_margin(log_w, &self.loglik, remaining);
         let cess = |delta: f64| conditional_ess(log_w, &self.exp_log_w, &self.loglik, delta);
-        increment_search(cess, target, remaining, margin).0
+        increment_search(cess, target, remaining, || deciding_margin(log_w, &self.loglik, remaining)).0
     }
 
     /// One random-walk Metropolis sweep over every particle's noise of step `t`
@@ -863,7 +862,8 @@ pub(super) fn reweight(log_w: &mut [f64], loglik: &[f64], delta: f64) -> Option<
 /// The result is the plain bisection's to the bit, in fewer evaluations. The
 /// conditional ESS never rises with the exponent (its log-derivative is twice
 /// the tilted mean log-likelihood at `delta` minus that at `2 delta`), and its
-/// computed value is within `margin / 2` of the exact one ([`deciding_margin`]).
+/// computed value is within `margin / 2` of the exact one ([`deciding_margin`];
+/// computed only when the whole remaining exponent does not do).
 /// So every exponent below one whose computed ESS clears the target by `margin`
 /// clears it too, and every exponent above one that falls short by `margin`
 /// falls short: those *decided* exponents need no evaluation. An Illinois
@@ -872,12 +872,18 @@ pub(super) fn reweight(log_w: &mut [f64], loglik: &[f64], delta: f64) -> Option<
 /// the band the margin leaves undecided around it become the decided ends, and
 /// the bisection evaluates only the midpoints between them. Returns the
 /// exponent and the number of `cess` evaluations.
-fn increment_search(mut cess: impl FnMut(f64) -> f64, target: f64, remaining: f64, margin: f64) -> (f64, usize) {
+fn increment_search(
+    mut cess: impl FnMut(f64) -> f64,
+    target: f64,
+    remaining: f64,
+    margin: impl FnOnce() -> f64,
+) -> (f64, usize) {
     let mut evaluations = 1;
     let at_remaining = cess(remaining);
     if at_remaining >= target {
         return (remaining, evaluations);
     }
+    let margin = margin();
     // Decided ends: exponents at or below `above` clear the target, those at or
     // above `below` fall short.
     let (mut above, mut below) = (f64::NEG_INFINITY, remaining);
@@ -1135,7 +1141,7 @@ mod tests {
             let remaining = [1.0, 0.37, 1e-3][case % 3];
             let cess = |delta: f64| conditional_ess(&log_w, &exp_log_w, &loglik, delta);
             let expected = bisection(cess, target, remaining);
-            let margin = deciding_margin(&log_w, &loglik, remaining);
+            let margin = || deciding_margin(&log_w, &loglik, remaining);
             let (got, used) = increment_search(cess, target, remaining, margin);
             assert_eq!(got.to_bits(), expected.to_bits(), "case {case}: {got} against the bisection's {expected}");
             if got < remaining {
@@ -1163,7 +1169,7 @@ mod tests {
         ];
         for (i, curve) in curves.iter().enumerate() {
             let expected = bisection(curve, 50.0, 1.0);
-            let (got, _) = increment_search(curve, 50.0, 1.0, 1e-9);
+            let (got, _) = increment_search(curve, 50.0, 1.0, || 1e-9);
             assert_eq!(got.to_bits(), expected.to_bits(), "curve {i}: {got} against {expected}");
         }
     }

@@ -120,7 +120,7 @@ pub fn paired_gain(a: &[f64], b: &[f64], units: usize) -> (f64, f64) {
 }
 
 /// [`paired_gain`] of the per-object differences `d`.
-fn gain_of(d: &[f64], units: usize) -> (f64, f64) {
+pub(super) fn gain_of(d: &[f64], units: usize) -> (f64, f64) {
     let n = d.len() as f64;
     let units = units.max(1) as f64;
     if d.len() < 2 {

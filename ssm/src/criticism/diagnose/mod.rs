@@ -58,7 +58,7 @@
 mod heldout;
 mod replicated;
 
-use heldout::{differences, gain_monte_carlo_sd, likelihoods, top_two_share, EvalLikelihoods};
+use heldout::{differences, gain_monte_carlo_sd, gain_of, likelihoods, top_two_share, EvalLikelihoods};
 pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 use replicated::{posterior_predictive_checks, ModelChecks};
 
@@ -419,15 +419,40 @@ pub struct CandidateReport {
 impl CandidateReport {
     /// Whether the candidate passes the decision's rules on its learned
     /// parameters and its gain — material, a finite gain of at least `gain_bar`
-    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`, and,
-    /// where it was compared with the reseeded refit, a gain over that refit of
-    /// at least `min_gain` with its adjusted p below `cause_level` too — leaving
-    /// out only rule (d), that it lowers a flagging check's |z|.
-    /// `qualifies` is this and `checks_improved`.
-    pub fn passes_gain_rules(&self, gain_bar: f64, min_gain: f64, cause_level: f64) -> bool {
-        let beats_refits = self.over_reseeded.is_none_or(|(gain, p)| gain >= min_gain && p < cause_level);
-        self.material && self.gain.is_finite() && self.gain >= gain_bar && self.p_adjusted < cause_level && beats_refits
+    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`, and
+    /// [`beats_refit`] on `over_reseeded` (its comparison with the reseeded
+    /// refit: its own, or one made since for a report written without it) —
+    /// leaving out only rule (d), that it lowers a flagging check's |z|.
+    /// `qualifies` is this, on its own comparison, and `checks_improved`.
+    pub fn passes_gain_rules(
+        &self,
+        gain_bar: f64,
+        over_reseeded: Option<(f64, f64)>,
+        min_gain: f64,
+        cause_level: f64,
+    ) -> bool {
+        self.material
+            && self.gain.is_finite()
+            && self.gain >= gain_bar
+            && self.p_adjusted < cause_level
+            && beats_refit(over_reseeded, min_gain, cause_level)
     }
+}
+
+/// Rule (b) against the reseeded refit: the gain over it (`(gain, Holm p)`
+/// from [`beats_reseeded`]) is at least `min_gain` with p below `cause_level`;
+/// true without the comparison.
+fn beats_refit(over_reseeded: Option<(f64, f64)>, min_gain: f64, cause_level: f64) -> bool {
+    over_reseeded.is_none_or(|(gain, p)| gain >= min_gain && p < cause_level)
+}
+
+/// Each candidate's one-sided sign-flip p of its per-object differences `d`,
+/// its permutations seeded by the diagnosis seed, `stream` and its index.
+fn sign_flip_ps(d: &[Vec<f64>], config: &DiagnoseConfig, stream: u64) -> Vec<f64> {
+    d.iter()
+        .enumerate()
+        .map(|(i, d)| sign_flip_p(d, config.permutations, stream_seed(config.seed ^ stream, i as u64)))
+        .collect()
 }
 
 /// Rule (b)'s comparison with the reseeded refit: per candidate (its
@@ -446,17 +471,14 @@ pub fn beats_reseeded(
     config: &DiagnoseConfig,
 ) -> Vec<(f64, f64)> {
     let over: Vec<Vec<f64>> = object_gains.iter().map(|g| differences(g, reseeded)).collect();
-    let p: Vec<f64> = over
-        .iter()
-        .enumerate()
-        .map(|(i, d)| sign_flip_p(d, config.permutations, stream_seed(config.seed ^ RESEEDED_PERMUTATIONS, i as u64)))
-        .collect();
-    let adjusted = holm(&p);
+    let adjusted = holm(&sign_flip_ps(&over, config, RESEEDED_PERMUTATIONS));
     over.iter().zip(adjusted).map(|(d, p)| (d.iter().sum::<f64>() / units.max(1) as f64, p)).collect()
 }
 
-/// Seeds the sign-flip permutations of [`beats_reseeded`] (with the diagnosis
-/// seed and the candidate's index).
+/// Seeds the sign-flip permutations of the candidates against the reference
+/// ([`sign_flip_ps`], with the diagnosis seed and the candidate's index).
+const REFERENCE_PERMUTATIONS: u64 = 0x5f1b;
+/// Seeds those of [`beats_reseeded`].
 const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
 
 /// Rule (d) of the decision: the extension lowers the |z| of at least one check
@@ -474,11 +496,11 @@ pub fn improves_flagged_checks(flagged_by: &[String], reference: &[CheckResult],
 
 /// Step 5's choice: among `candidates`, the index of the one with the largest
 /// gain for which `qualifies` holds.
-fn choose(candidates: &[CandidateReport], qualifies: impl Fn(&CandidateReport) -> bool) -> Option<usize> {
+fn choose(candidates: &[CandidateReport], qualifies: impl Fn(usize, &CandidateReport) -> bool) -> Option<usize> {
     candidates
         .iter()
         .enumerate()
-        .filter(|(_, c)| qualifies(c))
+        .filter(|&(i, c)| qualifies(i, c))
         .max_by(|a, b| a.1.gain.total_cmp(&b.1.gain))
         .map(|(i, _)| i)
 }
@@ -578,23 +600,18 @@ impl Report {
         // (written before that comparison) but that kept its per-object gains
         // are compared now.
         let reseeded = self.reference.as_ref().and_then(|r| r.reseeded.as_ref()).filter(|r| !r.object_gains.is_empty());
-        let compared: Option<Vec<CandidateReport>> = match reseeded {
+        let over: Vec<Option<(f64, f64)>> = match reseeded {
             Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
                 let gains: Vec<&[f64]> = self.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
-                let over = beats_reseeded(&gains, &r.object_gains, self.eval_units, &self.config);
-                Some(
-                    self.candidates
-                        .iter()
-                        .zip(over)
-                        .map(|(c, o)| CandidateReport { over_reseeded: Some(o), ..c.clone() })
-                        .collect(),
-                )
+                beats_reseeded(&gains, &r.object_gains, self.eval_units, &self.config).into_iter().map(Some).collect()
             }
-            _ => None,
+            _ => self.candidates.iter().map(|c| c.over_reseeded).collect(),
         };
         let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
-        let qualifies = |c: &CandidateReport| c.passes_gain_rules(bar, min_gain, level) && (!check_rule || improved(c));
-        match choose(compared.as_deref().unwrap_or(&self.candidates), qualifies) {
+        let qualifies = |i: usize, c: &CandidateReport| {
+            c.passes_gain_rules(bar, over[i], min_gain, level) && (!check_rule || improved(c))
+        };
+        match choose(&self.candidates, qualifies) {
             Some(i) => (self.candidates[i].cause.clone(), Some(&self.candidates[i])),
             None => (outcome_without_cause(&reference).0, None),
         }
@@ -871,8 +888,8 @@ fn run(
             let run = fit(parts, None, base.params.clone(), steps, lr, &reseeded_config, &dir, comm, progress)?;
             progress(&Stage::Evaluating { model: TRAINING_RUN_DIRS[2].into() });
             let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
-            let (gain, gain_se) = paired_gain(&eval.object_ll, &reference_eval.object_ll, reference_eval.units);
             let object_gains = differences(&eval.object_ll, &reference_eval.object_ll);
+            let (gain, gain_se) = gain_of(&object_gains, reference_eval.units);
             Some(ReseededReport { gain, gain_se, object_gains, train_seconds: run.seconds, skipped_steps: run.skipped })
         }
         _ => None,
@@ -895,11 +912,7 @@ fn run(
     // 5. The decision on the evaluation part.
     let object_gains: Vec<Vec<f64>> =
         fits.iter().map(|f| differences(&f.eval.object_ll, &reference_eval.object_ll)).collect();
-    let p_values: Vec<f64> = object_gains
-        .iter()
-        .enumerate()
-        .map(|(i, d)| sign_flip_p(d, config.permutations, stream_seed(config.seed ^ 0x5f1b, i as u64)))
-        .collect();
+    let p_values = sign_flip_ps(&object_gains, config, REFERENCE_PERMUTATIONS);
     let adjusted = holm(&p_values);
     let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded {
         Some(r) => {
@@ -909,10 +922,9 @@ fn run(
         None => vec![None; fits.len()],
     };
     let mut candidates = Vec::new();
-    for (i, f) in fits.iter().enumerate() {
+    for (i, (f, d)) in fits.iter().zip(object_gains).enumerate() {
         let ext = f.extension;
-        let d = object_gains[i].clone();
-        let (gain, gain_se) = paired_gain(&f.eval.object_ll, &reference_eval.object_ll, reference_eval.units);
+        let (gain, gain_se) = gain_of(&d, reference_eval.units);
         let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
         let checks_improved = improves_flagged_checks(&f.flagged_by, reference_checks, &after);
@@ -940,11 +952,11 @@ fn run(
             skipped_steps: f.run.skipped,
             train_seconds: f.run.seconds,
         };
-        candidate.qualifies =
-            checks_improved && candidate.passes_gain_rules(gain_bar, config.min_gain, config.cause_level);
+        candidate.qualifies = checks_improved
+            && candidate.passes_gain_rules(gain_bar, candidate.over_reseeded, config.min_gain, config.cause_level);
         candidates.push(candidate);
     }
-    let winner = choose(&candidates, |c| c.qualifies);
+    let winner = choose(&candidates, |_, c| c.qualifies);
 
     // 6. The outcome, and the checks after.
     let checks: Vec<CheckReport> = defs
@@ -1219,7 +1231,7 @@ mod tests {
         let over = beats_reseeded(&[&candidate], &lost, units, &config);
         assert!(over[0].1 < 0.05 && over[0].0 > 0.0, "{over:?}");
         // The rules with and without the comparison.
-        let cand = |over_reseeded| CandidateReport {
+        let cand = CandidateReport {
             cause: "latency".into(),
             gain: 0.2,
             gain_se: 0.01,
@@ -1228,7 +1240,7 @@ mod tests {
             p: 0.001,
             p_adjusted: 0.001,
             object_gains: vec![],
-            over_reseeded,
+            over_reseeded: None,
             top_two_share: 0.1,
             params: vec![],
             description: String::new(),
@@ -1240,11 +1252,11 @@ mod tests {
             skipped_steps: 0,
             train_seconds: 0.0,
         };
-        assert!(cand(None).passes_gain_rules(0.003, 0.003, 0.05));
-        assert!(cand(Some((0.1, 0.001))).passes_gain_rules(0.003, 0.003, 0.05));
-        assert!(!cand(Some((0.1, 0.2))).passes_gain_rules(0.003, 0.003, 0.05), "not significantly beyond the refit");
+        assert!(cand.passes_gain_rules(0.003, None, 0.003, 0.05));
+        assert!(cand.passes_gain_rules(0.003, Some((0.1, 0.001)), 0.003, 0.05));
+        assert!(!cand.passes_gain_rules(0.003, Some((0.1, 0.2)), 0.003, 0.05), "not significantly beyond the refit");
         assert!(
-            !cand(Some((0.001, 0.001))).passes_gain_rules(0.003, 0.003, 0.05),
+            !cand.passes_gain_rules(0.003, Some((0.001, 0.001)), 0.003, 0.05),
             "beyond it by less than the minimum"
         );
     }
