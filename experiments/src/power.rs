@@ -5,7 +5,9 @@
 //! named, the share of false causes (on the controls, any catalogue cause) and
 //! the error of the learned magnitude. Every finished diagnosis keeps its
 //! `report.json` (its training runs are removed), so an interrupted study resumes
-//! where it stopped and a study's state is small enough to commit.
+//! where it stopped and a study's state is small enough to commit. Several
+//! processes can share a study's directory (each claims the cell it diagnoses);
+//! each writes the tables of every finished cell there.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -27,11 +29,7 @@ pub struct PowerArgs {
     out: PathBuf,
     /// Hidden effects: catalogue effects, `student_t_accel` (to be named `heavy_tailed_accel`), `ego_pose_noise` (outside
     /// the catalogue: to be called `unexplained`), and the controls `none-points`, `none-boxes`.
-    #[arg(
-        long,
-        value_delimiter = ',',
-        default_value = "latency,clutter,size_bias,heavy_tailed_accel,student_t_accel,heading_flip,ego_pose_noise,none-points,none-boxes"
-    )]
+    #[arg(long, value_delimiter = ',', default_value = STUDY_EFFECTS)]
     effects: Vec<String>,
     /// Strengths, as multiples of each effect's default size (controls run once per seed).
     #[arg(long, value_delimiter = ',', default_value = "0.5,1,2")]
@@ -44,10 +42,17 @@ pub struct PowerArgs {
     /// at another data size. Use a fresh `--out` for it.
     #[arg(long)]
     scenes: Option<usize>,
-    /// Rebuild power.csv and power.md from the finished diagnoses only (run none).
+    /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
+    /// tables always cover every finished diagnosis under --out, of any effect and
+    /// strength, whichever process ran it.
     #[arg(long)]
     table_only: bool,
 }
+
+/// Every effect id of the study, in the order of its tables (and the default of
+/// `--effects`).
+const STUDY_EFFECTS: &str =
+    "latency,clutter,size_bias,heavy_tailed_accel,student_t_accel,heading_flip,ego_pose_noise,none-points,none-boxes";
 
 /// The study's setting of one effect id: the hidden effect, the data's kind and
 /// scene count (boxes carry less information per step, and heavy tails act on a
@@ -120,59 +125,142 @@ struct Cell {
 
 /// Runs `sefi power-study`.
 pub fn run(args: &PowerArgs) -> Result<(), String> {
-    let mut effects: Vec<StudyEffect> = args.effects.iter().map(|e| StudyEffect::of(e)).collect::<Result<_, _>>()?;
-    if let Some(scenes) = args.scenes {
-        if scenes == 0 {
-            return Err("power-study: --scenes must be at least 1".into());
-        }
-        for e in &mut effects {
-            e.scenes = scenes;
-        }
+    if args.scenes == Some(0) {
+        return Err("power-study: --scenes must be at least 1".into());
     }
+    let effects = study_effects(args.effects.iter().map(String::as_str), args.scenes)?;
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
     ensure_dir(&args.out)?;
-    // Strength-major from the middle out (the default strength and the controls
-    // first, then the others by distance from it), so that an interrupted study
-    // already answers the headline question: the share named at the middle
-    // strength and the false causes on controls.
-    let mut strengths = args.strengths.clone();
-    strengths.sort_by(|a, b| (a.ln().abs()).total_cmp(&b.ln().abs()).then(a.total_cmp(b)));
-    strengths.dedup();
-    let mut plan = Vec::new();
-    for (i, &s) in strengths.iter().enumerate() {
-        for e in &effects {
-            if e.is_control() && i > 0 {
-                continue;
-            }
-            let strength = if e.is_control() { 1.0 } else { s };
-            for seed in 0..args.seeds {
-                plan.push((e, strength, seed));
-            }
-        }
-    }
+    let strengths = middle_out(&args.strengths);
+    let plan = plan(&effects, &strengths, args.seeds);
     let bar = ProgressBar::new(plan.len() as u64).with_style(
         ProgressStyle::with_template("{prefix:>12} {bar:30} {pos}/{len} diagnoses ({elapsed}, eta {eta}) {msg}")
             .expect("valid template"),
     );
     bar.set_prefix("power-study");
-    let mut cells = Vec::new();
-    for (e, strength, seed) in plan {
+    for (e, strength, seed) in plan.into_iter().filter(|_| !args.table_only) {
         bar.set_message(format!("{} x{strength} seed {seed}", e.id));
-        match run_cell(&args.out, e, strength, seed, args.table_only)? {
-            Some(cell) => cells.push(cell),
-            None => continue,
+        if run_cell(&args.out, e, strength, seed, false)?.is_none() {
+            continue;
         }
         // The tables so far after every diagnosis: an interrupted study shows
         // what it has.
-        write_tables(&args.out, &effects, &strengths, &cells)?;
+        write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
         bar.inc(1);
     }
     bar.finish_and_clear();
-    print!("{}", summarise(&effects, &strengths, &cells));
+    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
+}
+
+/// `strengths` from the middle out: the default strength (1) first, then the
+/// others by distance from it (on the log scale), without repeats.
+fn middle_out(strengths: &[f64]) -> Vec<f64> {
+    let mut sorted = strengths.to_vec();
+    sorted.sort_by(|a, b| (a.ln().abs()).total_cmp(&b.ln().abs()).then(a.total_cmp(b)));
+    sorted.dedup();
+    sorted
+}
+
+/// The study's cells in the order they run, strength-major over `strengths`
+/// as given (from the middle out, [`middle_out`], so that an interrupted study
+/// already answers the headline question: the share named at the middle
+/// strength and the false causes on controls), the controls once (at strength
+/// 1) with the first.
+fn plan<'a>(effects: &'a [StudyEffect], strengths: &[f64], seeds: u64) -> Vec<(&'a StudyEffect, f64, u64)> {
+    let mut plan = Vec::new();
+    for (i, &s) in strengths.iter().enumerate() {
+        for e in effects {
+            if e.is_control() && i > 0 {
+                continue;
+            }
+            let strength = if e.is_control() { 1.0 } else { s };
+            plan.extend((0..seeds).map(|seed| (e, strength, seed)));
+        }
+    }
+    plan
+}
+
+/// The settings of effect `ids`, each with `scenes` scenes when given (else
+/// the study's own per-effect setting).
+fn study_effects<'a>(
+    ids: impl IntoIterator<Item = &'a str>,
+    scenes: Option<usize>,
+) -> Result<Vec<StudyEffect>, String> {
+    ids.into_iter()
+        .map(|id| {
+            let mut e = StudyEffect::of(id)?;
+            e.scenes = scenes.unwrap_or(e.scenes);
+            Ok(e)
+        })
+        .collect()
+}
+
+/// Writes the tables of the whole study under `out` and returns `power.md`'s
+/// text: the cells of `effects` x `strengths` x `seeds` and every other
+/// finished cell found there. Several processes can share a study, each
+/// running some of its effects or strengths; each writes the tables of all of
+/// it, not only of what it ran.
+fn write_study_tables(
+    out: &Path,
+    effects: &[StudyEffect],
+    strengths: &[f64],
+    seeds: u64,
+    scenes: Option<usize>,
+) -> Result<String, String> {
+    let mut ids: Vec<String> = effects.iter().map(|e| e.id.clone()).collect();
+    let (mut strengths, mut seeds) = (strengths.to_vec(), seeds);
+    for (id, strength, seed) in finished_cells(out)? {
+        if !ids.contains(&id) {
+            ids.push(id);
+        }
+        if !strengths.contains(&strength) {
+            strengths.push(strength);
+        }
+        seeds = seeds.max(seed + 1);
+    }
+    // The study's own order of effects and strengths, whatever the order found.
+    ids.sort_by_key(|id| STUDY_EFFECTS.split(',').position(|known| known == id));
+    let strengths = middle_out(&strengths);
+    let effects = study_effects(ids.iter().map(String::as_str), scenes)?;
+    let mut cells = Vec::new();
+    for (e, strength, seed) in plan(&effects, &strengths, seeds) {
+        cells.extend(run_cell(out, e, strength, seed, true)?);
+    }
+    write_tables(out, &effects, &strengths, &cells)?;
+    Ok(summarise(&effects, &strengths, &cells))
+}
+
+/// `(effect id, strength, seed)` of every finished cell under `out`
+/// (`<effect>/x<strength>/seed<seed>/report.json`, a known effect id).
+fn finished_cells(out: &Path) -> Result<Vec<(String, f64, u64)>, String> {
+    let entries = |dir: &Path| -> Result<Vec<(String, PathBuf)>, String> {
+        let read = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        Ok(read
+            .flatten()
+            .filter(|e| e.path().is_dir())
+            .map(|e| (e.file_name().to_string_lossy().into_owned(), e.path()))
+            .collect())
+    };
+    let mut found = Vec::new();
+    for (id, effect_dir) in entries(out)? {
+        if StudyEffect::of(&id).is_err() {
+            continue;
+        }
+        for (name, strength_dir) in entries(&effect_dir)? {
+            let Some(strength) = name.strip_prefix('x').and_then(|s| s.parse::<f64>().ok()) else { continue };
+            for (name, seed_dir) in entries(&strength_dir)? {
+                let Some(seed) = name.strip_prefix("seed").and_then(|s| s.parse::<u64>().ok()) else { continue };
+                if seed_dir.join("report.json").is_file() {
+                    found.push((id.clone(), strength, seed));
+                }
+            }
+        }
+    }
+    Ok(found)
 }
 
 /// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
@@ -350,6 +438,36 @@ mod tests {
         effect.scenes = 32;
         let err = run_cell(&out, &effect, 1.0, 0, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    /// A process that ran one effect at one strength writes the tables of every
+    /// finished cell of the study, whichever process diagnosed it, in the
+    /// study's order.
+    #[test]
+    fn the_tables_cover_every_finished_cell_of_the_study() {
+        let out = std::env::temp_dir().join(format!("sefi-power-tables-{}", std::process::id()));
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study");
+        for cell in ["latency/x1/seed0", "latency/x2/seed1", "heavy_tailed_accel/x1/seed0", "none-points/x1/seed0"] {
+            std::fs::create_dir_all(out.join(cell)).unwrap();
+            std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
+        }
+        // Neither an unknown effect's directory nor a cell without its report counts.
+        std::fs::create_dir_all(out.join("not_an_effect/x1/seed0")).unwrap();
+        std::fs::create_dir_all(out.join("clutter/x1/seed0")).unwrap();
+        let latency = vec![StudyEffect::of("latency").unwrap()];
+        let table = write_study_tables(&out, &latency, &[1.0], 1, None).unwrap();
+        let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
+        let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
+        assert_eq!(
+            lead,
+            ["| latency | 8 | 1", "| latency | 8 | 2", "| heavy_tailed_accel | 16 | 1", "| none-points | 8 | -"]
+        );
+        let csv = std::fs::read_to_string(out.join("power.csv")).unwrap();
+        let cells: Vec<&str> = csv.lines().skip(1).map(|l| l.splitn(4, ',').take(3).last().unwrap()).collect();
+        assert_eq!(csv.lines().count(), 5, "{csv}");
+        assert_eq!(cells, ["0", "0", "0", "1"], "the middle strength and the controls first, then x2");
+        assert_eq!(std::fs::read_to_string(out.join("power.md")).unwrap(), table);
         std::fs::remove_dir_all(&out).unwrap();
     }
 }
