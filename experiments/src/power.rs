@@ -135,22 +135,27 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     let plan = plan(&effects, &strengths, args.seeds);
-    let bar = ProgressBar::new(plan.len() as u64).with_style(
-        ProgressStyle::with_template("{prefix:>12} {bar:30} {pos}/{len} diagnoses ({elapsed}, eta {eta}) {msg}")
-            .expect("valid template"),
-    );
-    bar.set_prefix("power-study");
-    for (e, strength, seed) in plan.into_iter().filter(|_| !args.table_only) {
-        bar.set_message(format!("{} x{strength} seed {seed}", e.id));
-        if run_cell(&args.out, e, strength, seed, false)?.is_none() {
-            continue;
+    if !args.table_only {
+        let bar = ProgressBar::new(plan.len() as u64).with_style(
+            ProgressStyle::with_template("{prefix:>12} {bar:30} {pos}/{len} diagnoses ({elapsed}, eta {eta}) {msg}")
+                .expect("valid template"),
+        );
+        bar.set_prefix("power-study");
+        for (e, strength, seed) in plan {
+            bar.set_message(format!("{} x{strength} seed {seed}", e.id));
+            let finished_before = cell_dir(&args.out, e, strength, seed).join("report.json").is_file();
+            if run_cell(&args.out, e, strength, seed, false)?.is_none() {
+                continue;
+            }
+            if !finished_before {
+                // The tables so far after every diagnosis: an interrupted study
+                // shows what it has.
+                write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
+            }
+            bar.inc(1);
         }
-        // The tables so far after every diagnosis: an interrupted study shows
-        // what it has.
-        write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
-        bar.inc(1);
+        bar.finish_and_clear();
     }
-    bar.finish_and_clear();
     print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
@@ -286,12 +291,17 @@ fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &
     write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())
 }
 
+/// The directory of one cell of the study under `out`.
+fn cell_dir(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> PathBuf {
+    out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"))
+}
+
 /// The diagnosis of one effect, strength and seed: read back if already done,
 /// else run (or, with `table_only`, `None`).
 fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: bool) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
     let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
-    let dir = out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"));
+    let dir = cell_dir(out, e, strength, seed);
     let report_path = dir.join("report.json");
     let report: Report = match std::fs::read_to_string(&report_path) {
         Ok(text) => serde_json::from_str(&text).map_err(|err| format!("{}: {err}", report_path.display()))?,
