@@ -134,8 +134,8 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     }
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
-    let plan = plan(&effects, &strengths, args.seeds);
     if !args.table_only {
+        let plan = plan(&effects, &strengths, args.seeds);
         let bar = ProgressBar::new(plan.len() as u64).with_style(
             ProgressStyle::with_template("{prefix:>12} {bar:30} {pos}/{len} diagnoses ({elapsed}, eta {eta}) {msg}")
                 .expect("valid template"),
@@ -143,15 +143,17 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
         bar.set_prefix("power-study");
         for (e, strength, seed) in plan {
             bar.set_message(format!("{} x{strength} seed {seed}", e.id));
-            let finished_before = cell_dir(&args.out, e, strength, seed).join("report.json").is_file();
+            // A finished cell is read (and checked) once, by the tables.
+            if cell_dir(&args.out, e, strength, seed).join("report.json").is_file() {
+                bar.inc(1);
+                continue;
+            }
             if run_cell(&args.out, e, strength, seed, false)?.is_none() {
                 continue;
             }
-            if !finished_before {
-                // The tables so far after every diagnosis: an interrupted study
-                // shows what it has.
-                write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
-            }
+            // The tables so far after every diagnosis: an interrupted study
+            // shows what it has.
+            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
             bar.inc(1);
         }
         bar.finish_and_clear();
@@ -465,6 +467,8 @@ mod tests {
         // Neither an unknown effect's directory nor a cell without its report counts.
         std::fs::create_dir_all(out.join("not_an_effect/x1/seed0")).unwrap();
         std::fs::create_dir_all(out.join("clutter/x1/seed0")).unwrap();
+        // Every id of the study's order is a known effect.
+        assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
         let table = write_study_tables(&out, &latency, &[1.0], 1, None).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
