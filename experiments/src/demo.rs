@@ -33,7 +33,7 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 use ssm::metrics::{metrics_of, track, Metrics};
-use ssm::models::params::Models;
+use ssm::models::params::{ModelAdditions, Models};
 use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
 
 use crate::birdseye;
@@ -185,8 +185,9 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
         let mut cfg = ssm::metrics::eval_config(ssm::metrics::EVAL_LAG, seed);
         cfg.sampling.particles = particles;
         let t = Instant::now();
-        let tracks = track(data, &truth.policy, &truth.obs, &truth.params, None, &cfg)?;
-        let m: Metrics = metrics_of(data, &tracks, &truth.policy, &truth.obs, &truth.params, None, &cfg);
+        let tracks = track(data, &truth.policy, &truth.obs, &truth.params, ModelAdditions::NONE, &cfg)?;
+        let m: Metrics =
+            metrics_of(data, &tracks, &truth.policy, &truth.obs, &truth.params, ModelAdditions::NONE, &cfg);
         let secs = t.elapsed().as_secs_f64();
         let f = |v: Option<f64>| v.unwrap_or(f64::NAN);
         println!(

@@ -15,6 +15,7 @@ use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
+use ssm::models::drift::DetectorDrift;
 use ssm::models::extended::ExtensibleObservation;
 use ssm::models::params::{AnyObservation, Models, ObservationVisitor};
 
@@ -120,7 +121,7 @@ fn run_track(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<T
         type Output = Result<Tracks, String>;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
             let m = self.models;
-            metrics::track(self.data, &m.policy, o, &m.observation_params, m.extension.as_ref(), self.config)
+            metrics::track(self.data, &m.policy, o, &m.observation_params, m.additions(), self.config)
         }
     }
     models.observation.visit(Track { data, models, config })
@@ -137,7 +138,7 @@ fn metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterC
         type Output = Metrics;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Metrics {
             let (p, params) = (&self.models.policy, &self.models.observation_params);
-            metrics::metrics_of(self.data, self.tracks, p, o, params, self.models.extension.as_ref(), self.config)
+            metrics::metrics_of(self.data, self.tracks, p, o, params, self.models.additions(), self.config)
         }
     }
     models.observation.visit(Of { data, models, tracks, config })
@@ -176,7 +177,7 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
     }
     let (data, models) = load(&args.data, args.params.as_deref())?;
     ensure_dir(&args.out)?;
-    let extension = extension_described(&models)?;
+    let extension = extension_described(&models, data.meta().dt)?;
     eprintln!(
         "eval: {} objects x {} steps ({}), {} policy{}, {} particles, lag {}, {} run(s)",
         data.objects().len(),
@@ -252,8 +253,17 @@ pub fn eval(args: &EvalArgs) -> Result<(), String> {
 /// The catalogue extension `models` were learned with, in one sentence
 /// ([`ssm::models::extended::Extension::describe`]); the filter, MLL and AOTLL
 /// use it.
-fn extension_described(models: &Models) -> Result<Option<String>, String> {
-    models.extension.as_ref().map(|e| e.extension.describe(&e.raw).map_err(|err| err.to_string())).transpose()
+fn extension_described(models: &Models, dt: f64) -> Result<Option<String>, String> {
+    let extension =
+        models.extension.as_ref().map(|e| e.extension.describe(&e.raw).map_err(|err| err.to_string())).transpose()?;
+    let drift = models
+        .drift
+        .as_deref()
+        .map(|raw| DetectorDrift::from_raw(raw).map(|d| format!("detector drift ({})", d.describe(dt))))
+        .transpose()
+        .map_err(|err| err.to_string())?;
+    let parts: Vec<String> = extension.into_iter().chain(drift).collect();
+    Ok((!parts.is_empty()).then(|| parts.join("; ")))
 }
 
 /// AOTLL by part ([`metrics::box_aotll_terms`]) of `models` on `data`: `None`

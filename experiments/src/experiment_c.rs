@@ -350,7 +350,7 @@ fn aotll_on(data: &Dataset, models: &Models) -> Option<f64> {
         type Output = Option<f64>;
         fn visit<O: ExtensibleObservation>(self, o: &O) -> Option<f64> {
             let m = self.1;
-            ssm::metrics::extended_aotll(self.0, &m.policy, o, &m.observation_params, m.extension.as_ref()).mean
+            ssm::metrics::extended_aotll(self.0, &m.policy, o, &m.observation_params, m.additions()).mean
         }
     }
     models.observation.visit(Aotll(data, models))

@@ -11,14 +11,16 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 
 use autodiff::nn::ParamStore;
+use autodiff::Tensor;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::{Deserialize, Serialize};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
+use ssm::models::drift::{drift_from_labels, DetectorDrift, DRIFT_PARAM};
 use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
-use ssm::models::params::{AnyPolicy, FittedExtension, Models};
+use ssm::models::params::{drift_in_store, AnyPolicy, FittedExtension, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
@@ -60,6 +62,20 @@ pub struct TrainArgs {
     #[arg(long)]
     #[serde(default)]
     pub extension: Option<String>,
+    /// Box data: learn a detector drift with the model, a detector error that
+    /// persists from frame to frame as offsets in the state (`ssm::models::drift`;
+    /// PF-SEFI only). It starts at a stated rule (persistence 1/2, sds at the box
+    /// model's floor scales) and is saved under `drift`.
+    #[arg(long)]
+    #[serde(default)]
+    pub drift: bool,
+    /// With --drift: calibrate the drift on the training data's labels
+    /// (`ssm::models::drift::drift_from_labels`: the AR(1) of the detections'
+    /// offsets from their labels) and hold it there; the rest of the model is
+    /// learned from the detections alone.
+    #[arg(long, requires = "drift")]
+    #[serde(default)]
+    pub drift_from_labels: bool,
     /// Estimator: pf-sefi, pf, dpf-sgr, dpf-sgr-stopped or pfnet.
     #[arg(long, default_value = "pf-sefi")]
     pub estimator: String,
@@ -329,6 +345,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         eval_particles: args.eval_particles,
         extension: None,
         extension_only: false,
+        frozen: Vec::new(),
         proposal: None,
         eval_tempering: None,
     };
@@ -361,6 +378,32 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
             initial.add(&e.param_name(), e.initial());
         }
     }
+    match (initial.id(DRIFT_PARAM).is_some(), args.drift) {
+        (true, false) => return Err("--init holds a detector drift: pass --drift to go on learning it".into()),
+        (false, true) => {
+            initial.add(DRIFT_PARAM, DetectorDrift::initial());
+        }
+        _ => {}
+    }
+    if args.drift_from_labels {
+        if cluster.size() > 1 {
+            // Each process holds a share of the objects: calibrations would differ.
+            return Err("--drift-from-labels: run it as one process (calibrate once, then --init)".into());
+        }
+        let c = drift_from_labels(&data).map_err(|e| format!("--drift-from-labels: {e}"))?;
+        if root {
+            eprintln!(
+                "detector drift calibrated on {} labelled detections ({} left out): {}",
+                c.used,
+                c.left_out,
+                c.drift.describe(data.meta().dt)
+            );
+        }
+        let id = initial.id(DRIFT_PARAM).expect("added above");
+        *initial.get_mut(id) = Tensor::from_vec(c.drift.to_raw());
+        config.frozen.push(DRIFT_PARAM.into());
+    }
+    drift_in_store(&initial, data.kind()).map_err(|e| format!("--drift: {e}"))?;
     let mut objective = SceneObjective::new(&data, test, config)?.with_collective(cluster.collective());
     let train_config = TrainConfig {
         lr: args.lr,

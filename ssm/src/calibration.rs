@@ -25,7 +25,7 @@ use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
 use crate::metrics::quantile;
 use crate::models::extended::ExtensibleObservation;
-use crate::models::params::{AnyPolicy, ModelVisitor, Models};
+use crate::models::params::{AnyPolicy, ModelAdditions, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::DifferentiableModel;
 use crate::models::ParticleModel;
@@ -108,11 +108,14 @@ struct ObjectScore<'a> {
     config: &'a EstimatorConfig,
     runs: usize,
     seed: u64,
+    /// The extension and drift of the parameters, scored with the base model's.
+    additions: ModelAdditions<'a>,
 }
 
 impl ModelVisitor for ObjectScore<'_> {
-    type Output = (Vec<autodiff::Tensor<f64>>, Vec<String>, usize);
-    fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+    type Output = Result<(Vec<autodiff::Tensor<f64>>, Vec<String>, usize), String>;
+    fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
+        let model = &self.additions.extend(base)?;
         let mut sum: Option<Vec<autodiff::Tensor<f64>>> = None;
         let mut collapsed = 0;
         for r in 0..self.runs {
@@ -131,7 +134,7 @@ impl ModelVisitor for ObjectScore<'_> {
         for t in &mut mean {
             t.data_mut().iter_mut().for_each(|x| *x /= self.runs as f64);
         }
-        (mean, model.parameter_names(), collapsed)
+        Ok((mean, model.parameter_names(), collapsed))
     }
 }
 
@@ -140,8 +143,9 @@ impl ModelVisitor for ObjectScore<'_> {
 type ObjectScoreAt = (Vec<autodiff::Tensor<f64>>, usize);
 
 /// The mean of `estimator`'s score over `runs` filter runs (seeds `seed..`) of
-/// every object of `data` under the models of `params`, per parameter tensor.
-/// `progress` is called once per object done.
+/// every object of `data` under the models of `params` (with their extension
+/// and detector drift, if any), per parameter tensor. `progress` is called
+/// once per object done.
 pub fn score_at(
     data: &Dataset,
     params: &ParamStore<f64>,
@@ -164,8 +168,8 @@ pub fn score_at(
         .into_par_iter()
         .map(|o| {
             let one = data.select_objects(&[o]);
-            let visit = ObjectScore { estimator, config, runs, seed };
-            let (gradient, names, collapsed) = models.visit(&one, visit)?;
+            let visit = ObjectScore { estimator, config, runs, seed, additions: models.additions() };
+            let (gradient, names, collapsed) = models.visit(&one, visit)??;
             progress();
             Ok((gradient_in_store_order(params, &names, gradient)?, collapsed))
         })
@@ -415,19 +419,20 @@ pub fn likelihood_precision(
 
 struct SampleFromModel<'a> {
     seed: u64,
+    /// The extension and drift the data are drawn with.
+    additions: ModelAdditions<'a>,
     builder: &'a mut crate::data::DatasetBuilder,
 }
 
 impl ModelVisitor for SampleFromModel<'_> {
     type Output = Result<(), String>;
     fn visit<O: ExtensibleObservation>(self, model: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
-        use crate::models::extended::ExtendedSsm;
         use crate::models::extended::ObjectObservations;
         use crate::models::vehicle::state::{Action as VAction, VehicleState};
         use rand::SeedableRng;
 
         let data = model.data();
-        let sampler = ExtendedSsm::new(model, None, &[])?;
+        let sampler = self.additions.extend(model)?;
         let b = self.builder;
         b.with_states().with_actions();
         for scene in data.scenes() {
@@ -448,12 +453,16 @@ impl ModelVisitor for SampleFromModel<'_> {
             }
             b.object(*object);
             let (scene, id) = (object.scene, object.id);
+            let drift = sampler.drift().map(|d| d.sample_path(states.len(), &mut rng));
             let per_step: Vec<Vec<O::Item>> = states
                 .iter()
                 .enumerate()
                 .map(|(t, s)| {
                     let mut items = Vec::new();
-                    sampler.sample_observation(o, t, s, &mut rng, &mut items);
+                    match &drift {
+                        Some(path) => sampler.sample_drifted_observation(o, t, s, path[t], &mut rng, &mut items),
+                        None => sampler.sample_observation(o, t, s, &mut rng, &mut items),
+                    }
                     items
                 })
                 .collect();
@@ -488,7 +497,8 @@ impl ModelVisitor for SampleFromModel<'_> {
 /// `skeleton` (its AV poses, objects with their sizes and priors, and how many
 /// points or detections each object has at each step): per object, `x_0` from
 /// its prior, actions from the policy, states by the motion model, observations
-/// from the observation model, with ground-truth states and actions. At
+/// from the observation model (with the catalogue extension and the detector
+/// drift `params` hold, if any), with ground-truth states and actions. At
 /// `params` the expected score of these data is exactly zero, which makes them
 /// the test bed of [`score_at`] for any model family (a neural policy and box
 /// detections as in experiment C, say). Object `o` draws from the stream
@@ -496,7 +506,7 @@ impl ModelVisitor for SampleFromModel<'_> {
 pub fn sample_dataset(skeleton: &Dataset, params: &ParamStore<f64>, seed: u64) -> Result<Dataset, String> {
     let models = Models::from_store(params, skeleton.kind()).map_err(|e| e.to_string())?;
     let mut builder = Dataset::builder(skeleton.meta(), skeleton.kind());
-    models.visit(skeleton, SampleFromModel { seed, builder: &mut builder })??;
+    models.visit(skeleton, SampleFromModel { seed, additions: models.additions(), builder: &mut builder })??;
     builder.build().map_err(|e| e.to_string())
 }
 

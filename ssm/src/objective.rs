@@ -53,6 +53,10 @@ pub struct ObjectiveConfig {
     /// (every other parameter's gradient is zero).
     #[serde(default)]
     pub extension_only: bool,
+    /// Parameter tensors held at their starting values (their gradients are
+    /// zero), by name: a detector drift calibrated on labels, say.
+    #[serde(default)]
+    pub frozen: Vec<String>,
     /// The filter's proposal for the actions, if not the transition (PF-SEFI and
     /// the evaluation only: the through-filter baselines replay the transition).
     #[serde(default)]
@@ -171,6 +175,11 @@ impl ModelVisitor for Estimate<'_> {
         if self.proposal.is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
             return Err("a filter proposal other than the transition works with PF-SEFI only".into());
         }
+        if model.drift().is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
+            return Err("a detector drift works with PF-SEFI only: the through-filter baselines would need its \
+                        offsets' noise, which the actions do not record"
+                .into());
+        }
         Ok((self.estimator.partial(&model, self.config, self.seed), model.parameter_names()))
     }
 }
@@ -239,7 +248,8 @@ impl Objective for SceneObjective {
         let mut gradient = gradient_in_store_order(params, &names, estimate.gradient)?;
         let learned = self.config.extension.filter(|_| self.config.extension_only).map(|e| e.param_name());
         for (i, g) in gradient.iter_mut().enumerate() {
-            let frozen = learned.as_ref().is_some_and(|name| params.name(autodiff::nn::ParamId(i)) != name);
+            let name = params.name(autodiff::nn::ParamId(i));
+            let frozen = learned.as_ref().is_some_and(|l| name != l) || self.config.frozen.iter().any(|f| f == name);
             g.data_mut().iter_mut().for_each(|x| *x = if frozen { 0.0 } else { *x / units });
         }
         Ok(BatchEstimate {

@@ -54,6 +54,25 @@ pub fn normal_cdf(x: f64) -> f64 {
     }
 }
 
+/// The standard normal quantile `Phi^{-1}(p)` for `p` in `(0, 1)`, by bisection
+/// on [`normal_cdf`] (to its accuracy).
+///
+/// ```
+/// assert!((ssm::stats::normal_quantile(0.975) - 1.96).abs() < 1e-3);
+/// ```
+pub fn normal_quantile(p: f64) -> f64 {
+    let (mut lo, mut hi) = (-10.0, 10.0);
+    for _ in 0..64 {
+        let mid = 0.5 * (lo + hi);
+        if normal_cdf(mid) < p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// The Kolmogorov–Smirnov distance `sup |F_n - Phi|` of a sample from N(0, 1).
 /// Under the null its scale is `1 / sqrt(n)` (5% critical value ~1.36 / sqrt(n)).
 pub fn ks_distance_to_normal(mut z: Vec<f64>) -> f64 {

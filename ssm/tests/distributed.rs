@@ -42,6 +42,7 @@ fn config(estimator: Estimator, chunk_objects: usize, scenes_per_step: usize) ->
         eval_particles: 16,
         extension: None,
         extension_only: false,
+        frozen: Vec::new(),
         proposal: None,
         eval_tempering: None,
     }

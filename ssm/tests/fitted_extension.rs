@@ -15,7 +15,7 @@ use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{aotll, extended_aotll, labelled_steps, model_aotll, track};
 use ssm::models::extended::{ExtendedSsm, Extension};
 use ssm::models::observation::{BoxObservationModel, FitConfig, ObservationModel, PointObservationModel};
-use ssm::models::params::{AnyObservation, AnyPolicy, FittedExtension, Models, OBS_PREFIX};
+use ssm::models::params::{AnyObservation, AnyPolicy, FittedExtension, ModelAdditions, Models, OBS_PREFIX};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::HandCraftedPolicy;
 use ssm::models::ParticleModel;
@@ -112,7 +112,7 @@ fn the_aotll_under_an_extension_is_the_extended_density_at_the_labels() {
         let policy = AnyPolicy::HandCrafted(HandCraftedPolicy::truth());
         let base = VehicleSsm::new(&data, &policy, &obs, &params).unwrap();
         let plain = aotll(&data, &obs, &params);
-        let of_filter = model_aotll(&data, &ExtendedSsm::new(&base, None, &[]).unwrap());
+        let of_filter = model_aotll(&data, &ExtendedSsm::new(&base, None, &[]).unwrap(), 1);
         assert_eq!(plain.count, of_filter.count);
         let (a, b) = (plain.mean.unwrap(), of_filter.mean.unwrap());
         assert!((a - b).abs() < 1e-4 * a.abs().max(1.0), "strength {strength}: {a} vs {b}");
@@ -120,7 +120,7 @@ fn the_aotll_under_an_extension_is_the_extended_density_at_the_labels() {
         let p = 0.15;
         let flip =
             FittedExtension { extension: Extension::HeadingFlip, raw: Extension::HeadingFlip.stored(&[p]).unwrap() };
-        let mixed = extended_aotll(&data, &policy, &obs, &params, Some(&flip));
+        let mixed = extended_aotll(&data, &policy, &obs, &params, ModelAdditions::extension(Some(&flip)));
         let (mut sum, mut n) = (0.0, 0usize);
         for (ctx, pose, items) in labelled_steps::<BoxObservationModel>(&data, data.states().unwrap()) {
             let d = obs.distribution(&params, &ctx, pose);
@@ -162,7 +162,10 @@ fn the_supervised_fit_observes_reversed_headings_in_the_labels() {
         assert!((fraction - 0.2 * strength).abs() < 0.06, "strength {strength}: {fraction}");
         let AnyObservation::Boxes(obs) = &models.observation else { panic!("a box model") };
         let plain = aotll(&data, obs, &models.observation_params).mean.unwrap();
-        let mixed = extended_aotll(&data, &models.policy, obs, &models.observation_params, Some(&e)).mean.unwrap();
+        let mixed =
+            extended_aotll(&data, &models.policy, obs, &models.observation_params, ModelAdditions::extension(Some(&e)))
+                .mean
+                .unwrap();
         assert!(mixed > plain + 1.0, "strength {strength}: mixture {mixed} vs plain {plain}");
     }
     // Without reversed detections there is no fraction to fit.
@@ -245,7 +248,15 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         assert!(reversed_first.len() >= 5, "strength {strength}: {} reversed first detections", reversed_first.len());
         // Share of `objects` whose smoothed heading at the last step points the labelled way.
         let pointing_right = |data: &Dataset, objects: &[usize]| {
-            let tracks = track(data, &models.policy, obs, &models.observation_params, Some(&flip), &config).unwrap();
+            let tracks = track(
+                data,
+                &models.policy,
+                obs,
+                &models.observation_params,
+                ModelAdditions::extension(Some(&flip)),
+                &config,
+            )
+            .unwrap();
             let last = data.steps() - 1;
             let right = objects
                 .iter()

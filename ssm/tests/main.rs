@@ -9,6 +9,7 @@ mod criticism_checks;
 mod criticism_extensions;
 mod data_format;
 mod data_kitti;
+mod detector_drift;
 mod distributed;
 mod estimators_lgssm;
 mod estimators_pitfalls;

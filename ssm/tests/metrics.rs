@@ -16,7 +16,9 @@ use ssm::metrics::{
 use ssm::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
 };
-use ssm::models::params::{AnyObservation, AnyPolicy, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX};
+use ssm::models::params::{
+    AnyObservation, AnyPolicy, ModelAdditions, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX,
+};
 use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,
     VehicleState,
@@ -304,18 +306,20 @@ fn true_parameters_score_better_than_wrong_ones() {
 fn tracks_cover_every_object_and_step() {
     let (models, data) = models_and_data(ObservationKind::Points, 13, 3, 7, 14);
     let AnyObservation::Points(obs) = &models.observation else { unreachable!() };
-    let tr = track(&data, &models.policy, obs, &models.observation_params, None, &config(128, 3)).unwrap();
+    let tr =
+        track(&data, &models.policy, obs, &models.observation_params, ModelAdditions::NONE, &config(128, 3)).unwrap();
     assert_eq!(tr.filtered.len(), 3);
     assert_eq!(tr.smoothed.len(), 3);
     assert!(tr.filtered.iter().chain(&tr.smoothed).all(|r| r.len() == 7));
     assert!(tr.smoothed.iter().flatten().all(|s| s.to_array().iter().all(|v| v.is_finite()) && s.yaw.abs() <= PI));
     // With lag 0 the smoothed means are the filtering means.
-    let tr0 = track(&data, &models.policy, obs, &models.observation_params, None, &config(128, 0)).unwrap();
+    let tr0 =
+        track(&data, &models.policy, obs, &models.observation_params, ModelAdditions::NONE, &config(128, 0)).unwrap();
     assert_eq!(tr0.smoothed, tr0.filtered);
     // The wrong kind of model is an error, not a panic.
     let mut s2 = ParamStore::new();
     let boxes = BoxObservationModel::init_params(&mut s2, OBS_PREFIX, &mut StdRng::seed_from_u64(0));
-    assert!(track(&data, &models.policy, &boxes, &s2, None, &config(16, 0)).is_err());
+    assert!(track(&data, &models.policy, &boxes, &s2, ModelAdditions::NONE, &config(16, 0)).is_err());
 }
 
 #[test]

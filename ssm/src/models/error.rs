@@ -36,6 +36,13 @@ pub enum ModelError {
         /// The values found.
         got: Vec<f64>,
     },
+    /// A detector drift ([`crate::models::drift`]) on a model it does not fit:
+    /// data other than box detections, or with an extension that also moves
+    /// the pose the sensor sees (`latency`).
+    DriftNotApplicable {
+        /// Why.
+        reason: String,
+    },
     /// The linear-Gaussian model's sequences are empty or of unequal lengths.
     UnequalSequences,
     /// A setting of the model (a defensive proposal's) is out of range.
@@ -55,6 +62,7 @@ impl fmt::Display for ModelError {
             ModelError::ExtensionValues { param, expected, got } => {
                 write!(f, "parameter `{param}` needs {expected} finite values, got {got:?}")
             }
+            ModelError::DriftNotApplicable { reason } => write!(f, "a detector drift does not apply: {reason}"),
             ModelError::UnequalSequences => f.write_str("LgssmBatch: sequences must be non-empty and of equal length"),
             ModelError::Setting(e) => e.fmt(f),
         }

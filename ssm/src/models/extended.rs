@@ -34,6 +34,12 @@
 //! model's learning rate move each extension across its plausible range in tens
 //! of steps rather than hundreds.
 //!
+//! A [`DetectorDrift`] (box detections only) may come with or without an
+//! extension ([`ExtendedSsm::with_drift`]): its three standardised offsets are
+//! appended to the state (dimensions `STATE_DIM..STATE_DIM + DRIFT_DIMS`), its
+//! parameter tensor ([`DRIFT_PARAM`]) follows the extension's, and every
+//! observation is scored at the pose the drifting detector sees.
+//!
 //! The reparameterised transition ([`DifferentiableModel::propagate_on_tape`],
 //! used only by the through-filter baselines) is the base one: the heavy-tailed
 //! component's mixture parameters get their gradient through the transition
@@ -48,6 +54,7 @@ use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
+use crate::models::drift::{DetectorDrift, DriftVars, DRIFT_DIMS, DRIFT_PARAM};
 use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::points::Clutter;
 use crate::models::observation::{
@@ -513,6 +520,8 @@ pub struct ExtendedSsm<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> {
     active: Active,
     /// The filter's proposal for the acceleration, if not the transition.
     defensive: Option<DefensiveProposal>,
+    /// The detector's drift and its stored values, if the model has one.
+    drift: Option<(DetectorDrift, Vec<f64>)>,
 }
 
 /// A defensive proposal for the action's innovations (Hesterberg 1995): with
@@ -566,6 +575,12 @@ pub struct ExtendedScratch<I> {
     innovations: Vec<[f64; 2]>,
     /// Standardised acceleration innovations built from noise (heavy tails).
     accel_eps: Vec<f32>,
+    /// The poses a drifting detector sees, one value per particle each.
+    seen_x: Vec<f32>,
+    seen_y: Vec<f32>,
+    seen_yaw: Vec<f32>,
+    /// Standard-normal noise of the drift's transition.
+    drift_noise: Vec<f32>,
 }
 
 impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P, O> {
@@ -593,11 +608,44 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
                 }
             }
         };
-        Ok(ExtendedSsm { base, extension, raw: raw.to_vec(), active, defensive: None })
+        Ok(ExtendedSsm { base, extension, raw: raw.to_vec(), active, defensive: None, drift: None })
+    }
+
+    /// The same model with the detector drift stored as `raw` ([`DRIFT_PARAM`]),
+    /// or without drift (`None`). Fails on data other than box detections, with
+    /// `latency` (which also moves the pose the sensor sees) or on a malformed
+    /// `raw`.
+    pub fn with_drift(self, raw: Option<&[f64]>) -> Result<Self, ModelError> {
+        let Some(raw) = raw else { return Ok(ExtendedSsm { drift: None, ..self }) };
+        if O::KIND != ObservationKind::Boxes {
+            return Err(ModelError::DriftNotApplicable { reason: format!("{:?} data (box detections only)", O::KIND) });
+        }
+        if self.extension == Some(Extension::Latency) {
+            return Err(ModelError::DriftNotApplicable {
+                reason: "with the `latency` extension, which also moves the pose the sensor sees".into(),
+            });
+        }
+        let drift = DetectorDrift::from_raw(raw)?;
+        Ok(ExtendedSsm { drift: Some((drift, raw.to_vec())), ..self })
+    }
+
+    /// The detector drift, if the model has one.
+    pub fn drift(&self) -> Option<&DetectorDrift> {
+        self.drift.as_ref().map(|d| &d.0)
+    }
+
+    /// Offsets the drift appends to the state (0 without drift).
+    fn drift_dims(&self) -> usize {
+        if self.drift.is_some() {
+            DRIFT_DIMS
+        } else {
+            0
+        }
     }
 
     /// `base` extended by `extension`, reading its parameter from `store` (the
-    /// extension's initial values if the store has none).
+    /// extension's initial values if the store has none), with the detector
+    /// drift the store holds ([`DRIFT_PARAM`]), if any.
     pub fn from_store(
         base: &'m VehicleSsm<'a, P, O>,
         extension: Option<Extension>,
@@ -610,7 +658,8 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
                 None => ext.initial().data().to_vec(),
             },
         };
-        ExtendedSsm::new(base, extension, &raw)
+        let drift = store.id(DRIFT_PARAM).map(|id| store.get(id).data());
+        ExtendedSsm::new(base, extension, &raw)?.with_drift(drift)
     }
 
     /// The same model, filtered with a defensive proposal for the actions (see
@@ -652,7 +701,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// Draws an initial state of `object` from its prior (axial under
     /// `heading_flip` on priors read from a detection; module docs).
     pub fn sample_initial_state(&self, object: usize, rng: &mut SmallRng) -> State {
-        let mut x = [0.0f32; STATE_DIM];
+        let mut x = vec![0.0f32; self.state_dim()];
         self.sample_prior(object, 1, rng, &mut x);
         state_at(&x, 1, 0)
     }
@@ -718,11 +767,48 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
 
     /// Appends to `out` a replicate of the observation of `object` at `t` (as many
     /// items as the data hold there) drawn from the model at `state`.
+    /// Without drift: a drift's offsets are not part of a [`State`]; see
+    /// [`Self::sample_drifted_observation`].
     pub fn sample_observation(
         &self,
         object: usize,
         t: usize,
         state: &State,
+        rng: &mut SmallRng,
+        out: &mut Vec<O::Item>,
+    ) {
+        let pose = match self.active {
+            Active::Latency { delay } => lagged_pose(state, delay),
+            _ => Pose { x: state.x, y: state.y, yaw: state.yaw },
+        };
+        self.sample_observation_of_pose(object, t, pose, rng, out);
+    }
+
+    /// [`Self::sample_observation`] through the drift's standardised offsets
+    /// `u` at `t` (a path from [`DetectorDrift::sample_path`]); `u` is ignored
+    /// without drift.
+    pub fn sample_drifted_observation(
+        &self,
+        object: usize,
+        t: usize,
+        state: &State,
+        u: [f64; DRIFT_DIMS],
+        rng: &mut SmallRng,
+        out: &mut Vec<O::Item>,
+    ) {
+        let Some(drift) = self.drift() else { return self.sample_observation(object, t, state, rng, out) };
+        let pose = Pose { x: state.x, y: state.y, yaw: state.yaw };
+        let seen = drift.seen_pose(&self.base.context(object, t).av, pose, u);
+        self.sample_observation_of_pose(object, t, seen, rng, out);
+    }
+
+    /// Appends to `out` a replicate of the observation of `object` at `t` as the
+    /// sensor sees `pose`.
+    fn sample_observation_of_pose(
+        &self,
+        object: usize,
+        t: usize,
+        pose: Pose,
         rng: &mut SmallRng,
         out: &mut Vec<O::Item>,
     ) {
@@ -733,10 +819,6 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         let ctx = self.context(object, t);
         let params = self.base.observation_params();
         let obs = self.base.observation();
-        let pose = match self.active {
-            Active::Latency { delay } => lagged_pose(state, delay),
-            _ => Pose { x: state.x, y: state.y, yaw: state.yaw },
-        };
         let start = out.len();
         match self.active {
             Active::Clutter(c) => obs.sample_with_clutter(params, &ctx, pose, n, c, rng, out),
@@ -751,9 +833,46 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         }
     }
 
-    /// The stored extension parameter as a `Var` among the bound `params`.
+    /// The stored extension parameter as a `Var` among the bound `params` (the
+    /// base model's, the extension's, then the drift's).
     fn extension_var<'t, F: Float>(&self, params: &[Var<'t, F>]) -> Var<'t, F> {
-        params[params.len() - 1]
+        params[params.len() - 1 - usize::from(self.drift.is_some())]
+    }
+
+    /// The drift's terms on the tape, if the model has a drift.
+    fn drift_vars<'t, F: Float>(&self, params: &[Var<'t, F>]) -> Option<DriftVars<'t, F>> {
+        self.drift.as_ref().map(|_| DriftVars::new(params[params.len() - 1]))
+    }
+
+    /// Writes into the scratch's seen poses the poses the drifting detector sees
+    /// for the `n` particles `states` of `object` at `t`.
+    fn seen_poses(
+        &self,
+        drift: &DetectorDrift,
+        object: usize,
+        t: usize,
+        states: &[f32],
+        n: usize,
+        scratch: &mut ExtendedScratch<O::Item>,
+    ) {
+        let s5 = states_ref(states, n);
+        for (buf, from) in [(&mut scratch.seen_x, s5.x), (&mut scratch.seen_y, s5.y), (&mut scratch.seen_yaw, s5.yaw)] {
+            buf.clear();
+            buf.extend_from_slice(from);
+        }
+        let av = self.base.context(object, t).av;
+        let u = &states[STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n];
+        drift.shift_poses(&av, u, &mut scratch.seen_x, &mut scratch.seen_y, &mut scratch.seen_yaw);
+    }
+
+    /// Draws the drift's offsets at `t` from those at `t - 1` for `n` particles
+    /// (no-op without drift).
+    fn propagate_drift(&self, n: usize, prev: &[f32], next: &mut [f32], rng: &mut SmallRng, noise: &mut Vec<f32>) {
+        let Some((drift, _)) = &self.drift else { return };
+        noise.clear();
+        noise.extend((0..DRIFT_DIMS * n).map(|_| rng.sample::<f32, _>(StandardNormal)));
+        let r = STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n;
+        drift.propagate(n, &prev[r.clone()], noise, &mut next[r]);
     }
 }
 
@@ -798,11 +917,15 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             reversed: Vec::new(),
             innovations: Vec::new(),
             accel_eps: Vec::new(),
+            seen_x: Vec::new(),
+            seen_y: Vec::new(),
+            seen_yaw: Vec::new(),
+            drift_noise: Vec::new(),
         }
     }
 
     fn state_dim(&self) -> usize {
-        self.base.state_dim()
+        self.base.state_dim() + self.drift_dims()
     }
 
     fn action_dim(&self) -> usize {
@@ -830,19 +953,30 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         if self.axial_prior() {
             reverse_headings(&mut states[YAW * n..(YAW + 1) * n], std::iter::repeat_with(|| rng.random::<bool>()));
         }
+        // The drift's standardised offsets start in their stationary law, N(0, 1).
+        let drift = STATE_DIM * n..(STATE_DIM + self.drift_dims()) * n;
+        states[drift].iter_mut().for_each(|u| *u = rng.sample(StandardNormal));
     }
 
     /// The base model's noise; heavy-tailed accelerations add a third transition
     /// component whose normal CDF picks the mixture's wide component, an axial
-    /// prior a last prior component whose sign picks the direction. The noise
-    /// form draws from the transition: a defensive proposal does not apply to it.
+    /// prior a last prior component whose sign picks the direction, and a drift
+    /// its offsets' noise after all of those, to the prior and to the
+    /// transition. The noise form draws from the transition: a defensive
+    /// proposal does not apply to it.
     fn noise_dims(&self) -> Option<NoiseDims> {
         let base = self.base.noise_dims()?;
         let extra = usize::from(matches!(self.active, Active::HeavyTailedAccel { .. }));
-        Some(NoiseDims { prior: base.prior + usize::from(self.axial_prior()), transition: base.transition + extra })
+        let drift = self.drift_dims();
+        Some(NoiseDims {
+            prior: base.prior + usize::from(self.axial_prior()) + drift,
+            transition: base.transition + extra + drift,
+        })
     }
 
     fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+        let (noise, drift) = noise.split_at(noise.len() - self.drift_dims() * n);
+        states[STATE_DIM * n..(STATE_DIM + self.drift_dims()) * n].copy_from_slice(drift);
         if !self.axial_prior() {
             return self.base.prior_from_noise(object, n, noise, states);
         }
@@ -852,10 +986,15 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     }
 
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
+        let n = at.n;
+        let (z, drift_z) = z.split_at(z.len() - self.drift_dims() * n);
+        if let Some((drift, _)) = &self.drift {
+            let r = STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n;
+            drift.propagate(n, &prev[r.clone()], drift_z, &mut to.next[r]);
+        }
         let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
             return self.base.propagate_from_noise(at, prev, z, to, &mut scratch.base);
         };
-        let n = at.n;
         let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
         let (narrow, wide) = (core as f32, (ratio * core) as f32);
         let (z_accel, rest) = z.split_at(n);
@@ -870,6 +1009,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     }
 
     fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut Self::Scratch) {
+        self.propagate_drift(at.n, prev, to.next, rng, &mut scratch.drift_noise);
         if !matches!(self.active, Active::HeavyTailedAccel { .. }) && self.defensive.is_none() {
             return self.base.propagate(at, prev, to, rng, &mut scratch.base);
         }
@@ -914,7 +1054,13 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         let ctx = self.context(object, t);
         let params = self.base.observation_params32();
         let obs = self.base.observation();
-        let poses = PosesRef::from_dim_major(states, n);
+        if let Some((drift, _)) = &self.drift {
+            self.seen_poses(drift, object, t, states, n, scratch);
+        }
+        let poses = match self.drift {
+            Some(_) => PosesRef::new(&scratch.seen_x[..n], &scratch.seen_y[..n], &scratch.seen_yaw[..n]),
+            None => PosesRef::from_dim_major(states, n),
+        };
         let s = &mut scratch.base.observation;
         match self.active {
             Active::Latency { delay } => {
@@ -964,6 +1110,9 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         if self.extension.is_some() {
             p.push(Tensor::from_vec(self.raw.clone()));
         }
+        if let Some((_, raw)) = &self.drift {
+            p.push(Tensor::from_vec(raw.clone()));
+        }
         p
     }
 
@@ -971,6 +1120,9 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         let mut names = self.base.parameter_names();
         if let Some(ext) = self.extension {
             names.push(ext.param_name());
+        }
+        if self.drift.is_some() {
+            names.push(DRIFT_PARAM.into());
         }
         names
     }
@@ -981,13 +1133,25 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         blocks: &[Block],
         states: &[Var<'t, F>],
     ) -> Var<'t, F> {
-        let Some(ext) = self.extension else {
+        let drift = self.drift_vars(params);
+        if self.extension.is_none() && drift.is_none() {
             return self.base.observation_log_density(params, blocks, states);
-        };
+        }
         let obs_params = self.base.observation_params_on_tape(params);
         let rows = self.base.observation_rows(blocks);
         let mut vars = rows.vars(states);
         let model = self.base.observation();
+        if let Some(d) = drift {
+            let tape = states[0].tape();
+            let av = |f: fn(&Pose) -> f64| {
+                tape.constant(Tensor::from_vec(rows.av.iter().map(|p| F::from_f64(f(p))).collect()))
+            };
+            let u = &states[STATE_DIM..STATE_DIM + DRIFT_DIMS];
+            [vars.x, vars.y, vars.yaw] = d.shift_poses([vars.x, vars.y, vars.yaw], u, av(|p| p.x), av(|p| p.y));
+        }
+        let Some(ext) = self.extension else {
+            return model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items);
+        };
         let theta = self.extension_var(params);
         let at = |k: usize| theta.slice(0, k, 1);
         match ext {
@@ -1033,6 +1197,44 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         next: &[Var<'t, F>],
         actions: &[Var<'t, F>],
     ) -> Var<'t, F> {
+        let vehicle = self.vehicle_transition_log_density(params, blocks, prev, next, actions);
+        match self.drift_vars(params) {
+            Some(d) => {
+                let drift = STATE_DIM..STATE_DIM + DRIFT_DIMS;
+                vehicle + d.transition_log_density(&prev[drift.clone()], &next[drift])
+            }
+            None => vehicle,
+        }
+    }
+
+    /// The base model's reparameterised transition. A drift's offsets are held
+    /// where they were: their noise is not recorded in the actions, so the
+    /// through-filter baselines, the only users, refuse a drifting model
+    /// ([`crate::objective`]).
+    fn propagate_on_tape<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Vec<Var<'t, F>> {
+        let mut next = self.base.propagate_on_tape(params, blocks, prev, actions);
+        next.extend_from_slice(&prev[STATE_DIM..STATE_DIM + self.drift_dims()]);
+        next
+    }
+}
+
+impl<P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'_, '_, P, O> {
+    /// The vehicle's part of the transition's log-density per row: the base
+    /// model's, or with the heavy-tailed acceleration's mixture.
+    fn vehicle_transition_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        prev: &[Var<'t, F>],
+        next: &[Var<'t, F>],
+        actions: &[Var<'t, F>],
+    ) -> Var<'t, F> {
         if self.extension != Some(Extension::HeavyTailedAccel) {
             return self.base.transition_log_density(params, blocks, prev, next, actions);
         }
@@ -1053,16 +1255,6 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         let wide = half_sq(z1_scaled / ratio) + half_ln_m2 - ratio.ln() - logit.neg().softplus();
         let accel = log_add_exp(narrow, wide);
         (accel + half_sq(z2) - g.l11.ln() - g.l22.ln()).add_scalar(-LN_2PI)
-    }
-
-    fn propagate_on_tape<'t, F: Float>(
-        &self,
-        params: &[Var<'t, F>],
-        blocks: &[Block],
-        prev: &[Var<'t, F>],
-        actions: &[Var<'t, F>],
-    ) -> Vec<Var<'t, F>> {
-        self.base.propagate_on_tape(params, blocks, prev, actions)
     }
 }
 

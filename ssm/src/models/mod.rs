@@ -10,11 +10,14 @@
 //!   a dataset (vehicle, policy and observation model together).
 //! * [`extended`]: [`extended::ExtendedSsm`], the road-user model with at most one
 //!   catalogue extension, and the defensive proposal.
+//! * [`drift`]: [`drift::DetectorDrift`], a detector error that persists from
+//!   frame to frame, as offsets in the state of [`extended::ExtendedSsm`].
 //! * [`linear_gaussian`]: the linear-Gaussian model with its exact Kalman
 //!   likelihood and score, and as a particle model.
 //! * [`params`]: the parameter-file convention ([`params::Models`]).
 //! * [`error`]: [`ModelError`], why a model could not be built.
 
+pub mod drift;
 pub mod error;
 pub mod extended;
 pub mod linear_gaussian;

@@ -18,8 +18,9 @@
 //! outputs, [`DetectionOffsets::Zero`](crate::models::observation::boxes::DetectionOffsets))
 //! is read as the centred box model. A catalogue extension learned with the
 //! model (`ext.<id>`, [`crate::models::extended`]; at most one, of the right
-//! shape, for the dataset's kind) is read into [`Models::extension`]. Other names
-//! (optimiser state) are ignored.
+//! shape, for the dataset's kind) is read into [`Models::extension`], a
+//! detector drift (`drift`, [`crate::models::drift`]; box data only) into
+//! [`Models::drift`]. Other names (optimiser state) are ignored.
 //!
 //! ```
 //! use autodiff::nn::ParamStore;
@@ -46,7 +47,8 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 
 use crate::data::{Dataset, ObservationKind};
-use crate::models::extended::{ExtensibleObservation, Extension, EXTENSION_PREFIX};
+use crate::models::drift::{DetectorDrift, DRIFT_PARAM};
+use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension, EXTENSION_PREFIX};
 use crate::models::observation::boxes::DetectionOffsets;
 use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
 use crate::models::road_user::VehicleSsm;
@@ -319,6 +321,9 @@ pub struct Models {
     /// The catalogue extension learned with the model, if any (`sefi train
     /// --extension`): filters, likelihoods and AOTLL use the extended model.
     pub extension: Option<FittedExtension>,
+    /// The detector drift learned with the model, if any (`sefi train --drift`):
+    /// its stored values ([`DetectorDrift::from_raw`]).
+    pub drift: Option<Vec<f64>>,
 }
 
 /// A catalogue extension with its stored values, as a parameter file holds it
@@ -365,7 +370,41 @@ impl FittedExtension {
     }
 }
 
+/// What a parameter file adds to the base vehicle model: a catalogue
+/// extension and a detector drift, each if learned ([`Models::additions`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ModelAdditions<'e> {
+    /// The catalogue extension, if any.
+    pub extension: Option<&'e FittedExtension>,
+    /// The detector drift's stored values, if any.
+    pub drift: Option<&'e [f64]>,
+}
+
+impl<'e> ModelAdditions<'e> {
+    /// The base model alone.
+    pub const NONE: ModelAdditions<'static> = ModelAdditions { extension: None, drift: None };
+
+    /// A catalogue extension (if any) and no drift.
+    pub fn extension(extension: Option<&'e FittedExtension>) -> Self {
+        ModelAdditions { extension, drift: None }
+    }
+
+    /// `base` with these additions. Fails where one does not apply to the data.
+    pub fn extend<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation>(
+        self,
+        base: &'m VehicleSsm<'a, P, O>,
+    ) -> Result<ExtendedSsm<'m, 'a, P, O>, ModelError> {
+        let (ext, raw) = self.extension.map_or((None, &[][..]), |e| (Some(e.extension), e.raw.as_slice()));
+        ExtendedSsm::new(base, ext, raw)?.with_drift(self.drift)
+    }
+}
+
 impl Models {
+    /// The extension and drift these models hold.
+    pub fn additions(&self) -> ModelAdditions<'_> {
+        ModelAdditions { extension: self.extension.as_ref(), drift: self.drift.as_deref() }
+    }
+
     /// Fresh models to learn from, for a dataset of `kind`: the given policy and an
     /// observation network with standard initialisation drawn from `seed`.
     pub fn initial(kind: ObservationKind, policy: AnyPolicy, seed: u64) -> Models {
@@ -383,7 +422,7 @@ impl Models {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut observation_params = ParamStore::new();
         let observation = AnyObservation::init_with_offsets(kind, offsets, &mut observation_params, &mut rng);
-        Models { policy, observation, observation_params, extension: None }
+        Models { policy, observation, observation_params, extension: None, drift: None }
     }
 
     /// Reads the policy and the observation model for a dataset of `kind` from
@@ -404,7 +443,8 @@ impl Models {
         };
         copy_exact(&mut observation_params, store, OBS_PREFIX, model)?;
         let extension = FittedExtension::from_store(store, kind)?;
-        Ok(Models { policy, observation, observation_params, extension })
+        let drift = drift_in_store(store, kind)?;
+        Ok(Models { policy, observation, observation_params, extension, drift })
     }
 
     /// Builds the [`VehicleSsm`] of `data` under these models and hands it to
@@ -438,8 +478,31 @@ impl Models {
         if let Some(e) = &self.extension {
             store.add(&e.extension.param_name(), Tensor::from_vec(e.raw.clone()));
         }
+        if let Some(raw) = &self.drift {
+            store.add(DRIFT_PARAM, Tensor::from_vec(raw.clone()));
+        }
         store
     }
+}
+
+/// The detector drift `store` holds ([`DRIFT_PARAM`]) for data of `kind`, if
+/// any. Fails on data other than boxes, a wrong shape or a value that is not
+/// finite, naming the parameter.
+pub fn drift_in_store(store: &ParamStore<f64>, kind: ObservationKind) -> Result<Option<Vec<f64>>, ParamsError> {
+    let Some(id) = store.id(DRIFT_PARAM) else { return Ok(None) };
+    let model = "detector drift".to_string();
+    if kind != ObservationKind::Boxes {
+        return Err(ParamsError::Unexpected {
+            name: DRIFT_PARAM.into(),
+            model: format!("model of {kind:?} observations"),
+        });
+    }
+    let (value, expected) = (store.get(id), DetectorDrift::initial().shape().to_vec());
+    if value.shape() != expected.as_slice() {
+        return Err(ParamsError::Shape { name: DRIFT_PARAM.into(), expected, found: value.shape().to_vec(), model });
+    }
+    check_finite(DRIFT_PARAM, value)?;
+    Ok(Some(value.data().to_vec()))
 }
 
 fn check_finite(name: &str, v: &Tensor<f64>) -> Result<(), ParamsError> {

@@ -1046,6 +1046,7 @@ fn fit(
         eval_particles: config.eval_particles,
         extension,
         extension_only: extension.is_some() && !config.refit,
+        frozen: Vec::new(),
         proposal: None,
         eval_tempering: Some(config.tempering()),
     };
