@@ -61,10 +61,15 @@ pub fn normal_cdf(x: f64) -> f64 {
 /// assert!((ssm::stats::normal_quantile(0.975) - 1.96).abs() < 1e-3);
 /// ```
 pub fn normal_quantile(p: f64) -> f64 {
-    let (mut lo, mut hi) = (-10.0, 10.0);
-    for _ in 0..64 {
+    bisect_increasing(normal_cdf, p, (-10.0, 10.0), 64)
+}
+
+/// Where the increasing `f` reaches `target` in `[lo, hi]`, by `iterations`
+/// halvings of the bracket (its midpoint; an end when `f` stays on one side).
+pub fn bisect_increasing(f: impl Fn(f64) -> f64, target: f64, (mut lo, mut hi): (f64, f64), iterations: usize) -> f64 {
+    for _ in 0..iterations {
         let mid = 0.5 * (lo + hi);
-        if normal_cdf(mid) < p {
+        if f(mid) < target {
             lo = mid;
         } else {
             hi = mid;

@@ -65,7 +65,7 @@ use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::models::vehicle::state::{ActionVars, ActionsMut, STATE_DIM};
 use crate::models::{Batch, Block, DifferentiableModel, Drawn, ModelError, NoiseDims, ParticleModel};
 use crate::setting::SettingError;
-use crate::stats::{log_sum_exp, normal_cdf};
+use crate::stats::{bisect_increasing, log_sum_exp, normal_cdf};
 
 /// One object's observations, per step `t = 0..T`, of either kind.
 #[derive(Clone, Debug, PartialEq)]
@@ -1294,17 +1294,8 @@ fn tail_ratio_for_kurtosis(p: f64, excess: f64) -> f64 {
 /// `target`, by bisection: the upper end when `f` stays below it, and at least
 /// a hair above 1 (a ratio of exactly 1 is no tail at all).
 fn tail_ratio_where(f: impl Fn(f64) -> f64, target: f64) -> f64 {
-    let (mut lo, mut hi) = (1.0, MAX_INITIAL_TAIL_RATIO);
-    if f(hi) <= target {
-        return hi;
+    if f(MAX_INITIAL_TAIL_RATIO) <= target {
+        return MAX_INITIAL_TAIL_RATIO;
     }
-    for _ in 0..60 {
-        let mid = 0.5 * (lo + hi);
-        if f(mid) < target {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    (0.5 * (lo + hi)).max(1.0 + 1e-3)
+    bisect_increasing(f, target, (1.0, MAX_INITIAL_TAIL_RATIO), 60).max(1.0 + 1e-3)
 }
