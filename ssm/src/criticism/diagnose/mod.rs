@@ -1139,6 +1139,10 @@ impl ModelVisitor for OnModel<'_> {
     type Output = Result<TaskOutput, String>;
     fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> Self::Output {
         let model = ExtendedSsm::from_store(base, self.extension, self.params)?;
+        if model.drift().is_some() {
+            // Its replicates are drawn at states, which hold no drift.
+            return Err("the criticism does not model a detector drift: diagnose parameters without one".into());
+        }
         Ok(match self.task {
             Task::Checks => TaskOutput::Checks(posterior_predictive_checks(&model, self.config)),
             Task::Likelihoods => TaskOutput::Likelihoods(likelihoods(&model, self.config)?),
