@@ -261,3 +261,47 @@ fn train_learns_a_catalogue_extension_with_the_model() {
     assert!(err.contains("--extension heading_flip"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `--drift`: the detector drift is learned with the model and saved under
+/// `drift`; `--drift-from-labels` calibrates it on the training labels and holds
+/// it there; point data, a calibration without `--drift` and an `--init` that
+/// holds a drift without `--drift` are refused with a message.
+#[test]
+fn train_learns_a_detector_drift_or_holds_one_calibrated_on_labels() {
+    use autodiff::nn::ParamStore;
+    use ssm::models::drift::{drift_from_labels, DetectorDrift, DRIFT_PARAM};
+    let dir = temp("drift");
+    let data = dir.join("boxes");
+    let generate = ["generate", "--hidden", "none", "--boxes", "--scenes", "4", "--objects", "4", "--steps", "20"];
+    ok(&sefi(&[&generate[..], &["--seed", "3", "--out", s(&data)]].concat()));
+    let train_on = |data: &std::path::Path, out: &std::path::Path, extra: &[&str]| {
+        let data = s(data);
+        let base = ["train", "--data", data, "--test", data, "--out", s(out), "--epochs", "2", "--particles", "64"];
+        sefi(&[&base[..], &["--eval-particles", "64", "--eval-every", "100"], extra].concat())
+    };
+    let saved = |out: &std::path::Path| {
+        let store = ParamStore::<f64>::load(&out.join("params.bin")).unwrap();
+        store.get(store.id(DRIFT_PARAM).expect("the drift is saved")).data().to_vec()
+    };
+    let learned = dir.join("learned");
+    ok(&train_on(&data, &learned, &["--drift", "--lr", "0.05"]));
+    let start = DetectorDrift::initial().data().to_vec();
+    assert!(saved(&learned).iter().zip(&start).any(|(a, b)| (a - b).abs() > 1e-3), "the drift was learned");
+
+    let held = dir.join("held");
+    ok(&train_on(&data, &held, &["--drift", "--drift-from-labels", "--lr", "0.05"]));
+    let labelled = ssm::data::Dataset::read(&data).unwrap();
+    let want = drift_from_labels(&labelled).unwrap().drift.to_raw();
+    assert_eq!(saved(&held), want, "the calibrated drift is held");
+
+    let points = dir.join("points");
+    ok(&sefi(&["generate", "--quick", "--exp", "A", "--out", s(&points)]));
+    let err = crate::common::failed(&train_on(&points.join("train"), &dir.join("refused"), &["--drift"]));
+    assert!(err.contains("drift") && err.contains("Points"), "{err}");
+    let err = crate::common::failed(&train_on(&data, &dir.join("refused"), &["--drift-from-labels"]));
+    assert!(err.contains("--drift"), "{err}");
+    let init = learned.join("params.bin");
+    let err = crate::common::failed(&train_on(&data, &dir.join("refused"), &["--init", s(&init)]));
+    assert!(err.contains("--drift"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
