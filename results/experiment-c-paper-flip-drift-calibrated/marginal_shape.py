@@ -51,6 +51,10 @@ def log_laplace_gauss(x, b, s):
     m = max(u, v)
     return m + math.log(math.exp(u - m) + math.exp(v - m))
 
+def log_laplace_laplace(x, b1, b2):
+    # Laplace(b1) convolved with Laplace(b2), b1 != b2.
+    return math.log((b1 * math.exp(-abs(x) / b1) - b2 * math.exp(-abs(x) / b2)) / (2 * (b1 * b1 - b2 * b2)))
+
 def mean(f, xs):
     return sum(f(x) for x in xs) / len(xs)
 
@@ -73,4 +77,7 @@ if __name__ == '__main__':
         grid = [(bf * scale, sf * scale) for bf in [0.2 + 0.05 * i for i in range(20)] for sf in [0.05 * i + 0.01 for i in range(30)]]
         v, (b, s) = best(lambda b, s: mean(lambda x: log_laplace_gauss(x, b, s), xs), grid)
         line += f'; best Laplace * N: b {b:.4f}, s {s:.4f}: {v:.4f}'
+        pairs = [(f1 * scale, f2 * scale) for f1 in [0.05 * i for i in range(1, 21)] for f2 in [0.05 * i for i in range(1, 21)] if f1 < f2]
+        v, (b1, b2) = best(lambda b1, b2: mean(lambda x: log_laplace_laplace(x, b1, b2), xs), pairs)
+        line += f'; best Laplace * Laplace: {b1:.4f}, {b2:.4f}: {v:.4f}'
         print(line)
