@@ -868,11 +868,22 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// Draws the drift's offsets at `t` from those at `t - 1` for `n` particles
     /// (no-op without drift).
     fn propagate_drift(&self, n: usize, prev: &[f32], next: &mut [f32], rng: &mut SmallRng, noise: &mut Vec<f32>) {
-        let Some((drift, _)) = &self.drift else { return };
+        if self.drift.is_none() {
+            return;
+        }
         noise.clear();
         noise.extend((0..DRIFT_DIMS * n).map(|_| rng.sample::<f32, _>(StandardNormal)));
-        let r = STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n;
-        drift.propagate(n, &prev[r.clone()], noise, &mut next[r]);
+        self.drift_from_noise(n, prev, noise, next);
+    }
+
+    /// The drift's offsets at `t` from those at `t - 1` (in `prev`'s and
+    /// `next`'s drift dimensions) and standard-normal noise `e` (no-op without
+    /// drift).
+    fn drift_from_noise(&self, n: usize, prev: &[f32], e: &[f32], next: &mut [f32]) {
+        if let Some((drift, _)) = &self.drift {
+            let r = STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n;
+            drift.propagate(n, &prev[r.clone()], e, &mut next[r]);
+        }
     }
 }
 
@@ -960,9 +971,9 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
 
     /// The base model's noise; heavy-tailed accelerations add a third transition
     /// component whose normal CDF picks the mixture's wide component, an axial
-    /// prior a last prior component whose sign picks the direction, and a drift
-    /// its offsets' noise after all of those, to the prior and to the
-    /// transition. The noise form draws from the transition: a defensive
+    /// prior a last prior component whose sign picks the direction; a drift
+    /// puts its offsets' noise after all of those, in the prior's noise and in
+    /// the transition's. The noise form draws from the transition: a defensive
     /// proposal does not apply to it.
     fn noise_dims(&self) -> Option<NoiseDims> {
         let base = self.base.noise_dims()?;
@@ -988,10 +999,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
         let n = at.n;
         let (z, drift_z) = z.split_at(z.len() - self.drift_dims() * n);
-        if let Some((drift, _)) = &self.drift {
-            let r = STATE_DIM * n..(STATE_DIM + DRIFT_DIMS) * n;
-            drift.propagate(n, &prev[r.clone()], drift_z, &mut to.next[r]);
-        }
+        self.drift_from_noise(n, prev, drift_z, to.next);
         let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
             return self.base.propagate_from_noise(at, prev, z, to, &mut scratch.base);
         };
