@@ -60,6 +60,7 @@ use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, KittiOptions, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{BoxAotllTerms, Metrics, Summary};
+use ssm::models::drift::{drift_from_labels, DetectorDrift};
 use ssm::models::extended::{ExtensibleObservation, Extension};
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
@@ -126,6 +127,15 @@ pub struct ExperimentCArgs {
     /// and takes another extension's values from the learned run it is paired with.
     #[arg(long)]
     pub extension: Option<String>,
+    /// A detector drift learned by every trained run (`sefi train --drift`;
+    /// PF-SEFI's methods only). INIT starts it where the runs do; the supervised
+    /// fit is the white-noise model, without drift.
+    #[arg(long)]
+    pub drift: bool,
+    /// With --drift: the drift calibrated on the train labels and held there
+    /// (`sefi train --drift-from-labels`).
+    #[arg(long, requires = "drift")]
+    pub drift_from_labels: bool,
 }
 
 /// The sizes of the experiment.
@@ -329,11 +339,16 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 /// The store every training run starts from (what `sefi train --policy neural
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
 /// `seed + 1`, with `offsets` learned or fixed at zero.
-fn initial_models(args: &ExperimentCArgs) -> Result<Models, String> {
+fn initial_models(args: &ExperimentCArgs, train_data: &Dataset) -> Result<Models, String> {
     let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, args.seed)
         .expect("the neural policy needs no settings");
     models.extension =
         extension_of(args)?.map(|extension| FittedExtension { extension, raw: extension.initial().data().to_vec() });
+    models.drift = match (args.drift, args.drift_from_labels) {
+        (false, _) => None,
+        (true, false) => Some(DetectorDrift::initial().data().to_vec()),
+        (true, true) => Some(drift_from_labels(train_data)?.drift.to_raw()),
+    };
     Ok(models)
 }
 
@@ -423,6 +438,8 @@ fn run_args(
         seed: args.seed,
         detection_offsets: args.detection_offsets,
         extension: args.extension.clone(),
+        drift: args.drift,
+        drift_from_labels: args.drift_from_labels,
         ..TrainArgs::for_method(method, &args.table.filter, run, data.0, data.1, dir)
     }
 }
@@ -439,6 +456,9 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
     extension_of(args)?;
     for m in &args.table.methods {
         check_method(m, scale.lag, scale.alpha)?;
+        if args.drift && !m.starts_with("pf-sefi") {
+            return Err(format!("--drift: `{m}` cannot learn a detector drift (PF-SEFI's methods only)"));
+        }
     }
     if !cluster.is_root() {
         // Wait for the first process's import, then find it where it was written.
@@ -484,7 +504,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
 
     // INIT: where every run starts.
     let clock = Instant::now();
-    let init = initial_models(args)?;
+    let init = initial_models(args, &train_data)?;
     let init_runs = evaluate(&init)?;
     let mut rows = vec![Row {
         method: "INIT".into(),
@@ -543,8 +563,12 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         Some((m, models)) => (m.clone(), models),
         None => ("INIT".to_string(), &init),
     };
-    let mut supervised =
-        Models { policy: paired.policy.clone(), extension: paired.extension.clone(), ..initial_models(args)? };
+    let mut supervised = Models {
+        policy: paired.policy.clone(),
+        extension: paired.extension.clone(),
+        ..initial_models(args, &train_data)?
+    };
+    supervised.drift = None;
     let fit = FitConfig {
         steps: scale.supervised_steps,
         batch: scale.supervised_batch,
@@ -703,7 +727,14 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         s.clip,
         c.args.extension.as_ref().map_or_else(String::new, |e| format!(
             " extended by `{e}` (every row: MLL and AOTLL under the extended model; AOTLL by part: the base network)"
-        )),
+        )) + match (c.args.drift, c.args.drift_from_labels) {
+            (false, _) => "",
+            (true, false) => " with a detector drift learned (AOTLL integrates it out; the supervised row has none)",
+            (true, true) => {
+                " with a detector drift calibrated on the train labels and held (AOTLL integrates it out; the \
+                 supervised row has none)"
+            }
+        },
         seconds,
         c.train.scenes().len(),
         c.train.objects().len(),

@@ -253,3 +253,28 @@ fn quick_experiment_c_learns_and_scores_reversed_headings() {
     }
     std::fs::remove_dir_all(&out).ok();
 }
+
+/// `--drift`: PF-SEFI's run learns (or, with `--drift-from-labels`, holds) a
+/// detector drift, saved with its parameters and named in the table; a method
+/// that cannot learn one is refused before any work.
+#[test]
+fn a_detector_drift_is_learned_by_pf_sefi_and_refused_for_the_baselines() {
+    let out = temp("drift");
+    let err = failed(&sefi(&["experiment-c", "--quick", "--methods", "pf-sefi,pf", "--drift", "--out", s(&out)]));
+    assert!(err.contains("`pf` cannot learn a detector drift"), "{err}");
+    assert!(!out.join("data").exists(), "refused before the import");
+    let Some(kitti) = kitti() else { return };
+    let args = ["experiment-c", "--quick", "--kitti", s(&kitti), "--methods", "pf-sefi", "--detection-offsets", "zero"];
+    ok(&sefi(&[&args[..], &["--drift", "--drift-from-labels", "--out", s(&out)]].concat()));
+    let table = std::fs::read_to_string(out.join("table.md")).unwrap();
+    assert!(table.contains("detector drift calibrated on the train labels"), "{table}");
+    let store = ParamStore::<f64>::load(&out.join("runs/pf-sefi/params.bin")).unwrap();
+    // The run's training data (at the quick scale a subset of the import).
+    let run: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("runs/pf-sefi/run.json")).unwrap()).unwrap();
+    let train = ssm::data::Dataset::read(run["data"].as_str().unwrap()).unwrap();
+    let models = Models::from_store(&store, ObservationKind::Boxes).unwrap();
+    let calibrated = ssm::models::drift::drift_from_labels(&train).unwrap().drift.to_raw();
+    assert_eq!(models.drift.as_deref(), Some(&calibrated[..]), "the calibrated drift is held");
+    std::fs::remove_dir_all(&out).ok();
+}
