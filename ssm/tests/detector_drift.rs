@@ -205,6 +205,15 @@ impl ModelVisitor for Grid {
             let (coarse, fine) = (aotll(ssm::metrics::DRIFT_AOTLL_NODES), aotll(2 * ssm::metrics::DRIFT_AOTLL_NODES));
             eprintln!("drift sds scale {scale}: AOTLL {coarse} on the default grids, {fine} on grids twice as fine");
             assert!((coarse - fine).abs() < 0.005, "sd scale {scale}: {coarse} vs {fine}");
+            // The drift is integrated out, not ignored: the larger one moves the
+            // AOTLL (against this unfitted network's wide scales the smaller one
+            // barely does).
+            let plain = ExtendedSsm::new(base, None, &[]).expect("base");
+            let without = model_aotll(base.data(), &plain, 1).mean.expect("labelled");
+            assert!(
+                scale < 1.0 || (fine - without).abs() > 0.02,
+                "sd scale {scale}: {fine} with drift, {without} without"
+            );
         }
     }
 }

@@ -31,7 +31,7 @@
 use autodiff::{Float, Tensor, Var};
 
 use crate::data::{Dataset, ObservationKind, Pose};
-use crate::models::observation::boxes::{wrap_angle, BOX_MIN_SCALE, BOX_MIN_YAW_SCALE};
+use crate::models::observation::boxes::{los_offsets, wrap_angle, BOX_MIN_SCALE, BOX_MIN_YAW_SCALE, LOS_EPS};
 use crate::models::observation::{BoxObservationModel, ObservationModel};
 use crate::models::ModelError;
 
@@ -45,8 +45,6 @@ const PERSISTENCE_SCALE: f64 = 4.0;
 const LOG_SD_SCALE: f64 = 2.0;
 /// Largest persistence the plain paths use: keeps `1 - rho^2` a positive f32.
 const MAX_PERSISTENCE: f64 = 1.0 - 1e-6;
-/// Guard of the line-of-sight normalisation (m), as the box model's.
-const LOS_EPS: f64 = 1e-6;
 
 /// The drift's values in natural units (see the [module docs](self)).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -327,10 +325,8 @@ pub fn drift_from_labels(data: &Dataset) -> Result<DriftCalibration, String> {
             .map(|t| {
                 let (label, det) = (truth.get(object, t)?, BoxObservationModel::items(data, object, t).first()?);
                 let (dx, dy) = (label.x - av[t].x, label.y - av[t].y);
-                let inv = 1.0 / (dx * dx + dy * dy + LOS_EPS * LOS_EPS).sqrt();
-                let (lx, ly) = (dx * inv, dy * inv);
-                let (ddx, ddy) = (det.x - label.x, det.y - label.y);
-                let o = [ddx * lx + ddy * ly, ddy * lx - ddx * ly, wrap_angle(det.yaw - label.yaw)];
+                let (along, across) = los_offsets(dx, dy, det.x - label.x, det.y - label.y);
+                let o = [along, across, wrap_angle(det.yaw - label.yaw)];
                 let kept = o[0].abs() <= CALIBRATION_MAX_OFFSET
                     && o[1].abs() <= CALIBRATION_MAX_OFFSET
                     && o[2].abs() <= CALIBRATION_MAX_YAW;

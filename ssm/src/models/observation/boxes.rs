@@ -73,7 +73,7 @@ pub const BOX_YAW_SCALE_SCALE: f64 = 0.1;
 /// Floor of the yaw-offset scale (rad).
 pub const BOX_MIN_YAW_SCALE: f64 = 0.005;
 /// Guard of the line-of-sight normalisation (m).
-const LOS_EPS: f64 = 1e-6;
+pub(crate) const LOS_EPS: f64 = 1e-6;
 /// Rows of the per-particle head in the plain path: `mu_a, mu_c, 1/b_a, 1/b_c, mu_y,
 /// 1/b_y` and the constant part of the log-density.
 const HEAD_ROWS: usize = 7;
@@ -182,7 +182,7 @@ fn wrap<F: Float>(a: F) -> F {
 /// Along- and across-line-of-sight offsets of `(ddx, ddy)` for an object at
 /// `(dx, dy)` from the AV.
 #[inline(always)]
-fn los_offsets<F: Float>(dx: F, dy: F, ddx: F, ddy: F) -> (F, F) {
+pub(crate) fn los_offsets<F: Float>(dx: F, dy: F, ddx: F, ddy: F) -> (F, F) {
     let inv = F::ONE / (dx * dx + dy * dy + F::from_f64(LOS_EPS * LOS_EPS)).sqrt();
     let (lx, ly) = (dx * inv, dy * inv);
     (ddx * lx + ddy * ly, ddy * lx - ddx * ly)
