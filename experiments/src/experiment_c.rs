@@ -61,10 +61,10 @@ use ssm::data::{Dataset, KittiOptions, ObservationKind};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::metrics::{BoxAotllTerms, Metrics, Summary};
 use ssm::models::drift::{drift_from_labels, DetectorDrift};
-use ssm::models::extended::{ExtensibleObservation, Extension};
+use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
-use ssm::models::params::{FittedExtension, Models, ObservationVisitor};
+use ssm::models::params::{FittedExtension, Models};
 use ssm::supervised::{fit_observation, fit_observation_with_flips, SupervisedReport};
 use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
@@ -167,6 +167,9 @@ struct Scale {
     /// Adam steps and minibatch of the supervised fit.
     supervised_steps: usize,
     supervised_batch: usize,
+    /// Fits of the supervised network, each from its own seed, whose val AOTLLs
+    /// are summarised beside its row ([`supervised_over_seeds`]).
+    supervised_seeds: usize,
 }
 
 impl Scale {
@@ -189,6 +192,7 @@ impl Scale {
             val_scenes: None,
             supervised_steps: 3000,
             supervised_batch: 128,
+            supervised_seeds: 5,
         };
         let mut s = if args.table.quick {
             Scale {
@@ -203,6 +207,7 @@ impl Scale {
                 val_scenes: Some(6),
                 supervised_steps: 60,
                 supervised_batch: 32,
+                supervised_seeds: 3,
                 ..base
             }
         } else if args.table.paper {
@@ -340,7 +345,12 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
 /// `seed + 1`, with `offsets` learned or fixed at zero.
 fn initial_models(args: &ExperimentCArgs, train_data: &Dataset) -> Result<Models, String> {
-    let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, args.seed)
+    initial_models_seeded(args, train_data, args.seed)
+}
+
+/// [`initial_models`] with the networks' initial weights drawn from `seed`.
+fn initial_models_seeded(args: &ExperimentCArgs, train_data: &Dataset, seed: u64) -> Result<Models, String> {
+    let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, seed)
         .expect("the neural policy needs no settings");
     models.extension =
         extension_of(args)?.map(|extension| FittedExtension { extension, raw: extension.initial().data().to_vec() });
@@ -360,15 +370,7 @@ fn extension_of(args: &ExperimentCArgs) -> Result<Option<Extension>, String> {
 
 /// AOTLL of `models`' observation network on `data`.
 fn aotll_on(data: &Dataset, models: &Models) -> Option<f64> {
-    struct Aotll<'a>(&'a Dataset, &'a Models);
-    impl ObservationVisitor for Aotll<'_> {
-        type Output = Option<f64>;
-        fn visit<O: ExtensibleObservation>(self, o: &O) -> Option<f64> {
-            let m = self.1;
-            ssm::metrics::extended_aotll(self.0, &m.policy, o, &m.observation_params, m.additions()).mean
-        }
-    }
-    models.observation.visit(Aotll(data, models))
+    ssm::metrics::models_aotll(data, models).mean
 }
 
 /// Sums of the `skipped` and `collapsed_steps` columns of a run's `train.csv`.
@@ -563,23 +565,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         Some((m, models)) => (m.clone(), models),
         None => ("INIT".to_string(), &init),
     };
-    let mut supervised = Models {
-        policy: paired.policy.clone(),
-        extension: paired.extension.clone(),
-        ..initial_models(args, &train_data)?
-    };
-    supervised.drift = None;
-    let fit = FitConfig {
-        steps: scale.supervised_steps,
-        batch: scale.supervised_batch,
-        lr: scale.lr,
-        clip: None,
-        seed: args.seed,
-    };
-    let report = match extension_of(args)? {
-        Some(Extension::HeadingFlip) => fit_observation_with_flips(&mut supervised, &train_data, &fit)?,
-        _ => fit_observation(&mut supervised, &train_data, &fit).map_err(|e| e.to_string())?,
-    };
+    let (supervised, report) = fit_supervised(args, &scale, &train_data, paired, args.seed)?;
     let sup_dir = args.out.join("supervised");
     ensure_dir(&sup_dir)?;
     supervised.to_store().save(&sup_dir.join(PARAMS_FILE)).map_err(|e| e.to_string())?;
@@ -603,6 +589,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         eval_seconds: clock.elapsed().as_secs_f64(),
         curve: Vec::new(),
     });
+    let supervised_seeds = supervised_over_seeds(args, &scale, (&train_data, &val), paired, &supervised)?;
 
     let context = Context {
         args,
@@ -613,6 +600,7 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         eval_every,
         supervised: &report,
         supervised_seconds: fit_seconds,
+        supervised_seeds: &supervised_seeds,
         supervised_extension: match &supervised.extension {
             None => None,
             Some(e) => {
@@ -633,6 +621,65 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
     Ok(())
 }
 
+/// The supervised observation network fitted to `train`'s labelled states from
+/// the initial weights of `seed` (its minibatches drawn from it too), beside
+/// `paired`'s policy and extension, without a drift: with `heading_flip`, the
+/// flips observed in the labels ([`fit_observation_with_flips`]).
+fn fit_supervised(
+    args: &ExperimentCArgs,
+    scale: &Scale,
+    train: &Dataset,
+    paired: &Models,
+    seed: u64,
+) -> Result<(Models, SupervisedReport), String> {
+    let mut supervised = Models {
+        policy: paired.policy.clone(),
+        extension: paired.extension.clone(),
+        ..initial_models_seeded(args, train, seed)?
+    };
+    supervised.drift = None;
+    let fit =
+        FitConfig { steps: scale.supervised_steps, batch: scale.supervised_batch, lr: scale.lr, clip: None, seed };
+    let report = match extension_of(args)? {
+        Some(Extension::HeadingFlip) => fit_observation_with_flips(&mut supervised, train, &fit)?,
+        _ => fit_observation(&mut supervised, train, &fit).map_err(|e| e.to_string())?,
+    };
+    Ok((supervised, report))
+}
+
+/// One supervised fit of [`supervised_over_seeds`]: its seed and AOTLLs.
+#[derive(Clone, Debug, Serialize)]
+struct SupervisedSeed {
+    seed: u64,
+    val_aotll: Option<f64>,
+    train_aotll: Option<f64>,
+}
+
+/// The supervised row's network refitted from [`Scale::supervised_seeds`] seeds
+/// (the run's seed, whose network `first` is, and the next ones):
+/// how much of the comparison with the self-supervised rows is the supervised
+/// fit's own randomness (initial weights, minibatches). AOTLL needs no filter,
+/// so each fit costs seconds.
+fn supervised_over_seeds(
+    args: &ExperimentCArgs,
+    scale: &Scale,
+    (train, val): (&Dataset, &Dataset),
+    paired: &Models,
+    first: &Models,
+) -> Result<Vec<SupervisedSeed>, String> {
+    let of = |seed: u64, models: &Models| SupervisedSeed {
+        seed,
+        val_aotll: aotll_on(val, models),
+        train_aotll: aotll_on(train, models),
+    };
+    let mut seeds = vec![of(args.seed, first)];
+    for k in 1..scale.supervised_seeds as u64 {
+        let seed = args.seed + k;
+        seeds.push(of(seed, &fit_supervised(args, scale, train, paired, seed)?.0));
+    }
+    Ok(seeds)
+}
+
 /// What the outputs describe besides the rows.
 struct Context<'a> {
     args: &'a ExperimentCArgs,
@@ -643,6 +690,8 @@ struct Context<'a> {
     eval_every: usize,
     supervised: &'a SupervisedReport,
     supervised_seconds: f64,
+    /// The supervised network's val AOTLL over fit seeds.
+    supervised_seeds: &'a [SupervisedSeed],
     policy_from: &'a str,
     /// The supervised model's extension in words, if any.
     supervised_extension: Option<String>,
@@ -687,6 +736,27 @@ fn validity_notes(rows: &[Row]) -> String {
         }
     }
     notes
+}
+
+/// The table's line on the supervised network refitted over seeds: its val
+/// AOTLLs, their median and range (empty for a single seed).
+fn supervised_seeds_line(seeds: &[SupervisedSeed]) -> String {
+    if seeds.len() < 2 {
+        return String::new();
+    }
+    let vals: Vec<f64> = seeds.iter().filter_map(|s| s.val_aotll).collect();
+    let listed: Vec<String> = seeds
+        .iter()
+        .map(|s| format!("{}: {}", s.seed, s.val_aotll.map_or_else(|| "-".into(), |v| format!("{v:.3}"))))
+        .collect();
+    let summary =
+        Summary::of(&vals).map_or_else(String::new, |m| format!(", median {:.3} [{:.3}, {:.3}]", m.median, m.q1, m.q3));
+    format!(
+        "The same fit from {} seeds (initial weights and minibatches; the row above is seed {}): val AOTLL {}{summary}          — how far the supervised row moves by its fit's randomness alone.\n",
+        seeds.len(),
+        seeds[0].seed,
+        listed.join(", ")
+    )
 }
 
 /// A count's median \[IQR\] over runs, as whole numbers.
@@ -801,6 +871,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
         c.supervised_extension.as_ref().map_or_else(String::new, |e| format!("; extended: {e}")),
         c.supervised_seconds
     );
+    md.push_str(&supervised_seeds_line(c.supervised_seeds));
     let by_part: Vec<(&str, &BoxAotllTerms)> =
         rows.iter().filter_map(|r| r.aotll_terms.as_ref().map(|t| (r.method.as_str(), t))).collect();
     md.push('\n');
@@ -860,6 +931,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
             "batch": s.supervised_batch,
             "seconds": c.supervised_seconds,
             "params": "supervised/params.bin",
+            "seeds": c.supervised_seeds,
         },
     });
     write_json(&c.args.out.join("experiment_c.json"), &doc)?;

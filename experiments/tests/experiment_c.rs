@@ -78,6 +78,16 @@ fn quick_experiment_c_writes_the_table_and_reruns_identically() {
     Models::from_store(&store, ObservationKind::Boxes).unwrap();
     let sup_train_aotll = rows.last().unwrap()["train_aotll"].as_f64().unwrap();
     assert!((sup_train_aotll - after).abs() < 1e-9, "{sup_train_aotll} vs {after}");
+    // Refitted from further seeds: the first is the row's own network, the others
+    // differ (their own weights and minibatches), and the table summarises them.
+    let seeds = doc["supervised"]["seeds"].as_array().unwrap();
+    assert!(seeds.len() >= 2, "{seeds:?}");
+    let sup_val_aotll = rows.last().unwrap()["runs"][0]["aotll"]["mean"].as_f64().unwrap();
+    assert_eq!(seeds[0]["val_aotll"].as_f64(), Some(sup_val_aotll));
+    assert_eq!(seeds[0]["train_aotll"].as_f64(), Some(sup_train_aotll));
+    let vals: Vec<f64> = seeds.iter().map(|s| s["val_aotll"].as_f64().unwrap()).collect();
+    assert!(vals.iter().all(|v| v.is_finite()) && vals[1..].iter().any(|v| v != &vals[0]), "{vals:?}");
+    assert!(table.contains(&format!("The same fit from {} seeds", seeds.len())), "{table}");
     // Every row's val AOTLL by part counts the detections AOTLL counts, and the
     // table shows the split.
     for row in rows {

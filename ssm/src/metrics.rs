@@ -35,7 +35,7 @@ use crate::models::drift::DRIFT_DIMS;
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation};
 use crate::models::observation::boxes::{BoxObservationModel, DetectionDistribution, DetectionTerms};
 use crate::models::observation::{ObsContext, ObservationModel};
-use crate::models::params::ModelAdditions;
+use crate::models::params::{ModelAdditions, Models, ObservationVisitor};
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
 use crate::models::{Batch, ParticleModel};
@@ -177,6 +177,20 @@ pub fn extended_aotll<P: GaussianPolicy, O: ExtensibleObservation>(
     VehicleSsm::new(data, policy, observation, observation_params)
         .and_then(|base| additions.extend(&base).map(|m| model_aotll(data, &m, DRIFT_AOTLL_NODES)))
         .unwrap_or_default()
+}
+
+/// [`extended_aotll`] of a whole set of `models`: its observation network (points
+/// or boxes) with its extension and drift.
+pub fn models_aotll(data: &Dataset, models: &Models) -> MeanOver {
+    struct Aotll<'a>(&'a Dataset, &'a Models);
+    impl ObservationVisitor for Aotll<'_> {
+        type Output = MeanOver;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> MeanOver {
+            let m = self.1;
+            extended_aotll(self.0, &m.policy, o, &m.observation_params, m.additions())
+        }
+    }
+    models.observation.visit(Aotll(data, models))
 }
 
 /// Nodes per offset of the finer of the two grids over which [`model_aotll`]
