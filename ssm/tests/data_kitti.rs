@@ -68,7 +68,17 @@ fn report_counts_are_plausible() {
         // Without a score threshold half the raw detections are low-score
         // clutter, but nearly all associated ones are cars or vans.
         assert!(r.association_rate() > 0.4, "{name}");
+        // The reversal counts are those of the written dataset, and KITTI's
+        // detector reverses cars in bursts: fewer cars with a reversal than
+        // independent reversals would give, and over-dispersed counts.
+        let reversals = r.reversals.expect("labelled box detections");
+        assert_eq!(Some(reversals), ssm::metrics::heading_reversals(ds), "{name}");
+        assert_eq!(reversals.detections, r.boxes, "{name}: every written box has a label");
+        assert!((reversals.objects_with_any as f64) < 0.7 * reversals.objects_with_any_if_independent, "{name}");
+        assert!(reversals.dispersion.unwrap() > 2.0, "{name}: {reversals:?}");
     }
+    let report = imp.report.to_string();
+    assert!(report.contains("heading reversed against the label") && report.contains("reversed the step before"));
     assert_eq!(imp.train.meta().dt, 0.1);
     // Each prior is read from the object's first detection, and the data say so.
     assert!(imp.train.meta().prior_from_detection && imp.val.meta().prior_from_detection);

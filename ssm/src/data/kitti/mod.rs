@@ -72,6 +72,7 @@ use tracks::{associate, speed_curvature};
 
 use super::error::{DataError, Place, Problem};
 use super::{Action, BoxDetection, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
+use crate::metrics::{heading_reversals, HeadingReversals};
 use std::collections::{BTreeMap, HashSet};
 use std::fmt;
 use std::fs;
@@ -194,6 +195,10 @@ pub struct KittiSplitReport {
     pub steps: usize,
     /// Box detections written.
     pub boxes: usize,
+    /// How the written detections reversed against their labels fall over
+    /// objects and steps ([`crate::metrics::heading_reversals`]; `None` until the
+    /// split's dataset is built).
+    pub reversals: Option<HeadingReversals>,
 }
 
 impl KittiSplitReport {
@@ -244,7 +249,7 @@ impl fmt::Display for KittiReport {
         writeln!(f, "| | train | val |")?;
         writeln!(f, "|---|---|---|")?;
         type Cell = fn(&KittiSplitReport) -> String;
-        let rows: [(&str, Cell); 16] = [
+        let rows: [(&str, Cell); 20] = [
             ("sequences", |r| r.sequences.len().to_string()),
             ("frames", |r| r.frames.to_string()),
             ("Car tracks", |r| r.car_tracks.to_string()),
@@ -263,6 +268,20 @@ impl fmt::Display for KittiReport {
             ("objects (track windows)", |r| r.objects.to_string()),
             ("object-steps", |r| r.steps.to_string()),
             ("boxes written", |r| format!("{} ({:.1}%)", r.boxes, 100.0 * r.observed_rate())),
+            ("  heading reversed against the label", |r| {
+                r.reversals.map_or("-".into(), |v| format!("{} ({:.1}%)", v.reversed, 100.0 * v.rate()))
+            }),
+            ("  objects with one: seen / if independent", |r| {
+                r.reversals.map_or("-".into(), |v| {
+                    format!("{} / {:.0} of {}", v.objects_with_any, v.objects_with_any_if_independent, v.objects)
+                })
+            }),
+            ("  their dispersion over objects (1 if independent)", |r| {
+                r.reversals.and_then(|v| v.dispersion).map_or("-".into(), |x| format!("{x:.2}"))
+            }),
+            ("  P(reversed \\| reversed the step before)", |r| {
+                r.reversals.and_then(|v| v.persistence).map_or("-".into(), |x| format!("{x:.2}"))
+            }),
         ];
         for (name, value) in rows {
             writeln!(f, "| {name} | {} | {} |", value(&self.train), value(&self.val))?;
@@ -312,8 +331,12 @@ pub fn import_kitti(root: &Path, options: &KittiOptions) -> Result<KittiImport, 
         let split = if held_out { &mut val } else { &mut train };
         import_sequence(root, seq, options, split)?;
     }
-    let report = KittiReport { options: options.clone(), train: train.report, val: val.report };
-    Ok(KittiImport { train: train.builder.build()?, val: val.builder.build()?, report })
+    let (train_data, val_data) = (train.builder.build()?, val.builder.build()?);
+    let (mut train_report, mut val_report) = (train.report, val.report);
+    train_report.reversals = heading_reversals(&train_data);
+    val_report.reversals = heading_reversals(&val_data);
+    let report = KittiReport { options: options.clone(), train: train_report, val: val_report };
+    Ok(KittiImport { train: train_data, val: val_data, report })
 }
 
 fn option_error(name: &str, message: &str) -> DataError {
