@@ -3,6 +3,7 @@
 
 use std::f64::consts::PI;
 
+use crate::common::with_csv_rows_rewritten;
 use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use rand::rngs::StdRng;
@@ -526,31 +527,18 @@ fn heading_reversals_tell_independent_flips_from_persistent_ones() {
             HiddenConfig { scenes: 10, ..HiddenConfig::quick(ObservationKind::Boxes, HiddenEffect::None, seed) };
         let data = generate_hidden(&config).unwrap();
         assert_eq!(heading_reversals(&data).unwrap().reversed, 0, "the generator reverses none by itself");
-        let dir = std::env::temp_dir().join(format!("sefi-reversals-{seed}-{}", std::process::id()));
-        data.write(&dir).unwrap();
-        let path = dir.join("boxes.csv");
-        let text = std::fs::read_to_string(&path).unwrap();
-        let mut lines = text.lines();
-        let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-        let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
-        let (scene, object, yaw) = (col("scene"), col("object"), col("yaw"));
         let mut order: Vec<(String, String)> = Vec::new();
-        let mut out = vec![header.join(",")];
-        for line in lines {
-            let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
-            let key = (fields[scene].clone(), fields[object].clone());
+        let reversed = with_csv_rows_rewritten(&data, "boxes.csv", &format!("reversals-{seed}"), |col, fields| {
+            let key = (fields[col("scene")].clone(), fields[col("object")].clone());
             let index = order.iter().position(|k| *k == key).unwrap_or_else(|| {
                 order.push(key);
                 order.len() - 1
             });
             if index % every == 0 {
+                let yaw = col("yaw");
                 fields[yaw] = (fields[yaw].parse::<f64>().unwrap() + PI).to_string();
             }
-            out.push(fields.join(","));
-        }
-        std::fs::write(&path, out.join("\n") + "\n").unwrap();
-        let reversed = Dataset::read(&dir).unwrap();
-        let _ = std::fs::remove_dir_all(&dir);
+        });
         let r = heading_reversals(&reversed).unwrap();
         assert_eq!(r.reversed, recount(&reversed));
         assert_eq!(r.objects_with_any, order.len().div_ceil(every), "{r:?}");

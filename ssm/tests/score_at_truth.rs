@@ -20,6 +20,7 @@
 //! every object's score averaged over its filter runs first; a tensor passes when
 //! its largest `|z|` has a Bonferroni-corrected two-sided p-value above 0.001.
 
+use crate::common::with_csv_rows_rewritten;
 use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use rand::rngs::StdRng;
@@ -139,22 +140,9 @@ fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_of_box_data_with_a_ne
 /// then every path drawn from them.
 fn box_data_with_speed_prior(seed: u64, steps: usize, sd_v: f64) -> (Dataset, ParamStore<f64>) {
     let skeleton = box_skeleton(seed, 20, steps);
-    let dir = std::env::temp_dir().join(format!("ssm-speed-prior-{seed}-{}", std::process::id()));
-    skeleton.write(&dir).unwrap();
-    let path = dir.join("objects.csv");
-    let text = std::fs::read_to_string(&path).unwrap();
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
-    let col = header.iter().position(|h| *h == "sd_v").unwrap();
-    let mut out = header.join(",") + "\n";
-    for line in lines {
-        let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
-        fields[col] = sd_v.to_string();
-        out += &(fields.join(",") + "\n");
-    }
-    std::fs::write(&path, out).unwrap();
-    let skeleton = Dataset::read(&dir).unwrap();
-    std::fs::remove_dir_all(&dir).ok();
+    let skeleton = with_csv_rows_rewritten(&skeleton, "objects.csv", &format!("speed-prior-{seed}"), |col, fields| {
+        fields[col("sd_v")] = sd_v.to_string();
+    });
     draw_boxes(&skeleton, seed)
 }
 

@@ -1,14 +1,15 @@
 //! Helpers shared by the observation models' tests: a batch of rows (poses,
 //! contexts, AV poses and each row's items), the check that a model's tape
 //! path gives the plain path's row log-densities, finiteness checks, and the
-//! point model's fixtures; and the score studies' bias criterion.
+//! point model's fixtures; the score studies' bias criterion; and a dataset
+//! rewritten through its CSV files.
 
 use autodiff::gradcheck::GradCheck;
 use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Tape, Tensor, Var};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
-use ssm::data::Pose;
+use ssm::data::{Dataset, Pose};
 use ssm::estimators::study::ScoreStudyRow;
 use ssm::models::observation::edges::{edge_coords, edge_lengths, to_box_frame};
 use ssm::models::observation::{ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch};
@@ -316,4 +317,32 @@ pub fn assert_unbiased(what: &str, r: &ScoreStudyRow, se_multiple: f64) {
         r.sd,
         r.exact
     );
+}
+
+/// `data` with the rows of one of its CSV files (`file`, e.g. `boxes.csv`)
+/// rewritten by `edit` and read back (through a temporary directory named by
+/// `tag`). `edit` gets the column index of a header name and one row's fields.
+pub fn with_csv_rows_rewritten(
+    data: &Dataset,
+    file: &str,
+    tag: &str,
+    mut edit: impl FnMut(&dyn Fn(&str) -> usize, &mut Vec<String>),
+) -> Dataset {
+    let dir = std::env::temp_dir().join(format!("ssm-{tag}-{}", std::process::id()));
+    data.write(&dir).unwrap();
+    let path = dir.join(file);
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap_or_else(|| panic!("{file}: no `{name}`"));
+    let mut out = header.join(",") + "\n";
+    for line in lines {
+        let mut fields: Vec<String> = line.split(',').map(str::to_string).collect();
+        edit(&col, &mut fields);
+        out += &(fields.join(",") + "\n");
+    }
+    std::fs::write(&path, out).unwrap();
+    let rewritten = Dataset::read(&dir).unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    rewritten
 }
