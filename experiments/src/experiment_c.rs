@@ -343,22 +343,25 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 
 /// The store every training run starts from (what `sefi train --policy neural
 /// --seed SEED` builds): the neural policy from `seed`, the box network from
-/// `seed + 1`, with `offsets` learned or fixed at zero.
+/// `seed + 1`, with `offsets` learned or fixed at zero, and the drift of
+/// `--drift` (calibrated on `train_data` with `--drift-from-labels`).
 fn initial_models(args: &ExperimentCArgs, train_data: &Dataset) -> Result<Models, String> {
-    initial_models_seeded(args, train_data, args.seed)
-}
-
-/// [`initial_models`] with the networks' initial weights drawn from `seed`.
-fn initial_models_seeded(args: &ExperimentCArgs, train_data: &Dataset, seed: u64) -> Result<Models, String> {
-    let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, seed)
-        .expect("the neural policy needs no settings");
-    models.extension =
-        extension_of(args)?.map(|extension| FittedExtension { extension, raw: extension.initial().data().to_vec() });
+    let mut models = fresh_networks(args, args.seed)?;
     models.drift = match (args.drift, args.drift_from_labels) {
         (false, _) => None,
         (true, false) => Some(DetectorDrift::initial().data().to_vec()),
         (true, true) => Some(drift_from_labels(train_data)?.drift.to_raw()),
     };
+    Ok(models)
+}
+
+/// The networks of [`initial_models`] with their initial weights drawn from
+/// `seed`, and `--extension` at its initial value; no drift.
+fn fresh_networks(args: &ExperimentCArgs, seed: u64) -> Result<Models, String> {
+    let mut models = train::fresh_models("neural", "", ObservationKind::Boxes, args.detection_offsets, seed)
+        .expect("the neural policy needs no settings");
+    models.extension =
+        extension_of(args)?.map(|extension| FittedExtension { extension, raw: extension.initial().data().to_vec() });
     Ok(models)
 }
 
@@ -589,7 +592,13 @@ pub fn run(args: &ExperimentCArgs, cluster: &Cluster) -> Result<(), String> {
         eval_seconds: clock.elapsed().as_secs_f64(),
         curve: Vec::new(),
     });
-    let supervised_seeds = supervised_over_seeds(args, &scale, (&train_data, &val), paired, &supervised)?;
+    let row = rows.last().expect("the supervised row");
+    let first = SupervisedSeed {
+        seed: args.seed,
+        val_aotll: row.runs.first().and_then(|m| m.aotll.mean),
+        train_aotll: row.train_aotll,
+    };
+    let supervised_seeds = supervised_over_seeds(args, &scale, (&train_data, &val), paired, first)?;
 
     let context = Context {
         args,
@@ -632,12 +641,8 @@ fn fit_supervised(
     paired: &Models,
     seed: u64,
 ) -> Result<(Models, SupervisedReport), String> {
-    let mut supervised = Models {
-        policy: paired.policy.clone(),
-        extension: paired.extension.clone(),
-        ..initial_models_seeded(args, train, seed)?
-    };
-    supervised.drift = None;
+    let mut supervised =
+        Models { policy: paired.policy.clone(), extension: paired.extension.clone(), ..fresh_networks(args, seed)? };
     let fit =
         FitConfig { steps: scale.supervised_steps, batch: scale.supervised_batch, lr: scale.lr, clip: None, seed };
     let report = match extension_of(args)? {
@@ -656,7 +661,8 @@ struct SupervisedSeed {
 }
 
 /// The supervised row's network refitted from [`Scale::supervised_seeds`] seeds
-/// (the run's seed, whose network `first` is, and the next ones):
+/// (the run's seed, whose AOTLLs `first` the supervised row already has, and
+/// the next ones):
 /// how much of the comparison with the self-supervised rows is the supervised
 /// fit's own randomness (initial weights, minibatches). AOTLL needs no filter,
 /// so each fit costs seconds.
@@ -665,17 +671,13 @@ fn supervised_over_seeds(
     scale: &Scale,
     (train, val): (&Dataset, &Dataset),
     paired: &Models,
-    first: &Models,
+    first: SupervisedSeed,
 ) -> Result<Vec<SupervisedSeed>, String> {
-    let of = |seed: u64, models: &Models| SupervisedSeed {
-        seed,
-        val_aotll: aotll_on(val, models),
-        train_aotll: aotll_on(train, models),
-    };
-    let mut seeds = vec![of(args.seed, first)];
+    let mut seeds = vec![first];
     for k in 1..scale.supervised_seeds as u64 {
         let seed = args.seed + k;
-        seeds.push(of(seed, &fit_supervised(args, scale, train, paired, seed)?.0));
+        let (models, _) = fit_supervised(args, scale, train, paired, seed)?;
+        seeds.push(SupervisedSeed { seed, val_aotll: aotll_on(val, &models), train_aotll: aotll_on(train, &models) });
     }
     Ok(seeds)
 }
@@ -752,7 +754,8 @@ fn supervised_seeds_line(seeds: &[SupervisedSeed]) -> String {
     let summary =
         Summary::of(&vals).map_or_else(String::new, |m| format!(", median {:.3} [{:.3}, {:.3}]", m.median, m.q1, m.q3));
     format!(
-        "The same fit from {} seeds (initial weights and minibatches; the row above is seed {}): val AOTLL {}{summary}          — how far the supervised row moves by its fit's randomness alone.\n",
+        "The same fit from {} seeds (initial weights and minibatches; the row above is seed {}): val AOTLL \
+         {}{summary} — how far the supervised row moves by its fit's randomness alone.\n",
         seeds.len(),
         seeds[0].seed,
         listed.join(", ")

@@ -87,6 +87,12 @@ fn quick_experiment_c_writes_the_table_and_reruns_identically() {
     assert_eq!(seeds[0]["train_aotll"].as_f64(), Some(sup_train_aotll));
     let vals: Vec<f64> = seeds.iter().map(|s| s["val_aotll"].as_f64().unwrap()).collect();
     assert!(vals.iter().all(|v| v.is_finite()) && vals[1..].iter().any(|v| v != &vals[0]), "{vals:?}");
+    // Each refit has its own seed, the run's and the next ones, and its own network.
+    let numbers: Vec<u64> = seeds.iter().map(|s| s["seed"].as_u64().unwrap()).collect();
+    assert_eq!(numbers, (0..seeds.len() as u64).collect::<Vec<_>>());
+    for (i, a) in vals.iter().enumerate() {
+        assert!(vals[i + 1..].iter().all(|b| b != a), "two refits gave the same network: {vals:?}");
+    }
     assert!(table.contains(&format!("The same fit from {} seeds", seeds.len())), "{table}");
     // Every row's val AOTLL by part counts the detections AOTLL counts, and the
     // table shows the split.

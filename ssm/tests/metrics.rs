@@ -544,6 +544,12 @@ fn heading_reversals_tell_independent_flips_from_persistent_ones() {
         assert_eq!(r.objects_with_any, order.len().div_ceil(every), "{r:?}");
         assert!(r.objects_with_any_if_independent > 0.9 * r.objects as f64, "{r:?}");
         assert!(r.dispersion.unwrap() > 5.0, "{r:?}");
+        // With whole objects reversed and none else, a reversed object's term is
+        // n (1 - rate) / rate and another's n rate / (1 - rate); summed over the
+        // objects they make rate N (1 - rate) / rate + (1 - rate) N rate / (1 - rate)
+        // = N, so the dispersion is exactly the detections per object.
+        let per_object = r.detections as f64 / r.objects as f64;
+        assert!((r.dispersion.unwrap() - per_object).abs() < 1e-9, "{r:?}: {per_object} detections per object");
         assert_eq!(r.persistence, Some(1.0), "{r:?}");
     }
     let (_, points) = models_and_data(ObservationKind::Points, 0, 2, 4, 0);
