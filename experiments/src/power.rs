@@ -102,7 +102,9 @@ fn true_magnitude(effect: &HiddenEffect) -> Option<(&'static str, f64)> {
         HiddenEffect::Clutter { fraction, .. } => Some(("fraction", fraction)),
         HiddenEffect::SizeBias { length_factor, .. } => Some(("length_factor", length_factor)),
         HiddenEffect::HeavyTailedAccel { ratio, .. } => Some(("sd_ratio", ratio)),
-        HiddenEffect::HeadingFlip { fraction } => Some(("fraction", fraction)),
+        HiddenEffect::HeadingFlip { fraction } | HiddenEffect::PersistentFlip { fraction, .. } => {
+            Some(("fraction", fraction))
+        }
         HiddenEffect::None | HiddenEffect::StudentTAccel { .. } | HiddenEffect::EgoPoseNoise { .. } => None,
     }
 }

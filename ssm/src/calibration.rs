@@ -453,19 +453,7 @@ impl ModelVisitor for SampleFromModel<'_> {
             }
             b.object(*object);
             let (scene, id) = (object.scene, object.id);
-            let drift = sampler.drift().map(|d| d.sample_path(states.len(), &mut rng));
-            let per_step: Vec<Vec<O::Item>> = states
-                .iter()
-                .enumerate()
-                .map(|(t, s)| {
-                    let mut items = Vec::new();
-                    match &drift {
-                        Some(path) => sampler.sample_drifted_observation(o, t, s, path[t], &mut rng, &mut items),
-                        None => sampler.sample_observation(o, t, s, &mut rng, &mut items),
-                    }
-                    items
-                })
-                .collect();
+            let per_step = sampler.sample_observations_along(o, &states, &mut rng);
             match O::to_observations(per_step) {
                 ObjectObservations::Points(steps) => {
                     for (t, pts) in steps.into_iter().enumerate() {

@@ -256,8 +256,16 @@ fn grid_log_marginals<P: GaussianPolicy, O: ExtensibleObservation>(
     let (n, dim) = (grid.len(), model.state_dim());
     let mut scratch = model.new_scratch();
     let (mut states, mut out) = (vec![0.0f32; dim * n], vec![0.0f32; n]);
-    for (k, column) in states.chunks_mut(n).enumerate().skip(STATE_DIM) {
+    let drift_dims = if model.drift().is_some() { DRIFT_DIMS } else { 0 };
+    for (k, column) in states.chunks_mut(n).enumerate().skip(STATE_DIM).take(drift_dims) {
         column.iter_mut().zip(&grid).for_each(|(x, g)| *x = g[k - STATE_DIM]);
+    }
+    // A persistent flip's indicator is marginalised over its stationary law,
+    // as independent flips are: the detection's density given the state alone
+    // (the filter's weight at the predictive probability q = p, the state's
+    // last component).
+    if let Some(chain) = model.flip_chain() {
+        states[(dim - 1) * n..].fill(chain.reversed_probability(None) as f32);
     }
     let mut steps = Vec::new();
     for object in 0..data.objects().len() {

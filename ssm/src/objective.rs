@@ -175,6 +175,11 @@ impl ModelVisitor for Estimate<'_> {
         if self.proposal.is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
             return Err("a filter proposal other than the transition works with PF-SEFI only".into());
         }
+        if model.flip_chain().is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
+            return Err("`persistent_flip` works with PF-SEFI only: the through-filter baselines would need its \
+                        chain's draws, which are discrete and not recorded in the actions"
+                .into());
+        }
         if model.drift().is_some() && !matches!(self.estimator, Estimator::PfSefi(_)) {
             return Err("a detector drift works with PF-SEFI only: the through-filter baselines would need its \
                         offsets' noise, which the actions do not record"

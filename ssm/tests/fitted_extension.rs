@@ -300,6 +300,38 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         for share in [drawn, from_noise] {
             assert!((share - 0.5).abs() < 0.03, "strength {strength}: {share} reversed, half expected");
         }
+        // Independent flips keep the prior's speeds of both signs; persistent
+        // flips fold them to |v| (the axial heading covers both directions of
+        // travel), and their indicator starts at the chain's fraction.
+        assert!(states[3 * n..4 * n].iter().any(|&v| v < 0.0), "heading_flip keeps negative speeds");
+        let chain = Extension::PersistentFlip;
+        let persistent = ExtendedSsm::new(&base, Some(chain), &chain.stored(&[0.25, 0.8]).unwrap()).unwrap();
+        assert!(persistent.axial_prior());
+        let dims = persistent.noise_dims().unwrap().prior;
+        assert_eq!(dims, 7, "the axial pick and the chain's indicator");
+        let mut chained = vec![0.0f32; 7 * n];
+        persistent.sample_prior(object, n, &mut rng, &mut chained);
+        let noise: Vec<f32> = (0..dims * n).map(|_| rng.sample::<f32, _>(rand_distr::StandardNormal)).collect();
+        let mut from_noise = vec![0.0f32; 7 * n];
+        persistent.prior_from_noise(object, n, &noise, &mut from_noise);
+        // The first detection is reversed against the label: a particle whose
+        // heading is the prior's (the detection's) has it reported as is, one
+        // turned by pi has it reversed, and the indicator is drawn from its
+        // posterior given that detection; its predictive probability is 0.25.
+        let detection_yaw = axial.boxes().unwrap().get(object, 0).unwrap().yaw;
+        for drawn in [&chained, &from_noise] {
+            assert!(drawn[3 * n..4 * n].iter().all(|&v| v >= 0.0), "persistent_flip starts driving forwards");
+            assert!((reversed_share(drawn) - 0.5).abs() < 0.03, "still axial");
+            let agree = (0..n)
+                .filter(|&i| {
+                    let turned = (f64::from(drawn[2 * n + i]) - detection_yaw).cos() < 0.0;
+                    (drawn[5 * n + i] > 0.5) == turned
+                })
+                .count() as f64
+                / n as f64;
+            assert!(agree > 0.95, "strength {strength}: indicator agrees with the heading on {agree}");
+            assert!(drawn[6 * n..].iter().all(|&q| (q - 0.25).abs() < 1e-6), "q_0 is the stationary fraction");
+        }
         // Not axial: the data's prior taken at its word, or another model.
         let plain_base = VehicleSsm::new(&taken_at_its_word, &models.policy, obs, &models.observation_params).unwrap();
         let plain = ExtendedSsm::new(&plain_base, Some(flip.extension), &flip.raw).unwrap();

@@ -473,3 +473,26 @@ fn generation_is_deterministic() {
         assert_eq!((a.scenes().len(), a.objects().len(), a.steps()), (8, 48, 16));
     }
 }
+
+/// The hidden `persistent_flip` reverses detections in runs: at two fractions
+/// and persistences, the reversed share is the chain's stationary fraction and
+/// the chance that a reversed detection follows a reversed one is
+/// `1 - (1 - p)(1 - lambda)` (measured by `metrics::heading_reversals`, which
+/// reads reversals against the labels), far above the rate.
+#[test]
+fn hidden_persistent_flips_come_in_runs_of_the_chains_persistence() {
+    use ssm::metrics::heading_reversals;
+    for (fraction, persistence, seed) in [(0.2, 0.8, 31), (0.1, 0.5, 32)] {
+        let effect = HiddenEffect::PersistentFlip { fraction, persistence };
+        let config = HiddenConfig { scenes: 24, ..HiddenConfig::quick(ObservationKind::Boxes, effect, seed) };
+        let r = heading_reversals(&generate_hidden(&config).unwrap()).expect("labelled detections");
+        let rate = r.reversed as f64 / r.detections as f64;
+        let after = r.persistence.expect("reversals follow reversals");
+        let want = 1.0 - (1.0 - fraction) * (1.0 - persistence);
+        assert!((rate - fraction).abs() < 0.04, "({fraction}, {persistence}): rate {rate}");
+        assert!((after - want).abs() < 0.08, "({fraction}, {persistence}): P(rev | rev) {after} against {want}");
+        assert!(r.dispersion.expect("objects") > 1.5, "overdispersed per object");
+    }
+    assert_eq!(HiddenEffect::by_id("persistent_flip").unwrap().id(), "persistent_flip");
+    assert!(HiddenEffect::PersistentFlip { fraction: 0.2, persistence: 1.0 }.validate().is_err());
+}

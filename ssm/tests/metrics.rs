@@ -555,3 +555,38 @@ fn heading_reversals_tell_independent_flips_from_persistent_ones() {
     let (_, points) = models_and_data(ObservationKind::Points, 0, 2, 4, 0);
     assert!(heading_reversals(&points).is_none());
 }
+
+/// A persistent flip's AOTLL is a detection's density given the state alone,
+/// its indicator marginalised over the chain's stationary law: exactly
+/// independent flips' at the same fraction, whatever the persistence (two
+/// fractions, two persistences, data with reversed headings).
+#[test]
+fn persistent_flips_have_the_aotll_of_independent_flips_at_their_fraction() {
+    use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
+    use ssm::metrics::models_aotll;
+    use ssm::models::extended::Extension;
+    use ssm::models::params::FittedExtension;
+    let effect = HiddenEffect::at_strength("heading_flip", 1.0).unwrap();
+    let data =
+        generate_hidden(&HiddenConfig { scenes: 3, ..HiddenConfig::quick(ObservationKind::Boxes, effect, 4) }).unwrap();
+    let policy = NeuralPolicy::new(&mut StdRng::seed_from_u64(4)).with_initial_sds(0.5, 0.02);
+    let models = Models::initial(ObservationKind::Boxes, AnyPolicy::Neural(policy), 5);
+    let base = models_aotll(&data, &models).mean.unwrap();
+    for fraction in [0.05, 0.2] {
+        let with = |extension: Extension, natural: &[f64]| {
+            let raw = extension.stored(natural).unwrap();
+            let mut m = models.clone();
+            m.extension = Some(FittedExtension { extension, raw });
+            models_aotll(&data, &m).mean.unwrap()
+        };
+        let independent = with(Extension::HeadingFlip, &[fraction]);
+        assert!(independent > base + 0.1, "flips explain the reversed detections: {independent} vs {base}");
+        for persistence in [0.3, 0.9] {
+            let persistent = with(Extension::PersistentFlip, &[fraction, persistence]);
+            assert!(
+                (persistent - independent).abs() < 1e-4 * independent.abs().max(1.0),
+                "fraction {fraction}, persistence {persistence}: {persistent} vs {independent}"
+            );
+        }
+    }
+}

@@ -210,3 +210,45 @@ fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_of_box_data_with_a_de
         drift.p
     );
 }
+
+/// Box detections whose headings are reversed in runs (`persistent_flip`: a
+/// per-object two-state chain of stationary fraction `fraction` and lag-one
+/// correlation `persistence`), on the scenes of the other box tests.
+fn persistently_flipped_box_data(seed: u64, fraction: f64, persistence: f64) -> (Dataset, ParamStore<f64>) {
+    use ssm::models::extended::Extension;
+    use ssm::models::params::FittedExtension;
+    let skeleton = box_skeleton(seed, 10, 12);
+    let policy = NeuralPolicy::new(&mut StdRng::seed_from_u64(seed)).with_initial_sds(0.5, 0.02);
+    let mut models = Models::initial(ObservationKind::Boxes, AnyPolicy::Neural(policy), seed + 1);
+    let extension = Extension::PersistentFlip;
+    let raw = extension.stored(&[fraction, persistence]).unwrap();
+    models.extension = Some(FittedExtension { extension, raw });
+    let store = models.to_store();
+    (sample_dataset(&skeleton, &store, seed).unwrap(), store)
+}
+
+#[test]
+fn pf_sefi_on_the_tempered_filter_is_unbiased_at_the_truth_of_box_data_with_persistent_flips() {
+    let name = ssm::models::extended::Extension::PersistentFlip.param_name();
+    // 1024 particles: at 256, seed 14 of (0.15, 0.7) put a box-network bias at
+    // |z| 4.1 (passing at 1024), where the chain's own tensor stayed centred.
+    let config = EstimatorConfig::new(Sampling::new(1024, Some(Tempering::default())));
+    for (seed, fraction, persistence) in [(11, 0.15, 0.7), (12, 0.3, 0.4)] {
+        let (data, truth) = persistently_flipped_box_data(seed, fraction, persistence);
+        let s = score_at(&data, &truth, &Estimator::pf_sefi(8), &config, 3, 0, &|| ()).unwrap();
+        let chain = s.tensors.iter().find(|t| t.name == name).expect("the chain is scored");
+        eprintln!("seed {seed}: chain z {:?}", chain.entries.iter().map(|e| e.z).collect::<Vec<_>>());
+        assert_centred(&s, &format!("boxes with persistent flips ({fraction}, {persistence})"));
+    }
+    // The test has power: told the flips are independent (persistence near 0),
+    // the score pulls the persistence up.
+    let (data, truth) = persistently_flipped_box_data(11, 0.15, 0.7);
+    let mut wrong = truth.clone();
+    let id = wrong.id(&name).unwrap();
+    wrong.get_mut(id).data_mut()[1] =
+        ssm::models::extended::Extension::PersistentFlip.stored(&[0.15, 0.02]).unwrap()[1];
+    let s = score_at(&data, &wrong, &Estimator::pf_sefi(8), &config, 3, 0, &|| ()).unwrap();
+    let chain = s.tensors.iter().find(|t| t.name == name).unwrap();
+    let z: Vec<f64> = chain.entries.iter().map(|e| e.z).collect();
+    assert!(chain.p < P_FLOOR && z[1] > 2.0, "chain z at persistence 0.02 against 0.7: {z:?} (p {:.2e})", chain.p);
+}

@@ -53,6 +53,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
 use crate::models::extended::lagged_pose;
+use crate::models::flip_chain::FlipChain;
 use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::edges::sample_laplace;
 use crate::models::observation::{ObsContext, PointGenerator};
@@ -67,7 +68,7 @@ use crate::synthetic::{
 /// effects that no catalogue extension models (`student_t_accel`, another tail
 /// family than the catalogue's, is meant to be named `heavy_tailed_accel`;
 /// `ego_pose_noise` is meant to be named by none).
-pub const HIDDEN_EFFECT_IDS: [&str; 8] = [
+pub const HIDDEN_EFFECT_IDS: [&str; 9] = [
     "none",
     "latency",
     "clutter",
@@ -75,8 +76,14 @@ pub const HIDDEN_EFFECT_IDS: [&str; 8] = [
     "heavy_tailed_accel",
     "student_t_accel",
     "heading_flip",
+    "persistent_flip",
     "ego_pose_noise",
 ];
+
+/// Lag-one correlation of the hidden `persistent_flip` at every strength (runs
+/// of reversed detections last `1 / ((1 - p) 0.2)` steps on average, about 6 at
+/// the default fraction).
+pub const HIDDEN_FLIP_PERSISTENCE: f64 = 0.8;
 
 /// Range of the objects' prior mean positions from the AV (m): nearer than the
 /// paper's 5–50 m, so that every object receives plenty of points.
@@ -143,6 +150,16 @@ pub enum HiddenEffect {
         /// Probability that a detection is flipped (in `[0, 1]`).
         fraction: f64,
     },
+    /// Detections' yaws reversed by pi in runs: whether an object's detection
+    /// at `t` is reversed follows a stationary two-state Markov chain per object
+    /// ([`crate::models::flip_chain::FlipChain`]) with reversed fraction
+    /// `fraction` and lag-one correlation `persistence` (box data only).
+    PersistentFlip {
+        /// Stationary fraction of reversed detections (in `[0, 1]`).
+        fraction: f64,
+        /// Lag-one correlation of the reversals (in `[0, 1)`).
+        persistence: f64,
+    },
     /// An effect outside the catalogue: the observer's own pose is noisy. At each
     /// step of a scene the sensor sits at the stated AV pose moved by Gaussian
     /// errors (`position_sd` in x and y, `yaw_sd` in heading), and every object's
@@ -190,6 +207,7 @@ impl HiddenEffect {
             HiddenEffect::HeavyTailedAccel { .. } => "heavy_tailed_accel",
             HiddenEffect::StudentTAccel { .. } => "student_t_accel",
             HiddenEffect::HeadingFlip { .. } => "heading_flip",
+            HiddenEffect::PersistentFlip { .. } => "persistent_flip",
             HiddenEffect::EgoPoseNoise { .. } => "ego_pose_noise",
         }
     }
@@ -219,7 +237,8 @@ impl HiddenEffect {
     /// strength (equal [`HiddenEffect::kl_per_innovation`]: about 2.56, 2.19 and 2.06
     /// degrees of freedom at 0.5, 1 and 2), so that the two tail families are
     /// compared at the same size; a flip
-    /// fraction of `0.2` times it (at most 0.5); the observer's pose off by `0.2 m`
+    /// fraction of `0.2` times it (at most 0.5), independent or in runs of
+    /// persistence [`HIDDEN_FLIP_PERSISTENCE`]; the observer's pose off by `0.2 m`
     /// and `0.02 rad` (sds) times it (0.4 m at 20 m from the AV). Fails for an
     /// unknown id or a strength that is not positive and finite.
     ///
@@ -246,6 +265,9 @@ impl HiddenEffect {
                 HiddenEffect::StudentTAccel { dof: student_t_dof_with_kl(target) }
             }
             "heading_flip" => HiddenEffect::HeadingFlip { fraction: (0.2 * s).min(0.5) },
+            "persistent_flip" => {
+                HiddenEffect::PersistentFlip { fraction: (0.2 * s).min(0.5), persistence: HIDDEN_FLIP_PERSISTENCE }
+            }
             "ego_pose_noise" => HiddenEffect::EgoPoseNoise { position_sd: 0.2 * s, yaw_sd: 0.02 * s },
             _ => {
                 return Err(config_err(format!(
@@ -265,7 +287,7 @@ impl HiddenEffect {
             | HiddenEffect::StudentTAccel { .. }
             | HiddenEffect::EgoPoseNoise { .. } => None,
             HiddenEffect::Clutter { .. } | HiddenEffect::SizeBias { .. } => Some(ObservationKind::Points),
-            HiddenEffect::HeadingFlip { .. } => Some(ObservationKind::Boxes),
+            HiddenEffect::HeadingFlip { .. } | HiddenEffect::PersistentFlip { .. } => Some(ObservationKind::Boxes),
         }
     }
 
@@ -301,6 +323,14 @@ impl HiddenEffect {
                 }
             }
             HiddenEffect::HeadingFlip { fraction } => check_fraction("heading_flip: fraction", fraction),
+            HiddenEffect::PersistentFlip { fraction, persistence } => {
+                check_fraction("persistent_flip: fraction", fraction)?;
+                if (0.0..1.0).contains(&persistence) {
+                    Ok(())
+                } else {
+                    Err(config_err(format!("persistent_flip: persistence must be in [0, 1), got {persistence}")))
+                }
+            }
             HiddenEffect::EgoPoseNoise { position_sd, yaw_sd } => {
                 for (what, v) in [("position_sd", position_sd), ("yaw_sd", yaw_sd)] {
                     if !(v.is_finite() && v >= 0.0) {
@@ -711,8 +741,17 @@ fn simulate_hidden_scene(
                 scene.points.push(per_step.collect());
             }
             ObservationKind::Boxes => {
+                let runs = match config.effect {
+                    HiddenEffect::PersistentFlip { fraction, persistence } => {
+                        FlipChain { fraction, persistence }.sample_path(states.len(), rng)
+                    }
+                    _ => Vec::new(),
+                };
                 let per_step = states.iter().enumerate().map(|(t, x)| {
                     let mut d = hidden_box(&boxes, config.effect, &ctx_of(t), x, rng);
+                    if let (true, Some(d)) = (runs.get(t).copied().unwrap_or(false), d.as_mut()) {
+                        d.yaw = reversed_heading(d.yaw);
+                    }
                     if let (Some(e), Some(d)) = (ego.get(t), d.as_mut()) {
                         [d.x, d.y] = e.recorded(scene.av[t], [d.x, d.y]);
                         d.yaw = wrap_angle(d.yaw - e.yaw);

@@ -167,16 +167,23 @@ fn surrogate_gradient<M: DifferentiableModel, F: Float>(
     rows: &AncestorRows,
 ) -> Vec<Tensor<F>> {
     let params = model.bind(tape);
-    // Row ranges of the blocks with a used observation, and of those at t >= 1.
+    // Row ranges of the blocks with a used observation, of those at t >= 1 and
+    // of those at t = 0 (the prior's term, for a model whose prior has one).
     let mut obs_blocks = Vec::new();
     let mut obs_ranges = Vec::new();
     let mut trans_blocks = Vec::new();
     let mut trans_ranges = Vec::new();
+    let mut prior_blocks = Vec::new();
+    let mut prior_ranges = Vec::new();
     let mut start = 0;
     for b in &rows.blocks {
         if b.len > 0 && rows.used[b.t] {
             obs_blocks.push(*b);
             obs_ranges.push((start, b.len));
+        }
+        if b.t == 0 && b.len > 0 {
+            prior_blocks.push(*b);
+            prior_ranges.push((start, b.len));
         }
         if b.t > 0 && b.len > 0 {
             trans_blocks.push(*b);
@@ -189,6 +196,13 @@ fn surrogate_gradient<M: DifferentiableModel, F: Float>(
         let states = gather_columns(tape, &rows.states, &obs_ranges);
         let w = gather_weights(tape, &rows.weights, &obs_ranges);
         terms.push((model.observation_log_density(&params, &obs_blocks, &states) * w).sum());
+    }
+    if !prior_blocks.is_empty() {
+        let states = gather_columns(tape, &rows.states, &prior_ranges);
+        if let Some(prior) = model.prior_log_density(&params, &prior_blocks, &states) {
+            let w = gather_weights(tape, &rows.weights, &prior_ranges);
+            terms.push((prior * w).sum());
+        }
     }
     if !trans_blocks.is_empty() {
         let states = gather_columns(tape, &rows.states, &trans_ranges);

@@ -9,13 +9,18 @@
 //! | `size_bias` | the true extents are the given ones times learnable factors | length and width factors |
 //! | `heavy_tailed_accel` | the acceleration's innovation is a unit-variance scale mixture of two normals | fraction, sd ratio |
 //! | `heading_flip` | a fraction of detections report the heading reversed by pi | fraction |
+//! | `persistent_flip` | the same, in runs: a per-object two-state Markov chain ([`FlipChain`]) | fraction, persistence |
 //!
 //! [`ExtendedSsm`] wraps a [`VehicleSsm`] with at most one extension: it is a
 //! [`ParticleModel`] (the filter), a [`DifferentiableModel`] (the estimators) and
 //! a simulator of replicated observations and actions (the checks). With no
 //! extension it is the base model, value for value.
 //!
-//! `heading_flip` also changes the prior where the data's priors were read from
+//! `persistent_flip` puts the chain's indicator in the state, after the drift's
+//! offsets (if any); its prior is the chain's stationary law, whose score
+//! [`DifferentiableModel::prior_log_density`] gives.
+//!
+//! `heading_flip` (and `persistent_flip`) also changes the prior where the data's priors were read from
 //! each object's first detection ([`crate::data::Meta::prior_from_detection`],
 //! KITTI's import): a model that says a detection's heading may be reversed
 //! cannot take the prior built from one at its word, so `x_0`'s heading is the
@@ -55,6 +60,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
 use crate::models::drift::{DetectorDrift, DriftVars, DRIFT_DIMS, DRIFT_PARAM};
+use crate::models::flip_chain::{is_reversed, FlipChain, FlipChainVars};
 use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::points::Clutter;
 use crate::models::observation::{
@@ -89,7 +95,7 @@ pub fn lagged_pose(state: &State, delay: f64) -> Pose {
 pub const EXTENSION_PREFIX: &str = "ext";
 
 /// Stored logits are multiplied by this: a fraction is `sigmoid(LOGIT_SCALE r)`.
-const LOGIT_SCALE: f64 = 8.0;
+pub(crate) const LOGIT_SCALE: f64 = 8.0;
 /// Stored log-scales are multiplied by this: a positive quantity is `exp(LOG_SCALE r)`.
 const LOG_SCALE: f64 = 2.0;
 /// A delay is `softplus(DELAY_SHARPNESS r) / DELAY_SHARPNESS` seconds: never
@@ -102,6 +108,12 @@ const INITIAL_DELAY: f64 = 0.01;
 const MAX_INITIAL_DELAY: f64 = 1.0;
 /// Initial fraction of the mixture components (clutter, heavy tails, flips).
 const INITIAL_FRACTION: f64 = 0.02;
+/// Initial persistence of `persistent_flip`: halfway between independent flips
+/// (0) and a flip that stays for the whole track (1), a stated rule.
+const INITIAL_PERSISTENCE: f64 = 0.5;
+/// Least persistence for `persistent_flip` to be a material change over
+/// independent flips (`heading_flip`, persistence 0).
+const MATERIAL_PERSISTENCE: f64 = 0.1;
 /// Initial sd of the clutter Gaussian (m).
 const INITIAL_CLUTTER_SD: f64 = 2.0;
 /// Initial sd ratio of the heavy-tailed acceleration component when no check
@@ -133,19 +145,25 @@ pub enum Extension {
     HeavyTailedAccel,
     /// A learnable fraction of detections have their heading reversed (boxes only).
     HeadingFlip,
+    /// The same in runs: whether a detection is reversed follows a per-object
+    /// two-state Markov chain with a learnable fraction and persistence
+    /// ([`FlipChain`]; boxes only).
+    PersistentFlip,
 }
 
 impl Extension {
     /// The whole catalogue, in a fixed order.
-    pub const ALL: [Extension; 5] = [
+    pub const ALL: [Extension; 6] = [
         Extension::Latency,
         Extension::Clutter,
         Extension::SizeBias,
         Extension::HeavyTailedAccel,
         Extension::HeadingFlip,
+        Extension::PersistentFlip,
     ];
 
-    /// The catalogue id (`latency`, `clutter`, `size_bias`, `heavy_tailed_accel`, `heading_flip`).
+    /// The catalogue id (`latency`, `clutter`, `size_bias`, `heavy_tailed_accel`,
+    /// `heading_flip`, `persistent_flip`).
     pub fn id(self) -> &'static str {
         match self {
             Extension::Latency => "latency",
@@ -153,7 +171,16 @@ impl Extension {
             Extension::SizeBias => "size_bias",
             Extension::HeavyTailedAccel => "heavy_tailed_accel",
             Extension::HeadingFlip => "heading_flip",
+            Extension::PersistentFlip => "persistent_flip",
         }
+    }
+
+    /// Whether `sefi diagnose` fits it as a candidate: every entry but
+    /// `persistent_flip`, whose refit in a quick diagnosis was measured to fit
+    /// worse than `heading_flip`'s even on data with persistent flips (README,
+    /// "Persistent flips"); fit it with `sefi train --extension`.
+    pub fn is_diagnosed(self) -> bool {
+        self != Extension::PersistentFlip
     }
 
     /// The extension with catalogue id `id`.
@@ -169,7 +196,7 @@ impl Extension {
         match self {
             Extension::Latency | Extension::HeavyTailedAccel => true,
             Extension::Clutter | Extension::SizeBias => kind == ObservationKind::Points,
-            Extension::HeadingFlip => kind == ObservationKind::Boxes,
+            Extension::HeadingFlip | Extension::PersistentFlip => kind == ObservationKind::Boxes,
         }
     }
 
@@ -194,6 +221,7 @@ impl Extension {
             Extension::SizeBias => vec![0.0, 0.0],
             Extension::HeavyTailedAccel => vec![logit(INITIAL_FRACTION), log(INITIAL_TAIL_RATIO - 1.0)],
             Extension::HeadingFlip => vec![logit(INITIAL_FRACTION)],
+            Extension::PersistentFlip => vec![logit(INITIAL_FRACTION), logit(INITIAL_PERSISTENCE)],
         })
     }
 
@@ -217,8 +245,12 @@ impl Extension {
                 }
                 _ => self.initial(),
             },
-            Extension::HeadingFlip => match find("yaw_reversal_fraction") {
-                Some(excess) if excess > INITIAL_FRACTION => Tensor::from_vec(vec![logit(excess.min(0.5))]),
+            Extension::HeadingFlip | Extension::PersistentFlip => match find("yaw_reversal_fraction") {
+                Some(excess) if excess > INITIAL_FRACTION => {
+                    let mut raw = self.initial().data().to_vec();
+                    raw[0] = logit(excess.min(0.5));
+                    Tensor::from_vec(raw)
+                }
                 _ => self.initial(),
             },
             Extension::HeavyTailedAccel => {
@@ -258,6 +290,9 @@ impl Extension {
                 vec![("fraction", fraction(raw[0]), ""), ("sd_ratio", 1.0 + positive(raw[1]), "")]
             }
             Extension::HeadingFlip => vec![("fraction", fraction(raw[0]), "")],
+            Extension::PersistentFlip => {
+                vec![("fraction", fraction(raw[0]), ""), ("persistence", fraction(raw[1]), "")]
+            }
         })
     }
 
@@ -279,6 +314,7 @@ impl Extension {
                 Extension::SizeBias => Some(vec![log(natural[0])?, log(natural[1])?]),
                 Extension::HeavyTailedAccel => Some(vec![logit(natural[0])?, log(natural[1] - 1.0)?]),
                 Extension::HeadingFlip => Some(vec![logit(natural[0])?]),
+                Extension::PersistentFlip => Some(vec![logit(natural[0])?, logit(natural[1])?]),
             })
             .flatten();
         raw.ok_or_else(|| ModelError::ExtensionValues { param: self.param_name(), expected, got: natural.to_vec() })
@@ -286,8 +322,9 @@ impl Extension {
 
     /// Whether stored values `raw` make a material change to the base model: a
     /// delay of at least 30 ms, a mixture fraction of at least 3% (above the 2%
-    /// start) with, for heavy tails, an sd ratio of at least 2, or an extent off by
-    /// at least 3%. An extension that stayed at its start cannot be a cause,
+    /// start) with, for heavy tails, an sd ratio of at least 2 and, for
+    /// persistent flips, a persistence of at least 0.1 (else they are
+    /// `heading_flip`'s independent ones), or an extent off by at least 3%. An extension that stayed at its start cannot be a cause,
     /// whatever the held-out comparison says (two fits differ a little anyway).
     pub fn is_material(self, raw: &[f64]) -> Result<bool, ModelError> {
         let v: Vec<f64> = self.natural(raw)?.iter().map(|p| p.1).collect();
@@ -296,6 +333,7 @@ impl Extension {
             Extension::Clutter | Extension::HeadingFlip => v[0] >= 0.03,
             Extension::SizeBias => v.iter().any(|f| (f - 1.0).abs() >= 0.03),
             Extension::HeavyTailedAccel => v[0] >= 0.03 && v[1] >= 2.0,
+            Extension::PersistentFlip => v[0] >= 0.03 && v[1] >= MATERIAL_PERSISTENCE,
         })
     }
 
@@ -320,6 +358,17 @@ impl Extension {
                 mixture_excess_kurtosis(v[0], v[1])
             ),
             Extension::HeadingFlip => format!("{:.1}% of detections report the heading reversed", 100.0 * v[0]),
+            Extension::PersistentFlip => {
+                let chain = FlipChain { fraction: v[0], persistence: v[1] };
+                format!(
+                    "{:.1}% of detections report the heading reversed, in runs (persistence {:.2}: a reversed \
+                     detection is followed by another with probability {:.2}, {:.1} steps in a row on average)",
+                    100.0 * v[0],
+                    v[1],
+                    chain.reversed_probability(Some(true)),
+                    chain.mean_run()
+                )
+            }
         })
     }
 }
@@ -508,6 +557,7 @@ enum Active {
     SizeBias { length: f64, width: f64 },
     HeavyTailedAccel { fraction: f64, ratio: f64 },
     HeadingFlip { fraction: f64 },
+    PersistentFlip(FlipChain),
 }
 
 /// The base vehicle model with at most one catalogue extension. See the
@@ -581,6 +631,14 @@ pub struct ExtendedScratch<I> {
     seen_yaw: Vec<f32>,
     /// Standard-normal noise of the drift's transition.
     drift_noise: Vec<f32>,
+    /// Standard-normal noise of a flip chain's transition.
+    flip_noise: Vec<f32>,
+    /// Each particle's probability that its indicator is set, given `y_t`.
+    flip_posterior: Vec<f64>,
+    /// Log-likelihoods of the detection as reported (with `other`: reversed).
+    kept: Vec<f32>,
+    /// The flips' weights while a chain's indicators are drawn.
+    marginal: Vec<f32>,
 }
 
 impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P, O> {
@@ -605,6 +663,9 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
                     Extension::SizeBias => Active::SizeBias { length: v[0], width: v[1] },
                     Extension::HeavyTailedAccel => Active::HeavyTailedAccel { fraction: v[0], ratio: v[1] },
                     Extension::HeadingFlip => Active::HeadingFlip { fraction: v[0] },
+                    Extension::PersistentFlip => {
+                        Active::PersistentFlip(FlipChain { fraction: v[0], persistence: v[1] })
+                    }
                 }
             }
         };
@@ -641,6 +702,52 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         } else {
             0
         }
+    }
+
+    /// The chain of `persistent_flip`, if that is the extension.
+    pub fn flip_chain(&self) -> Option<FlipChain> {
+        match self.active {
+            Active::PersistentFlip(chain) => Some(chain),
+            _ => None,
+        }
+    }
+
+    /// Components the flip chain appends to the state, after the drift's: its
+    /// indicator `b_t` and the probability `q_t = P(b_t = 1 | b_{t-1})` it was
+    /// predicted with (2 with a chain, else 0). The filters weight a particle
+    /// by the marginal over the indicator, `(1 - q_t) g(y_t | x_t) + q_t g(y_t |
+    /// x_t, reversed)`, and draw `b_t` from its posterior given `y_t`
+    /// ([`Self::draw_flips`]): every particle can take a reversed detection, as
+    /// under `heading_flip`, while the path keeps the indicator the score needs.
+    fn flip_dims(&self) -> usize {
+        2 * usize::from(self.flip_chain().is_some())
+    }
+
+    /// Under `persistent_flip` with an axial prior, `x_0`'s speed is folded to
+    /// `|v|` (and its curvature's sign turned with it, so the path's turn is
+    /// kept): the axial heading already covers both directions of travel, and
+    /// a car that drives backwards with every detection reversed — the mirror
+    /// of one driving forwards — would otherwise cost the chain only `ln p`
+    /// once, so detections could not identify its fraction (README,
+    /// "Persistent flips"). Independent flips pay the mirror per detection
+    /// and keep the prior as it is. No-op otherwise.
+    fn fold_speeds(&self, n: usize, states: &mut [f32]) {
+        if self.flip_chain().is_none() {
+            return;
+        }
+        let (v, kappa) = (3, 4);
+        for i in 0..n {
+            if states[v * n + i] < 0.0 {
+                states[v * n + i] = -states[v * n + i];
+                states[kappa * n + i] = -states[kappa * n + i];
+            }
+        }
+    }
+
+    /// The state component of the flip chain's indicator `b_t` (with a chain);
+    /// its predictive probability `q_t` is the next one.
+    fn flip_dim(&self) -> usize {
+        STATE_DIM + self.drift_dims()
     }
 
     /// `base` extended by `extension`, reading its parameter from `store` (the
@@ -709,7 +816,8 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// Whether `x_0`'s heading is axial: `heading_flip` on data whose priors were
     /// read from a detection (module docs).
     pub fn axial_prior(&self) -> bool {
-        matches!(self.active, Active::HeadingFlip { .. }) && self.data().meta().prior_from_detection
+        matches!(self.active, Active::HeadingFlip { .. } | Active::PersistentFlip(_))
+            && self.data().meta().prior_from_detection
     }
 
     /// Draws an action at `state` from the policy (with the extension's heavy
@@ -782,6 +890,31 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
             _ => Pose { x: state.x, y: state.y, yaw: state.yaw },
         };
         self.sample_observation_of_pose(object, t, pose, rng, out);
+    }
+
+    /// A replicate of every observation of `object` along the path `states`
+    /// (one state per step from `t = 0`): the detector's own processes — a
+    /// drift's offsets, a persistent flip's chain — drawn afresh from their
+    /// laws, then each step's observation as [`Self::sample_observation`] draws
+    /// it (through the drift, reversed where the chain says so).
+    pub fn sample_observations_along(&self, object: usize, states: &[State], rng: &mut SmallRng) -> Vec<Vec<O::Item>> {
+        let drift = self.drift().map(|d| d.sample_path(states.len(), rng));
+        let flips = self.flip_chain().map(|c| c.sample_path(states.len(), rng));
+        states
+            .iter()
+            .enumerate()
+            .map(|(t, s)| {
+                let mut items = Vec::new();
+                match &drift {
+                    Some(path) => self.sample_drifted_observation(object, t, s, path[t], rng, &mut items),
+                    None => self.sample_observation(object, t, s, rng, &mut items),
+                }
+                if flips.as_ref().is_some_and(|f| f[t]) {
+                    items.iter_mut().for_each(|item| *item = O::reverse_heading(item));
+                }
+                items
+            })
+            .collect()
     }
 
     /// [`Self::sample_observation`] through the drift's standardised offsets
@@ -876,6 +1009,111 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         self.drift_from_noise(n, prev, noise, next);
     }
 
+    /// The flip chain's components at `at.t` for `n` particles whose vehicle
+    /// (and drift) components `states` already hold: the predictive probability
+    /// `q = P(b_t = 1 | b_{t-1})` (from `prev`'s indicators; `None` at `t = 0`:
+    /// the stationary fraction), then the indicator drawn from standard-normal
+    /// `z` by its posterior given the observation at `t`,
+    /// `q g(y | x, reversed) / ((1 - q) g(y | x) + q g(y | x, reversed))` (`q`
+    /// without one). Weighted by that denominator
+    /// ([`ParticleModel::observation_loglik`]), the particles target the model's
+    /// posterior over both. No-op without a chain.
+    fn draw_flips(
+        &self,
+        at: Batch,
+        prev: Option<&[f32]>,
+        z: &[f32],
+        states: &mut [f32],
+        scratch: &mut ExtendedScratch<O::Item>,
+    ) {
+        let Some(chain) = self.flip_chain() else { return };
+        let n = at.n;
+        let (kb, kq) = (self.flip_dim(), self.flip_dim() + 1);
+        for i in 0..n {
+            let before = prev.map(|p| is_reversed(p[kb * n + i]));
+            states[kq * n + i] = chain.reversed_probability(before) as f32;
+        }
+        let mut posterior = std::mem::take(&mut scratch.flip_posterior);
+        posterior.clear();
+        posterior.extend(states[kq * n..(kq + 1) * n].iter().map(|&q| f64::from(q)));
+        let mut marginal = std::mem::take(&mut scratch.marginal);
+        marginal.resize(n, 0.0);
+        // The weight leaves each particle's densities as reported and reversed
+        // in the scratch.
+        if self.observation_loglik(at, states, &mut marginal, scratch) {
+            for ((post, &kept), &reversed) in posterior.iter_mut().zip(&scratch.kept).zip(&scratch.other) {
+                let log_odds = post.ln() - (1.0 - *post).ln() + f64::from(reversed) - f64::from(kept);
+                *post = if log_odds.is_nan() { *post } else { 1.0 / (1.0 + (-log_odds).exp()) };
+            }
+        }
+        for ((b, &post), &z) in states[kb * n..(kb + 1) * n].iter_mut().zip(&posterior).zip(z) {
+            *b = f32::from(u8::from(normal_cdf(f64::from(z)) < post));
+        }
+        scratch.flip_posterior = posterior;
+        scratch.marginal = marginal;
+    }
+
+    /// [`ParticleModel::propagate_from_noise`] without a flip chain's
+    /// component (its noise `z` stops before the chain's).
+    fn propagate_unchained_from_noise(
+        &self,
+        at: Batch,
+        prev: &[f32],
+        z: &[f32],
+        to: Drawn<'_>,
+        scratch: &mut ExtendedScratch<O::Item>,
+    ) {
+        let n = at.n;
+        let (z, drift_z) = z.split_at(z.len() - self.drift_dims() * n);
+        self.drift_from_noise(n, prev, drift_z, to.next);
+        let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
+            return self.base.propagate_from_noise(at, prev, z, to, &mut scratch.base);
+        };
+        let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
+        let (narrow, wide) = (core as f32, (ratio * core) as f32);
+        let (z_accel, rest) = z.split_at(n);
+        let (z_pinch, z_pick) = rest.split_at(n);
+        let eps = &mut scratch.accel_eps;
+        eps.clear();
+        eps.extend(z_accel.iter().zip(&z_pick[..n]).map(|(&z, &pick)| {
+            let scale = if normal_cdf(pick as f64) < fraction { wide } else { narrow };
+            scale * z
+        }));
+        self.base.propagate_with_innovations(n, prev, [eps, &z_pinch[..n]], to, &mut scratch.base);
+    }
+
+    /// [`ParticleModel::propagate`] without a flip chain's component.
+    fn propagate_unchained(
+        &self,
+        at: Batch,
+        prev: &[f32],
+        to: Drawn<'_>,
+        rng: &mut SmallRng,
+        scratch: &mut ExtendedScratch<O::Item>,
+    ) {
+        self.propagate_drift(at.n, prev, to.next, rng, &mut scratch.drift_noise);
+        if !matches!(self.active, Active::HeavyTailedAccel { .. }) && self.defensive.is_none() {
+            return self.base.propagate(at, prev, to, rng, &mut scratch.base);
+        }
+        let innovations = &mut scratch.innovations;
+        innovations.clear();
+        let wide = self.defensive.map_or((0.0, 1.0), |d| (d.fraction, d.widening));
+        self.base.propagate_by(at.n, prev, to, &mut scratch.base.gaussians, |g, actions| {
+            g.sample_with(rng, actions, |rng| {
+                let z = if wide.0 > 0.0 && rng.random::<f64>() < wide.0 {
+                    let mut normal = || wide.1 * rng.sample::<f64, _>(StandardNormal);
+                    [normal(), normal()]
+                } else {
+                    [self.accel_innovation(rng), rng.sample(StandardNormal)]
+                };
+                if wide.0 > 0.0 {
+                    innovations.push(z); // for the proposal's weights
+                }
+                z
+            })
+        });
+    }
+
     /// The drift's offsets at `t` from those at `t - 1` (in `prev`'s and
     /// `next`'s drift dimensions) and standard-normal noise `e` (no-op without
     /// drift).
@@ -932,11 +1170,15 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
             seen_y: Vec::new(),
             seen_yaw: Vec::new(),
             drift_noise: Vec::new(),
+            flip_noise: Vec::new(),
+            flip_posterior: Vec::new(),
+            kept: Vec::new(),
+            marginal: Vec::new(),
         }
     }
 
     fn state_dim(&self) -> usize {
-        self.base.state_dim() + self.drift_dims()
+        self.base.state_dim() + self.drift_dims() + self.flip_dims()
     }
 
     fn action_dim(&self) -> usize {
@@ -963,81 +1205,77 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         self.base.sample_prior(object, n, rng, states);
         if self.axial_prior() {
             reverse_headings(&mut states[YAW * n..(YAW + 1) * n], std::iter::repeat_with(|| rng.random::<bool>()));
+            self.fold_speeds(n, states);
         }
         // The drift's standardised offsets start in their stationary law, N(0, 1).
         let drift = STATE_DIM * n..(STATE_DIM + self.drift_dims()) * n;
         states[drift].iter_mut().for_each(|u| *u = rng.sample(StandardNormal));
+        // A persistent flip's indicator: from the stationary law, given y_0.
+        if self.flip_chain().is_some() {
+            let z: Vec<f32> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
+            let mut scratch = self.new_scratch();
+            self.draw_flips(Batch { object, t: 0, n }, None, &z, states, &mut scratch);
+        }
     }
 
     /// The base model's noise; heavy-tailed accelerations add a third transition
     /// component whose normal CDF picks the mixture's wide component, an axial
     /// prior a last prior component whose sign picks the direction; a drift
     /// puts its offsets' noise after all of those, in the prior's noise and in
-    /// the transition's. The noise form draws from the transition: a defensive
+    /// the transition's, and a persistent flip one component after that, whose
+    /// normal CDF picks the chain's next indicator ([`FlipChain::from_noise`]).
+    /// The noise form draws from the transition: a defensive
     /// proposal does not apply to it.
     fn noise_dims(&self) -> Option<NoiseDims> {
         let base = self.base.noise_dims()?;
         let extra = usize::from(matches!(self.active, Active::HeavyTailedAccel { .. }));
         let drift = self.drift_dims();
+        let chain = usize::from(self.flip_chain().is_some());
         Some(NoiseDims {
-            prior: base.prior + usize::from(self.axial_prior()) + drift,
-            transition: base.transition + extra + drift,
+            prior: base.prior + usize::from(self.axial_prior()) + drift + chain,
+            transition: base.transition + extra + drift + chain,
         })
     }
 
     fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+        let chain_noise = usize::from(self.flip_chain().is_some()) * n;
+        let (noise, flip_z) = noise.split_at(noise.len() - chain_noise);
         let (noise, drift) = noise.split_at(noise.len() - self.drift_dims() * n);
         states[STATE_DIM * n..(STATE_DIM + self.drift_dims()) * n].copy_from_slice(drift);
-        if !self.axial_prior() {
-            return self.base.prior_from_noise(object, n, noise, states);
+        if self.axial_prior() {
+            let (base, pick) = noise.split_at(noise.len() - n);
+            self.base.prior_from_noise(object, n, base, states);
+            reverse_headings(&mut states[YAW * n..(YAW + 1) * n], pick.iter().map(|&z| z < 0.0));
+            self.fold_speeds(n, states);
+        } else {
+            self.base.prior_from_noise(object, n, noise, states);
         }
-        let (base, pick) = noise.split_at(noise.len() - n);
-        self.base.prior_from_noise(object, n, base, states);
-        reverse_headings(&mut states[YAW * n..(YAW + 1) * n], pick.iter().map(|&z| z < 0.0));
+        if chain_noise > 0 {
+            // x_0's indicator, given y_0 (a scratch for the observation's terms).
+            let mut scratch = self.new_scratch();
+            self.draw_flips(Batch { object, t: 0, n }, None, flip_z, states, &mut scratch);
+        }
     }
 
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
-        let n = at.n;
-        let (z, drift_z) = z.split_at(z.len() - self.drift_dims() * n);
-        self.drift_from_noise(n, prev, drift_z, to.next);
-        let Active::HeavyTailedAccel { fraction, ratio } = self.active else {
-            return self.base.propagate_from_noise(at, prev, z, to, &mut scratch.base);
-        };
-        let core = 1.0 / (1.0 + fraction * (ratio * ratio - 1.0)).sqrt();
-        let (narrow, wide) = (core as f32, (ratio * core) as f32);
-        let (z_accel, rest) = z.split_at(n);
-        let (z_pinch, z_pick) = rest.split_at(n);
-        let eps = &mut scratch.accel_eps;
-        eps.clear();
-        eps.extend(z_accel.iter().zip(&z_pick[..n]).map(|(&z, &pick)| {
-            let scale = if normal_cdf(pick as f64) < fraction { wide } else { narrow };
-            scale * z
-        }));
-        self.base.propagate_with_innovations(n, prev, [eps, &z_pinch[..n]], to, &mut scratch.base);
+        let chain_noise = usize::from(self.flip_chain().is_some()) * at.n;
+        let (z, flip_z) = z.split_at(z.len() - chain_noise);
+        let mut to = to;
+        self.propagate_unchained_from_noise(at, prev, z, to.reborrow(), scratch);
+        self.draw_flips(at, Some(prev), flip_z, to.next, scratch);
     }
 
     fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut Self::Scratch) {
-        self.propagate_drift(at.n, prev, to.next, rng, &mut scratch.drift_noise);
-        if !matches!(self.active, Active::HeavyTailedAccel { .. }) && self.defensive.is_none() {
-            return self.base.propagate(at, prev, to, rng, &mut scratch.base);
+        if self.flip_chain().is_none() {
+            return self.propagate_unchained(at, prev, to, rng, scratch);
         }
-        let innovations = &mut scratch.innovations;
-        innovations.clear();
-        let wide = self.defensive.map_or((0.0, 1.0), |d| (d.fraction, d.widening));
-        self.base.propagate_by(at.n, prev, to, &mut scratch.base.gaussians, |g, actions| {
-            g.sample_with(rng, actions, |rng| {
-                let z = if wide.0 > 0.0 && rng.random::<f64>() < wide.0 {
-                    let mut normal = || wide.1 * rng.sample::<f64, _>(StandardNormal);
-                    [normal(), normal()]
-                } else {
-                    [self.accel_innovation(rng), rng.sample(StandardNormal)]
-                };
-                if wide.0 > 0.0 {
-                    innovations.push(z); // for the proposal's weights
-                }
-                z
-            })
-        });
+        let mut noise = std::mem::take(&mut scratch.flip_noise);
+        noise.clear();
+        noise.extend((0..at.n).map(|_| rng.sample::<f32, _>(StandardNormal)));
+        let mut to = to;
+        self.propagate_unchained(at, prev, to.reborrow(), rng, scratch);
+        self.draw_flips(at, Some(prev), &noise, to.next, scratch);
+        scratch.flip_noise = noise;
     }
 
     fn proposal_log_weights(&self, n: usize, out: &mut [f32], scratch: &mut Self::Scratch) -> bool {
@@ -1088,15 +1326,28 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
                 obs.log_likelihood(params, &ctx, lagged, items, s, out);
             }
             Active::Clutter(c) => obs.log_likelihood_with_clutter(params, &ctx, poses, items, c, s, out),
-            Active::HeadingFlip { fraction } => {
-                obs.log_likelihood(params, &ctx, poses, items, s, out);
+            Active::HeadingFlip { .. } | Active::PersistentFlip(_) => {
+                // `ln((1 - p) g(y | x) + p g(y | x, reversed))` at `heading_flip`'s
+                // fraction or a persistent flip's predictive probability `q_t`
+                // (see `flip_dims`); both densities stay in the scratch.
+                scratch.kept.resize(n, 0.0);
+                scratch.other.resize(n, 0.0);
+                obs.log_likelihood(params, &ctx, poses, items, s, &mut scratch.kept[..n]);
                 scratch.reversed.clear();
                 scratch.reversed.extend(items.iter().map(O::reverse_heading));
-                scratch.other.resize(n, 0.0);
                 obs.log_likelihood(params, &ctx, poses, &scratch.reversed, s, &mut scratch.other[..n]);
-                let (ln_keep, ln_p) = ((1.0 - fraction).ln() as f32, fraction.ln() as f32);
-                for (o, &b) in out[..n].iter_mut().zip(&scratch.other[..n]) {
-                    *o = mix_plain(*o, b, ln_keep, ln_p);
+                let pairs = out[..n].iter_mut().zip(&scratch.kept[..n]).zip(&scratch.other[..n]);
+                match self.active {
+                    Active::HeadingFlip { fraction } => {
+                        let (ln_keep, ln_p) = ((1.0 - fraction).ln() as f32, fraction.ln() as f32);
+                        pairs.for_each(|((o, &a), &b)| *o = mix_plain(a, b, ln_keep, ln_p));
+                    }
+                    _ => {
+                        let k = self.flip_dim() + 1;
+                        for (((o, &a), &b), &q) in pairs.zip(&states[k * n..(k + 1) * n]) {
+                            *o = mix_plain(a, b, (1.0 - q).ln(), q.ln());
+                        }
+                    }
                 }
             }
             Active::None | Active::SizeBias { .. } | Active::HeavyTailedAccel { .. } => {
@@ -1193,6 +1444,27 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
                 // ln(1 - p) = -softplus(logit), ln p = -softplus(-logit).
                 log_add_exp(kept - logit.softplus(), flipped - logit.neg().softplus())
             }
+            Extension::PersistentFlip => {
+                // Each row's items as the detector reported them: reversed where
+                // the row's indicator is set. The chain's parameters enter
+                // through its prior and transition, not here.
+                let bits: Vec<bool> =
+                    states[self.flip_dim()].value().data().iter().map(|b| is_reversed(b.to_f64() as f32)).collect();
+                let reversed: Vec<Vec<O::Item>> = rows
+                    .items
+                    .iter()
+                    .zip(&bits)
+                    .map(|(its, &r)| if r { its.iter().map(O::reverse_heading).collect() } else { Vec::new() })
+                    .collect();
+                let items: Vec<&[O::Item]> = rows
+                    .items
+                    .iter()
+                    .zip(&reversed)
+                    .zip(&bits)
+                    .map(|((its, rev), &r)| if r { rev.as_slice() } else { *its })
+                    .collect();
+                model.log_likelihood_rows(&obs_params, &vars, &rows.av, &items)
+            }
             Extension::HeavyTailedAccel => model.log_likelihood_rows(&obs_params, &vars, &rows.av, &rows.items),
         }
     }
@@ -1206,19 +1478,40 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         actions: &[Var<'t, F>],
     ) -> Var<'t, F> {
         let vehicle = self.vehicle_transition_log_density(params, blocks, prev, next, actions);
-        match self.drift_vars(params) {
+        let with_drift = match self.drift_vars(params) {
             Some(d) => {
                 let drift = STATE_DIM..STATE_DIM + DRIFT_DIMS;
                 vehicle + d.transition_log_density(&prev[drift.clone()], &next[drift])
             }
             None => vehicle,
+        };
+        match self.flip_chain() {
+            Some(_) => {
+                let k = self.flip_dim();
+                let chain = FlipChainVars::new(self.extension_var(params));
+                with_drift + chain.transition_log_density(prev[k], next[k])
+            }
+            None => with_drift,
         }
     }
 
-    /// The base model's reparameterised transition. A drift's offsets are held
-    /// where they were: their noise is not recorded in the actions, so the
-    /// through-filter baselines, the only users, refuse a drifting model
-    /// ([`crate::objective`]).
+    /// The flip chain's initial law for `persistent_flip` (its stationary
+    /// fraction is a parameter); no term otherwise (the axial prior's 1/2 and
+    /// the drift's standard normal are free of the parameters).
+    fn prior_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        _blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Option<Var<'t, F>> {
+        self.flip_chain()?;
+        Some(FlipChainVars::new(self.extension_var(params)).prior_log_density(states[self.flip_dim()]))
+    }
+
+    /// The base model's reparameterised transition. A drift's offsets and a
+    /// flip chain's indicator are held where they were: their noise is not
+    /// recorded in the actions, so the through-filter baselines, the only users,
+    /// refuse a drifting model and a persistent flip ([`crate::objective`]).
     fn propagate_on_tape<'t, F: Float>(
         &self,
         params: &[Var<'t, F>],
@@ -1227,7 +1520,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         actions: &[Var<'t, F>],
     ) -> Vec<Var<'t, F>> {
         let mut next = self.base.propagate_on_tape(params, blocks, prev, actions);
-        next.extend_from_slice(&prev[STATE_DIM..STATE_DIM + self.drift_dims()]);
+        next.extend_from_slice(&prev[STATE_DIM..STATE_DIM + self.drift_dims() + self.flip_dims()]);
         next
     }
 }

@@ -20,6 +20,7 @@
 pub mod drift;
 pub mod error;
 pub mod extended;
+pub mod flip_chain;
 pub mod linear_gaussian;
 pub mod observation;
 pub mod params;

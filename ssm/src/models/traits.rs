@@ -184,6 +184,19 @@ pub trait DifferentiableModel: ParticleModel {
         states: &[Var<'t, F>],
     ) -> Var<'t, F>;
 
+    /// `log p(x_0)` per row (shape `[R]`, blocks at `t = 0`), up to terms that
+    /// do not depend on the parameters; `None` (the default) for a prior free of
+    /// them, which adds nothing to the score.
+    fn prior_log_density<'t, F: Float>(
+        &self,
+        params: &[Var<'t, F>],
+        blocks: &[Block],
+        states: &[Var<'t, F>],
+    ) -> Option<Var<'t, F>> {
+        let _ = (params, blocks, states);
+        None
+    }
+
     /// The transition's log-density per row (shape `[R]`, blocks at `t >= 1`), up
     /// to terms that do not depend on the parameters: `log f(next | prev)`, or, for
     /// a deterministic injective motion model driven by actions, `log pi(a | prev)`

@@ -840,7 +840,7 @@ fn run(
     // 4. The plausible extensions, started from the check part.
     let mut not_fitted = Vec::new();
     let mut plausible = Vec::new();
-    for extension in Extension::for_kind(kind) {
+    for extension in Extension::for_kind(kind).into_iter().filter(|e| e.is_diagnosed()) {
         let flagged_by: Vec<String> = before
             .iter()
             .filter(|c| {

@@ -87,13 +87,7 @@ pub(super) fn replicate<P: GaussianPolicy, O: ExtensibleObservation>(
         sample.states[..sample.states.len() - 1].iter().map(|s| model.sample_action(s, rng)).collect();
     let mut states = sample.states.clone();
     states[0] = model.sample_initial_state(sample.object, rng);
-    let mut items = Vec::new();
-    let mut per_step: Vec<Vec<O::Item>> = Vec::with_capacity(states.len());
-    for (t, s) in states.iter().enumerate() {
-        items.clear();
-        model.sample_observation(sample.object, t, s, rng, &mut items);
-        per_step.push(items.clone());
-    }
+    let per_step = model.sample_observations_along(sample.object, &states, rng);
     let accel_innovations = innovations(model, &sample.states, &actions);
     ObjectSample {
         object: sample.object,
