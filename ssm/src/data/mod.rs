@@ -121,7 +121,7 @@ pub struct Meta {
     /// Each object's prior was read from its first detection (as
     /// [`import_kitti`] does), not known apart from the observations. A model
     /// in which a detection's heading may be reversed
-    /// ([`crate::models::Extension::HeadingFlip`]) then takes the prior's
+    /// ([`crate::models::extended::Extension::HeadingFlip`]) then takes the prior's
     /// heading as known only up to pi. `false` when absent from `meta.json`.
     #[serde(default)]
     pub prior_from_detection: bool,

@@ -16,9 +16,11 @@
 //! a simulator of replicated observations and actions (the checks). With no
 //! extension it is the base model, value for value.
 //!
-//! `persistent_flip` puts the chain's indicator in the state, after the drift's
-//! offsets (if any); its prior is the chain's stationary law, whose score
-//! [`DifferentiableModel::prior_log_density`] gives.
+//! `persistent_flip` puts the chain's indicator and the probability it was
+//! predicted with in the state, after the drift's offsets (if any); the
+//! filters weight by the mixture over the indicator and draw it from its
+//! posterior (`ExtendedSsm::flip_dims`). Its prior is the chain's stationary
+//! law, whose score [`DifferentiableModel::prior_log_density`] gives.
 //!
 //! `heading_flip` (and `persistent_flip`) also changes the prior where the data's priors were read from
 //! each object's first detection ([`crate::data::Meta::prior_from_detection`],
@@ -1223,7 +1225,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
     /// prior a last prior component whose sign picks the direction; a drift
     /// puts its offsets' noise after all of those, in the prior's noise and in
     /// the transition's, and a persistent flip one component after that, whose
-    /// normal CDF picks the chain's next indicator ([`FlipChain::from_noise`]).
+    /// normal CDF, against the indicator's posterior given `y_t`, picks it.
     /// The noise form draws from the transition: a defensive
     /// proposal does not apply to it.
     fn noise_dims(&self) -> Option<NoiseDims> {

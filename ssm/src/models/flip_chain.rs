@@ -25,7 +25,6 @@
 use autodiff::{Float, Var};
 
 use crate::models::extended::LOGIT_SCALE;
-use crate::stats::normal_cdf;
 
 /// Probabilities are kept in `[GUARD, 1 - GUARD]` on the plain paths.
 const GUARD: f64 = 1e-12;
@@ -54,13 +53,6 @@ impl FlipChain {
     /// Mean length (steps) of a run of reversed detections.
     pub fn mean_run(&self) -> f64 {
         1.0 / (1.0 - self.reversed_probability(Some(true)))
-    }
-
-    /// The indicator drawn from standard-normal noise `z`: reversed when
-    /// `Phi(z)` falls below its probability given `prev` (see
-    /// [`FlipChain::reversed_probability`]). The filters' noise form.
-    pub fn from_noise(&self, prev: Option<bool>, z: f32) -> bool {
-        normal_cdf(f64::from(z)) < self.reversed_probability(prev)
     }
 
     /// A path of `steps` indicators from the chain's stationary start.
@@ -126,7 +118,7 @@ mod tests {
     use super::*;
     use autodiff::{Tape, Tensor};
     use rand::rngs::SmallRng;
-    use rand::{Rng, SeedableRng};
+    use rand::SeedableRng;
 
     fn chain() -> FlipChain {
         FlipChain { fraction: 0.15, persistence: 0.7 }
@@ -148,19 +140,6 @@ mod tests {
         assert!((rate - 0.15).abs() < 0.01, "rate {rate}");
         assert!((corr - 0.7).abs() < 0.02, "lag-one correlation {corr}");
         assert!((c.mean_run() - 1.0 / (0.85 * 0.3)).abs() < 1e-9);
-    }
-
-    #[test]
-    fn the_noise_form_draws_the_same_law() {
-        let c = chain();
-        let mut rng = SmallRng::seed_from_u64(5);
-        for prev in [None, Some(false), Some(true)] {
-            let n = 100_000;
-            let hits = (0..n).filter(|_| c.from_noise(prev, rng.sample(rand_distr::StandardNormal))).count();
-            let q = c.reversed_probability(prev);
-            let se = (q * (1.0 - q) / n as f64).sqrt();
-            assert!((hits as f64 / n as f64 - q).abs() < 5.0 * se, "{prev:?}: {hits} of {n} against {q}");
-        }
     }
 
     /// The tape's log-probabilities equal the plain ones, and their gradients

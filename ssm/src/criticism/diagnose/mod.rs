@@ -420,7 +420,7 @@ impl CandidateReport {
     /// Whether the candidate passes the decision's rules on its learned
     /// parameters and its gain — material, a finite gain of at least `gain_bar`
     /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`, and
-    /// [`beats_refit`] on `over_reseeded` (its comparison with the reseeded
+    /// `beats_refit` on `over_reseeded` (its comparison with the reseeded
     /// refit: its own, or one made since for a report written without it) —
     /// leaving out only rule (d), that it lowers a flagging check's |z|.
     /// `qualifies` is this, on its own comparison, and `checks_improved`.
