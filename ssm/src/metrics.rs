@@ -260,13 +260,7 @@ fn grid_log_marginals<P: GaussianPolicy, O: ExtensibleObservation>(
     for (k, column) in states.chunks_mut(n).enumerate().skip(STATE_DIM).take(drift_dims) {
         column.iter_mut().zip(&grid).for_each(|(x, g)| *x = g[k - STATE_DIM]);
     }
-    // A persistent flip's indicator is marginalised over its stationary law,
-    // as independent flips are: the detection's density given the state alone
-    // (the filter's weight at the predictive probability q = p, the state's
-    // last component).
-    if let Some(chain) = model.flip_chain() {
-        states[(dim - 1) * n..].fill(chain.reversed_probability(None) as f32);
-    }
+    model.predict_stationary_flips(n, &mut states);
     let mut steps = Vec::new();
     for object in 0..data.objects().len() {
         for t in 0..data.steps() {

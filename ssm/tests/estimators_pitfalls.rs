@@ -446,8 +446,8 @@ impl ParticleModel for Edited {
     fn num_steps(&self) -> usize {
         self.inner.num_steps()
     }
-    fn sample_prior(&self, object: usize, n: usize, rng: &mut rand::rngs::SmallRng, states: &mut [f32]) {
-        self.inner.sample_prior(object, n, rng, states)
+    fn sample_prior(&self, object: usize, n: usize, rng: &mut rand::rngs::SmallRng, states: &mut [f32], s: &mut ()) {
+        self.inner.sample_prior(object, n, rng, states, s)
     }
     fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut rand::rngs::SmallRng, scratch: &mut ()) {
         self.inner.propagate(at, prev, to, rng, scratch)

@@ -172,8 +172,8 @@ impl ParticleModel for Collapsing {
     fn num_steps(&self) -> usize {
         self.0.num_steps()
     }
-    fn sample_prior(&self, o: usize, n: usize, rng: &mut SmallRng, s: &mut [f32]) {
-        self.0.sample_prior(o, n, rng, s)
+    fn sample_prior(&self, o: usize, n: usize, rng: &mut SmallRng, s: &mut [f32], _: &mut ()) {
+        self.0.sample_prior(o, n, rng, s, &mut ())
     }
     fn propagate(&self, at: Batch, p: &[f32], to: Drawn<'_>, r: &mut SmallRng, _: &mut ()) {
         self.0.propagate(at, p, to, r, &mut ())

@@ -291,11 +291,11 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         };
         let mut states = vec![0.0f32; 5 * n];
         let mut rng = rand::rngs::SmallRng::seed_from_u64(seed);
-        model.sample_prior(object, n, &mut rng, &mut states);
+        model.sample_prior(object, n, &mut rng, &mut states, &mut model.new_scratch());
         let drawn = reversed_share(&states);
         assert_eq!(model.noise_dims().unwrap().prior, 6, "one more prior component picks the direction");
         let noise: Vec<f32> = (0..6 * n).map(|_| rng.sample::<f32, _>(rand_distr::StandardNormal)).collect();
-        model.prior_from_noise(object, n, &noise, &mut states);
+        model.prior_from_noise(object, n, &noise, &mut states, &mut model.new_scratch());
         let from_noise = reversed_share(&states);
         for share in [drawn, from_noise] {
             assert!((share - 0.5).abs() < 0.03, "strength {strength}: {share} reversed, half expected");
@@ -310,10 +310,10 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         let dims = persistent.noise_dims().unwrap().prior;
         assert_eq!(dims, 7, "the axial pick and the chain's indicator");
         let mut chained = vec![0.0f32; 7 * n];
-        persistent.sample_prior(object, n, &mut rng, &mut chained);
+        persistent.sample_prior(object, n, &mut rng, &mut chained, &mut persistent.new_scratch());
         let noise: Vec<f32> = (0..dims * n).map(|_| rng.sample::<f32, _>(rand_distr::StandardNormal)).collect();
         let mut from_noise = vec![0.0f32; 7 * n];
-        persistent.prior_from_noise(object, n, &noise, &mut from_noise);
+        persistent.prior_from_noise(object, n, &noise, &mut from_noise, &mut persistent.new_scratch());
         // The first detection is reversed against the label: a particle whose
         // heading is the prior's (the detection's) has it reported as is, one
         // turned by pi has it reversed, and the indicator is drawn from its
@@ -332,6 +332,38 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
             assert!(agree > 0.95, "strength {strength}: indicator agrees with the heading on {agree}");
             assert!(drawn[6 * n..].iter().all(|&q| (q - 0.25).abs() < 1e-6), "q_0 is the stationary fraction");
         }
+        // One step on, by the transition drawn directly and from noise: each
+        // particle's q is the chain's prediction from its own indicator, and the
+        // indicator is drawn from its posterior given the detection at t = 1.
+        if let Some(detection) = axial.boxes().unwrap().get(object, 1) {
+            let chain = persistent.flip_chain().unwrap();
+            let transition = persistent.noise_dims().unwrap().transition;
+            let mut scratch = persistent.new_scratch();
+            let at = ssm::models::Batch { object, t: 1, n };
+            let (mut next, mut actions) = (vec![0.0f32; 7 * n], vec![0.0f32; 2 * n]);
+            let noise: Vec<f32> =
+                (0..transition * n).map(|_| rng.sample::<f32, _>(rand_distr::StandardNormal)).collect();
+            for noise_form in [false, true] {
+                let to = ssm::models::Drawn { next: &mut next, actions: &mut actions };
+                if noise_form {
+                    persistent.propagate_from_noise(at, &chained, &noise, to, &mut scratch);
+                } else {
+                    persistent.propagate(at, &chained, to, &mut rng, &mut scratch);
+                }
+                for i in 0..n {
+                    let want = chain.reversed_probability(Some(chained[5 * n + i] > 0.5)) as f32;
+                    assert!((next[6 * n + i] - want).abs() < 1e-6, "q_1 follows the particle's own indicator");
+                }
+                let agree = (0..n)
+                    .filter(|&i| {
+                        let turned = (f64::from(next[2 * n + i]) - detection.yaw).cos() < 0.0;
+                        (next[5 * n + i] > 0.5) == turned
+                    })
+                    .count() as f64
+                    / n as f64;
+                assert!(agree > 0.95, "strength {strength}, noise form {noise_form}: agreement {agree} at t = 1");
+            }
+        }
         // Not axial: the data's prior taken at its word, or another model.
         let plain_base = VehicleSsm::new(&taken_at_its_word, &models.policy, obs, &models.observation_params).unwrap();
         let plain = ExtendedSsm::new(&plain_base, Some(flip.extension), &flip.raw).unwrap();
@@ -339,7 +371,7 @@ fn a_prior_read_from_a_reversed_first_detection_does_not_turn_the_track_around()
         for m in [&plain, &no_flip] {
             assert!(!m.axial_prior());
             assert_eq!(m.noise_dims().unwrap().prior, 5);
-            m.sample_prior(object, n, &mut rng, &mut states);
+            m.sample_prior(object, n, &mut rng, &mut states, &mut m.new_scratch());
             assert!(reversed_share(&states) < 0.01);
         }
     }

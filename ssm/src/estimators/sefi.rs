@@ -181,7 +181,7 @@ fn surrogate_gradient<M: DifferentiableModel, F: Float>(
             obs_blocks.push(*b);
             obs_ranges.push((start, b.len));
         }
-        if b.t == 0 && b.len > 0 {
+        if b.t == 0 && b.len > 0 && model.has_prior_term() {
             prior_blocks.push(*b);
             prior_ranges.push((start, b.len));
         }

@@ -429,7 +429,7 @@ pub fn filter_object<M: ParticleModel, O: Observer>(
                     let to = Drawn { next: &mut ring.states[slot], actions: &mut [] };
                     tm.draw(model, Batch { object, t: 0, n }, &[], to, &mut rng, scratch)
                 }
-                None => model.sample_prior(object, n, &mut rng, &mut ring.states[slot]),
+                None => model.sample_prior(object, n, &mut rng, &mut ring.states[slot], scratch),
             }
             times.propagate += clock.elapsed();
         } else {

@@ -832,7 +832,7 @@ fn map_noise<M: ParticleModel>(
     scratch: &mut M::Scratch,
 ) {
     if at.t == 0 {
-        model.prior_from_noise(at.object, at.n, z, to.next);
+        model.prior_from_noise(at.object, at.n, z, to.next, scratch);
     } else {
         model.propagate_from_noise(at, parent, z, to, scratch);
     }

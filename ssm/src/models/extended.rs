@@ -68,7 +68,7 @@ use crate::models::observation::points::Clutter;
 use crate::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
 };
-use crate::models::road_user::{states_ref, VehicleScratch, VehicleSsm, YAW};
+use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
 use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::models::vehicle::state::{ActionVars, ActionsMut, STATE_DIM};
 use crate::models::{Batch, Block, DifferentiableModel, Drawn, ModelError, NoiseDims, ParticleModel};
@@ -737,12 +737,22 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
         if self.flip_chain().is_none() {
             return;
         }
-        let (v, kappa) = (3, 4);
-        for i in 0..n {
-            if states[v * n + i] < 0.0 {
-                states[v * n + i] = -states[v * n + i];
-                states[kappa * n + i] = -states[kappa * n + i];
+        let s = states_mut(states, n);
+        for (v, kappa) in s.v.iter_mut().zip(s.kappa.iter_mut()) {
+            if *v < 0.0 {
+                (*v, *kappa) = (-*v, -*kappa);
             }
+        }
+    }
+
+    /// Sets the `n` particles' flip-chain prediction `q` to the chain's
+    /// stationary fraction, so that [`ParticleModel::observation_loglik`] gives
+    /// a detection's density given the vehicle state alone, the indicator
+    /// marginalised as independent flips' is (no-op without a chain).
+    pub(crate) fn predict_stationary_flips(&self, n: usize, states: &mut [f32]) {
+        if let Some(chain) = self.flip_chain() {
+            let k = self.flip_dim() + 1;
+            states[k * n..(k + 1) * n].fill(chain.reversed_probability(None) as f32);
         }
     }
 
@@ -811,7 +821,7 @@ impl<'m, 'a, P: GaussianPolicy, O: ExtensibleObservation> ExtendedSsm<'m, 'a, P,
     /// `heading_flip` on priors read from a detection; module docs).
     pub fn sample_initial_state(&self, object: usize, rng: &mut SmallRng) -> State {
         let mut x = vec![0.0f32; self.state_dim()];
-        self.sample_prior(object, 1, rng, &mut x);
+        self.sample_prior(object, 1, rng, &mut x, &mut self.new_scratch());
         state_at(&x, 1, 0)
     }
 
@@ -1203,8 +1213,15 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         self.base.num_steps()
     }
 
-    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
-        self.base.sample_prior(object, n, rng, states);
+    fn sample_prior(
+        &self,
+        object: usize,
+        n: usize,
+        rng: &mut SmallRng,
+        states: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) {
+        self.base.sample_prior(object, n, rng, states, &mut scratch.base);
         if self.axial_prior() {
             reverse_headings(&mut states[YAW * n..(YAW + 1) * n], std::iter::repeat_with(|| rng.random::<bool>()));
             self.fold_speeds(n, states);
@@ -1214,9 +1231,11 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         states[drift].iter_mut().for_each(|u| *u = rng.sample(StandardNormal));
         // A persistent flip's indicator: from the stationary law, given y_0.
         if self.flip_chain().is_some() {
-            let z: Vec<f32> = (0..n).map(|_| rng.sample(StandardNormal)).collect();
-            let mut scratch = self.new_scratch();
-            self.draw_flips(Batch { object, t: 0, n }, None, &z, states, &mut scratch);
+            let mut z = std::mem::take(&mut scratch.flip_noise);
+            z.clear();
+            z.extend((0..n).map(|_| rng.sample::<f32, _>(StandardNormal)));
+            self.draw_flips(Batch { object, t: 0, n }, None, &z, states, scratch);
+            scratch.flip_noise = z;
         }
     }
 
@@ -1239,24 +1258,27 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> ParticleModel for ExtendedSsm<
         })
     }
 
-    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+    fn prior_from_noise(
+        &self,
+        object: usize,
+        n: usize,
+        noise: &[f32],
+        states: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) {
         let chain_noise = usize::from(self.flip_chain().is_some()) * n;
         let (noise, flip_z) = noise.split_at(noise.len() - chain_noise);
         let (noise, drift) = noise.split_at(noise.len() - self.drift_dims() * n);
         states[STATE_DIM * n..(STATE_DIM + self.drift_dims()) * n].copy_from_slice(drift);
         if self.axial_prior() {
             let (base, pick) = noise.split_at(noise.len() - n);
-            self.base.prior_from_noise(object, n, base, states);
+            self.base.prior_from_noise(object, n, base, states, &mut scratch.base);
             reverse_headings(&mut states[YAW * n..(YAW + 1) * n], pick.iter().map(|&z| z < 0.0));
             self.fold_speeds(n, states);
         } else {
-            self.base.prior_from_noise(object, n, noise, states);
+            self.base.prior_from_noise(object, n, noise, states, &mut scratch.base);
         }
-        if chain_noise > 0 {
-            // x_0's indicator, given y_0 (a scratch for the observation's terms).
-            let mut scratch = self.new_scratch();
-            self.draw_flips(Batch { object, t: 0, n }, None, flip_z, states, &mut scratch);
-        }
+        self.draw_flips(Batch { object, t: 0, n }, None, flip_z, states, scratch);
     }
 
     fn propagate_from_noise(&self, at: Batch, prev: &[f32], z: &[f32], to: Drawn<'_>, scratch: &mut Self::Scratch) {
@@ -1497,9 +1519,14 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
         }
     }
 
-    /// The flip chain's initial law for `persistent_flip` (its stationary
-    /// fraction is a parameter); no term otherwise (the axial prior's 1/2 and
-    /// the drift's standard normal are free of the parameters).
+    /// `persistent_flip`'s: its chain starts in its stationary law, whose
+    /// fraction is a parameter. The axial prior's 1/2 and the drift's standard
+    /// normal are free of the parameters.
+    fn has_prior_term(&self) -> bool {
+        self.flip_chain().is_some()
+    }
+
+    /// The flip chain's initial law for `persistent_flip`; no term otherwise.
     fn prior_log_density<'t, F: Float>(
         &self,
         params: &[Var<'t, F>],

@@ -242,7 +242,7 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
         self.data.steps()
     }
 
-    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]) {
+    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32], _: &mut VehicleScratch) {
         let prior = self.data.objects()[object].prior;
         let (mean, sd) = (prior.mean.to_array(), prior.sd.to_array());
         for k in 0..STATE_DIM {
@@ -261,7 +261,7 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
         Some(NoiseDims { prior: STATE_DIM, transition: ACTION_DIM })
     }
 
-    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
+    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32], _: &mut VehicleScratch) {
         let prior = self.data.objects()[object].prior;
         let (mean, sd) = (prior.mean.to_array(), prior.sd.to_array());
         for k in 0..STATE_DIM {

@@ -85,8 +85,17 @@ pub trait ParticleModel: Sync {
     /// Number of steps, `T + 1` (steps are `0..=T`).
     fn num_steps(&self) -> usize;
 
-    /// Draws `n` particles of `x_0` for `object` into `states` (`state_dim * n`).
-    fn sample_prior(&self, object: usize, n: usize, rng: &mut SmallRng, states: &mut [f32]);
+    /// Draws `n` particles of `x_0` for `object` into `states` (`state_dim * n`),
+    /// with the same working memory as the transitions (a prior that looks at
+    /// `y_0`, as a persistent flip's indicator does, needs it).
+    fn sample_prior(
+        &self,
+        object: usize,
+        n: usize,
+        rng: &mut SmallRng,
+        states: &mut [f32],
+        scratch: &mut Self::Scratch,
+    );
 
     /// Draws `x_t` given `x_{t-1}` (`prev`) for the `n` particles of `at`, into `to`.
     fn propagate(&self, at: Batch, prev: &[f32], to: Drawn<'_>, rng: &mut SmallRng, scratch: &mut Self::Scratch);
@@ -115,8 +124,15 @@ pub trait ParticleModel: Sync {
     /// `x_0 = m_0(z)` for `n` particles from standard-normal `noise`
     /// (`noise_dims().prior * n`, dimension-major) into `states`: the same law as
     /// [`ParticleModel::sample_prior`].
-    fn prior_from_noise(&self, object: usize, n: usize, noise: &[f32], states: &mut [f32]) {
-        let _ = (object, n, noise, states);
+    fn prior_from_noise(
+        &self,
+        object: usize,
+        n: usize,
+        noise: &[f32],
+        states: &mut [f32],
+        scratch: &mut Self::Scratch,
+    ) {
+        let _ = (object, n, noise, states, scratch);
         unimplemented!("prior_from_noise: this model has no noise-driven form (noise_dims is None)")
     }
 
@@ -184,9 +200,17 @@ pub trait DifferentiableModel: ParticleModel {
         states: &[Var<'t, F>],
     ) -> Var<'t, F>;
 
+    /// Whether the prior depends on the parameters, so that the score has a
+    /// term at `t = 0` ([`DifferentiableModel::prior_log_density`]); `false`
+    /// (the default) for a prior free of them, and the estimators then gather
+    /// nothing for it.
+    fn has_prior_term(&self) -> bool {
+        false
+    }
+
     /// `log p(x_0)` per row (shape `[R]`, blocks at `t = 0`), up to terms that
-    /// do not depend on the parameters; `None` (the default) for a prior free of
-    /// them, which adds nothing to the score.
+    /// do not depend on the parameters, for a model with
+    /// [`DifferentiableModel::has_prior_term`]; `None` (the default) otherwise.
     fn prior_log_density<'t, F: Float>(
         &self,
         params: &[Var<'t, F>],

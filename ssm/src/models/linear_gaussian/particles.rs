@@ -67,7 +67,7 @@ impl ParticleModel for LgssmBatch {
         self.sequences[0].len()
     }
 
-    fn sample_prior(&self, _object: usize, _n: usize, rng: &mut SmallRng, states: &mut [f32]) {
+    fn sample_prior(&self, _object: usize, _n: usize, rng: &mut SmallRng, states: &mut [f32], _scratch: &mut ()) {
         self.model.sample_prior(rng, states);
     }
 
@@ -84,7 +84,7 @@ impl ParticleModel for LgssmBatch {
         Some(NoiseDims { prior: 1, transition: 1 })
     }
 
-    fn prior_from_noise(&self, _object: usize, _n: usize, noise: &[f32], states: &mut [f32]) {
+    fn prior_from_noise(&self, _object: usize, _n: usize, noise: &[f32], states: &mut [f32], _scratch: &mut ()) {
         self.model.prior_from_noise(noise, states);
     }
 
