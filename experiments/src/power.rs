@@ -42,6 +42,11 @@ pub struct PowerArgs {
     /// at another data size. Use a fresh `--out` for it.
     #[arg(long)]
     scenes: Option<usize>,
+    /// Adam's learning rate of every diagnosis's refits (the reference's and the
+    /// candidates'), in place of the quick diagnosis's: the study at another
+    /// refit rate. Use a fresh `--out` for it.
+    #[arg(long)]
+    candidate_lr: Option<f64>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -134,6 +139,10 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
+    let candidate_lr = args.candidate_lr.unwrap_or(DiagnoseConfig::quick().candidate_lr);
+    if !(candidate_lr.is_finite() && candidate_lr > 0.0) {
+        return Err(format!("power-study: --candidate-lr must be positive and finite, got {candidate_lr}"));
+    }
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -150,17 +159,17 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
                 bar.inc(1);
                 continue;
             }
-            if run_cell(&args.out, e, strength, seed, false)?.is_none() {
+            if run_cell(&args.out, e, strength, seed, candidate_lr, false)?.is_none() {
                 continue;
             }
             // The tables so far after every diagnosis: an interrupted study
             // shows what it has.
-            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?;
+            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, candidate_lr)?;
             bar.inc(1);
         }
         bar.finish_and_clear();
     }
-    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes)?);
+    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, candidate_lr)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
 }
@@ -219,6 +228,7 @@ fn write_study_tables(
     strengths: &[f64],
     seeds: u64,
     scenes: Option<usize>,
+    candidate_lr: f64,
 ) -> Result<String, String> {
     let mut ids: Vec<String> = effects.iter().map(|e| e.id.clone()).collect();
     let (mut strengths, mut seeds) = (strengths.to_vec(), seeds);
@@ -237,7 +247,7 @@ fn write_study_tables(
     let effects = study_effects(ids.iter().map(String::as_str), scenes)?;
     let mut cells = Vec::new();
     for (e, strength, seed) in plan(&effects, &strengths, seeds) {
-        cells.extend(run_cell(out, e, strength, seed, true)?);
+        cells.extend(run_cell(out, e, strength, seed, candidate_lr, true)?);
     }
     write_tables(out, &effects, &strengths, &cells)?;
     Ok(summarise(&effects, &strengths, &cells))
@@ -302,7 +312,14 @@ fn cell_dir(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> PathBuf {
 
 /// The diagnosis of one effect, strength and seed: read back if already done,
 /// else run (or, with `table_only`, `None`).
-fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: bool) -> Result<Option<Cell>, String> {
+fn run_cell(
+    out: &Path,
+    e: &StudyEffect,
+    strength: f64,
+    seed: u64,
+    candidate_lr: f64,
+    table_only: bool,
+) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
     let config = HiddenConfig { scenes: e.scenes, ..HiddenConfig::quick(e.kind, effect, seed) };
     let dir = cell_dir(out, e, strength, seed);
@@ -322,10 +339,10 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
             };
             if report_path.is_file() {
                 // Finished by another process between the read and the claim.
-                return run_cell(out, e, strength, seed, table_only);
+                return run_cell(out, e, strength, seed, candidate_lr, table_only);
             }
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
-            let diagnose_config = DiagnoseConfig { seed, ..DiagnoseConfig::quick() };
+            let diagnose_config = DiagnoseConfig { seed, candidate_lr, ..DiagnoseConfig::quick() };
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
@@ -347,6 +364,16 @@ fn run_cell(out: &Path, e: &StudyEffect, strength: f64, seed: u64, table_only: b
             e.id,
             config.scenes,
             config.objects_per_scene
+        ));
+    }
+    // Nor is a report of another refit rate (an `--out` reused with another
+    // `--candidate-lr`).
+    if report.config.candidate_lr != candidate_lr {
+        return Err(format!(
+            "{}: a diagnosis refitted at learning rate {}, where this study's refit at {candidate_lr} (another \
+             --candidate-lr? use another --out)",
+            report_path.display(),
+            report.config.candidate_lr
         ));
     }
     // Decided again under the current rules: cells diagnosed under an earlier
@@ -435,10 +462,11 @@ mod tests {
     use super::*;
 
     /// A finished cell is read back and decided again; a report of another data
-    /// size in the same study directory (an `--out` reused with another
-    /// `--scenes`) is refused with its path, not mixed into the table.
+    /// size or refit rate in the same study directory (an `--out` reused with
+    /// another `--scenes` or `--candidate-lr`) is refused with its path, not
+    /// mixed into the table.
     #[test]
-    fn a_report_of_another_data_size_is_refused() {
+    fn a_report_of_another_data_size_or_refit_rate_is_refused() {
         let out = std::env::temp_dir().join(format!("sefi-power-scenes-{}", std::process::id()));
         let cell = out.join("heavy_tailed_accel").join("x1").join("seed0");
         std::fs::create_dir_all(&cell).unwrap();
@@ -447,10 +475,13 @@ mod tests {
             .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
         std::fs::copy(&committed, cell.join("report.json")).unwrap();
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
-        let read = run_cell(&out, &effect, 1.0, 0, true).unwrap().expect("the finished cell is read back");
+        let lr = DiagnoseConfig::quick().candidate_lr;
+        let read = run_cell(&out, &effect, 1.0, 0, lr, true).unwrap().expect("the finished cell is read back");
         assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
+        let err = run_cell(&out, &effect, 1.0, 0, lr / 5.0, true).err().expect("a report of another refit rate");
+        assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr}")), "{err}");
         effect.scenes = 32;
-        let err = run_cell(&out, &effect, 1.0, 0, true).err().expect("a 16-scene report in a 32-scene study");
+        let err = run_cell(&out, &effect, 1.0, 0, lr, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
         std::fs::remove_dir_all(&out).unwrap();
     }
@@ -472,7 +503,7 @@ mod tests {
         // Every id of the study's order is a known effect.
         assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
-        let table = write_study_tables(&out, &latency, &[1.0], 1, None).unwrap();
+        let table = write_study_tables(&out, &latency, &[1.0], 1, None, DiagnoseConfig::quick().candidate_lr).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
         let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
         assert_eq!(
