@@ -82,6 +82,10 @@ pub struct DiagnoseArgs {
     /// Adam learning rate of the candidates' fits and the reference's.
     #[arg(long)]
     candidate_lr: Option<f64>,
+    /// Evaluate every fit on the check objects every this many steps and keep its best parameters (0: keep the
+    /// last) [default: 25].
+    #[arg(long)]
+    keep_best_every: Option<usize>,
     /// Learn only the extensions' parameters on top of the fixed base (the base is the reference), instead of
     /// refitting every parameter with them beside the base refitted alone.
     #[arg(long)]
@@ -115,6 +119,7 @@ impl DiagnoseArgs {
         set(&mut c.scenes_per_step, self.scenes_per_step);
         set(&mut c.lr, self.lr);
         set(&mut c.candidate_lr, self.candidate_lr);
+        set(&mut c.keep_best_every, self.keep_best_every);
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;
         c

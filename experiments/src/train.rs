@@ -115,6 +115,13 @@ pub struct TrainArgs {
     /// Evaluate on the test data every this many steps (0: only at the start and end).
     #[arg(long, default_value_t = 10)]
     pub eval_every: usize,
+    /// Keep the parameters of the best test evaluation (test MLL, every
+    /// `--eval-every` steps, the initial ones included) rather than the last:
+    /// `params.bin` holds them at the end. The test data then choose as well as
+    /// score, so give them objects that the final comparison does not use.
+    #[arg(long)]
+    #[serde(default)]
+    pub keep_best: bool,
     /// Write a checkpoint every this many steps.
     #[arg(long, default_value_t = 10)]
     pub checkpoint_every: usize,
@@ -414,6 +421,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         checkpoint_every: args.checkpoint_every.max(1),
         seed: args.seed,
         shuffle: true,
+        keep_best: args.keep_best.then(|| ssm::objective::TEST_MLL.to_string()),
     };
     let description = serde_json::to_value(args).map_err(|e| e.to_string())?;
     if !args.resume && root {

@@ -82,6 +82,32 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         let (gain, units) = (reseeded["gain"].as_f64().unwrap(), report["eval_units"].as_f64().unwrap());
         assert!((sum / units - gain).abs() <= 1e-9 * (1.0 + gain.abs()), "{sum} / {units} against {gain}");
     }
+    // Every fit kept the parameters of its best evaluation on the check part:
+    // the largest test MLL of its evaluation log, whose last row is the end.
+    assert!(report["config"]["keep_best_every"].as_u64().unwrap() > 0);
+    let mut fits = vec![(&report["base_kept"], out.join("base"))];
+    if let Some(reference) = report["reference"].as_object() {
+        fits.push((&reference["kept"], out.join("reference")));
+        fits.push((&reference["reseeded"]["kept"], out.join("reference-reseeded")));
+    }
+    for c in candidates {
+        fits.push((&c["kept"], out.join("candidates").join(c["cause"].as_str().unwrap())));
+    }
+    for (kept, dir) in fits {
+        let log = std::fs::read_to_string(dir.join("eval.csv")).expect("a fit's evaluation log");
+        let rows: Vec<(u64, f64)> = log
+            .lines()
+            .skip(1)
+            .map(|l| {
+                let mut f = l.split(',');
+                (f.next().unwrap().parse().unwrap(), f.next().unwrap().parse().unwrap())
+            })
+            .collect();
+        let best = rows.iter().copied().filter(|r| r.1.is_finite()).max_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
+        assert_eq!((kept["step"].as_u64(), kept["value"].as_f64()), (Some(best.0), Some(best.1)), "{}", dir.display());
+        assert_eq!(kept["last"].as_f64(), Some(rows.last().unwrap().1), "{}", dir.display());
+        assert!(rows.len() >= 3, "evaluated along the way: {rows:?}");
+    }
     // The held-out Monte Carlo error comes from the evaluation's own filter runs:
     // two runs with different seeds never agree to the last bit, so with two or
     // more runs per object it is positive for every candidate, and the total

@@ -68,6 +68,9 @@ pub struct ObjectiveConfig {
     pub eval_tempering: Option<Tempering>,
 }
 
+/// The name of the test MLL among [`SceneObjective`]'s evaluation metrics.
+pub const TEST_MLL: &str = "test_mll";
+
 /// Training scenes in batches, test data, and an estimator.
 pub struct SceneObjective {
     batches: Vec<Dataset>,
@@ -285,10 +288,29 @@ impl Objective for SceneObjective {
         } else {
             (f64::NAN, 0, None)
         };
-        let mut metrics = vec![
-            ("test_mll".to_string(), if units > 0 { ll / units as f64 } else { f64::NAN }),
-            ("test_collapsed_steps".to_string(), collapsed.map_or(f64::NAN, |c| c as f64)),
-        ];
+        // Every process gets the first's values, so that a choice made on them
+        // (`TrainConfig::keep_best`) is the same on all.
+        let mut shared =
+            [if units > 0 { ll / units as f64 } else { f64::NAN }, collapsed.map_or(f64::NAN, |c| c as f64)];
+        if self.comm.size() > 1 {
+            for v in &mut shared {
+                // The maximum of the first's value and -inf elsewhere; NaN travels as +inf.
+                *v = if !self.is_root() {
+                    f64::NEG_INFINITY
+                } else if v.is_nan() {
+                    f64::INFINITY
+                } else {
+                    *v
+                };
+            }
+            self.comm.max_f64(&mut shared);
+            for v in &mut shared {
+                if *v == f64::INFINITY {
+                    *v = f64::NAN;
+                }
+            }
+        }
+        let mut metrics = vec![(TEST_MLL.to_string(), shared[0]), ("test_collapsed_steps".to_string(), shared[1])];
         if let AnyPolicy::HandCrafted(_) = &models.policy {
             let p = models.policy.parameters();
             metrics.push(("sd_accel".into(), p[0].data()[0].exp()));

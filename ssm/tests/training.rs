@@ -196,6 +196,40 @@ impl<O: Objective> Objective for Faulty<O> {
     }
 }
 
+/// Wraps an objective: from the `turn_at`-th estimate on, returns the negated
+/// score, so that the run climbs and then walks away from the maximum.
+struct Wandering<O> {
+    inner: O,
+    calls: usize,
+    turn_at: usize,
+    crash_at: Option<usize>,
+}
+
+impl<O: Objective> Objective for Wandering<O> {
+    fn batches(&self) -> usize {
+        self.inner.batches()
+    }
+
+    fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError> {
+        self.calls += 1;
+        if self.crash_at == Some(self.calls) {
+            return Err("simulated crash".into());
+        }
+        let mut est = self.inner.estimate(params, batch, seed)?;
+        if self.calls >= self.turn_at {
+            est.gradient[0].data_mut().iter_mut().for_each(|g| *g = -*g);
+        }
+        Ok(est)
+    }
+
+    fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
+        let mut metrics = self.inner.evaluate(params, seed)?;
+        // The parameters evaluated, to check which ones a run kept.
+        metrics.extend(params.values()[0].data().iter().enumerate().map(|(i, v)| (format!("theta{i}"), *v)));
+        Ok(metrics)
+    }
+}
+
 /// The rows of a CSV log (header dropped), split into fields.
 fn rows(path: &Path) -> Vec<Vec<String>> {
     let text = std::fs::read_to_string(path).unwrap();
@@ -275,6 +309,7 @@ fn resume_config() -> TrainConfig {
         checkpoint_every: 5,
         seed: 42,
         shuffle: true,
+        keep_best: None,
     }
 }
 
@@ -582,4 +617,119 @@ fn a_run_that_fails_at_once_leaves_no_files_and_metric_names_must_not_change() {
     let log = rows(&dir.path().join(TRAIN_LOG));
     assert_eq!(log.len(), 2);
     assert_eq!(&log[0][..10], ["1", "0", "0", "-1", "2", "-0.5", &(0.14f64.sqrt()).to_string(), "0", "0", "1"]);
+}
+
+#[test]
+fn keep_best_returns_the_best_evaluation_and_survives_a_resume() {
+    // 10 epochs of 3 batches, evaluated every 2 steps: the score turns at the
+    // 13th estimate, so the test MLL rises, then falls for 18 steps.
+    let config = TrainConfig { eval_every: 2, epochs: 10, keep_best: Some("test_mll".into()), ..resume_config() };
+    let wandering = |crash_at| Wandering { inner: LgssmObjective::new(3, 40, 2), calls: 0, turn_at: 13, crash_at };
+    let whole = tempfile::tempdir().unwrap();
+    let full = train(&mut wandering(None), store(START), &config, whole.path(), false, &mut quiet()).unwrap();
+
+    let evals = rows(&whole.path().join(EVAL_LOG));
+    let value = |r: &Vec<String>| r[1].parse::<f64>().unwrap();
+    let best = evals.iter().max_by(|a, b| value(a).total_cmp(&value(b))).unwrap();
+    let last = evals.last().unwrap();
+    let kept = full.kept.clone().expect("a finite evaluation was made");
+    assert_eq!(kept.metric, "test_mll");
+    assert_eq!(kept.step.to_string(), best[0]);
+    assert!(kept.step > 0 && kept.step < 30, "the run climbed, then fell: kept step {}", kept.step);
+    assert_eq!((kept.value, kept.last), (value(best), value(last)));
+    assert!(kept.fall() > 0.0, "{kept:?}");
+    // The parameters returned and written are those of that evaluation; the
+    // checkpoint holds the last, to resume from.
+    let theta: Vec<f64> = best[3..6].iter().map(|v| v.parse().unwrap()).collect();
+    assert_eq!(full.params.values()[0].data(), &theta[..]);
+    assert_eq!(ParamStore::<f64>::load(&whole.path().join(PARAMS_FILE)).unwrap(), full.params);
+    let ckpt = Checkpoint::load(&whole.path().join(CHECKPOINT_FILE)).unwrap();
+    let last_theta: Vec<f64> = last[3..6].iter().map(|v| v.parse().unwrap()).collect();
+    assert_eq!(ckpt.params.values()[0].data(), &last_theta[..]);
+    assert_eq!(ckpt.best.as_ref().map(|b| b.0), Some(kept.step));
+
+    // Without the setting, the same run returns its last parameters.
+    let plain = TrainConfig { keep_best: None, ..config.clone() };
+    let dir = tempfile::tempdir().unwrap();
+    let out = train(&mut wandering(None), store(START), &plain, dir.path(), false, &mut quiet()).unwrap();
+    assert_eq!((out.params.values()[0].data(), out.kept), (&last_theta[..], None));
+
+    // Interrupted after its best and resumed, it keeps the same parameters.
+    let broken = tempfile::tempdir().unwrap();
+    let crash_at = kept.step + 8;
+    assert!(crash_at < 30);
+    assert!(train(&mut wandering(Some(crash_at)), store(START), &config, broken.path(), false, &mut quiet()).is_err());
+    // The resumed run's wrapper counts its estimates from the checkpoint on.
+    let ckpt_step = Checkpoint::load(&broken.path().join(CHECKPOINT_FILE)).unwrap().step;
+    let mut resumed_obj = wandering(None);
+    resumed_obj.calls = ckpt_step;
+    let resumed = train(&mut resumed_obj, store(START), &config, broken.path(), true, &mut quiet()).unwrap();
+    assert_eq!(bits(&resumed.params), bits(&full.params));
+    assert_eq!(resumed.kept, full.kept);
+
+    // A metric the objective does not report is an error naming it.
+    let wrong = TrainConfig { keep_best: Some("val_mll".into()), ..config };
+    let dir = tempfile::tempdir().unwrap();
+    let err = train(&mut wandering(None), store(START), &wrong, dir.path(), false, &mut quiet()).unwrap_err();
+    assert!(err.to_string().contains("val_mll"), "{err}");
+}
+
+#[test]
+fn a_version_2_checkpoint_is_read_as_a_run_without_keep_best() {
+    // The layout of format version 2: the settings without `keep_best`, no `best`.
+    #[derive(serde::Serialize)]
+    struct ConfigV2 {
+        lr: f64,
+        final_lr: Option<f64>,
+        clip: Option<f64>,
+        epochs: usize,
+        eval_every: usize,
+        checkpoint_every: usize,
+        seed: u64,
+        shuffle: bool,
+    }
+    #[derive(serde::Serialize)]
+    struct CheckpointV2 {
+        step: usize,
+        params: ParamStore<f64>,
+        adam: Adam,
+        skipped_steps: usize,
+        config: ConfigV2,
+        batches: usize,
+        eval_names: Vec<String>,
+        last_eval: (usize, Vec<f64>),
+        seconds: f64,
+    }
+    let c = resume_config();
+    let v2 = CheckpointV2 {
+        step: 5,
+        params: store(START),
+        adam: Adam::new(c.lr),
+        skipped_steps: 1,
+        config: ConfigV2 {
+            lr: c.lr,
+            final_lr: c.final_lr,
+            clip: c.clip,
+            epochs: c.epochs,
+            eval_every: c.eval_every,
+            checkpoint_every: c.checkpoint_every,
+            seed: c.seed,
+            shuffle: c.shuffle,
+        },
+        batches: 3,
+        eval_names: vec!["test_mll".into(), "phi".into()],
+        last_eval: (3, vec![-1.5, 0.3]),
+        seconds: 2.5,
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join(CHECKPOINT_FILE);
+    autodiff::nn::write_versioned(&path, 2, &v2).unwrap();
+    let read = Checkpoint::load(&path).unwrap();
+    assert_eq!((read.step, read.skipped_steps, read.batches, read.seconds), (5, 1, 3, 2.5));
+    assert_eq!((read.config, read.best), (c, None));
+    assert_eq!(read.last_eval, (3, vec![-1.5, 0.3]));
+    // Another version is refused, naming the version found.
+    autodiff::nn::write_versioned(&path, 1, &v2).unwrap();
+    let err = Checkpoint::load(&path).unwrap_err();
+    assert!(err.to_string().contains('1'), "{err}");
 }

@@ -33,13 +33,77 @@ pub struct Checkpoint {
     pub last_eval: (usize, Vec<f64>),
     /// Wall-clock seconds of the run so far.
     pub seconds: f64,
+    /// With [`TrainConfig::keep_best`], the best evaluation so far: its step, its
+    /// value and the parameters it evaluated.
+    pub best: Option<(usize, f64, ParamStore<f64>)>,
+}
+
+/// A checkpoint of format version 2, written before [`TrainConfig::keep_best`]
+/// and [`Checkpoint::best`] existed; read and carried over as a run without them.
+#[derive(Deserialize)]
+struct CheckpointV2 {
+    step: usize,
+    params: ParamStore<f64>,
+    adam: Adam,
+    skipped_steps: usize,
+    config: TrainConfigV2,
+    batches: usize,
+    eval_names: Vec<String>,
+    last_eval: (usize, Vec<f64>),
+    seconds: f64,
+}
+
+/// [`TrainConfig`] as version-2 checkpoints hold it.
+#[derive(Deserialize)]
+struct TrainConfigV2 {
+    lr: f64,
+    final_lr: Option<f64>,
+    clip: Option<f64>,
+    epochs: usize,
+    eval_every: usize,
+    checkpoint_every: usize,
+    seed: u64,
+    shuffle: bool,
+}
+
+impl From<CheckpointV2> for Checkpoint {
+    fn from(v2: CheckpointV2) -> Self {
+        let c = v2.config;
+        Checkpoint {
+            step: v2.step,
+            params: v2.params,
+            adam: v2.adam,
+            skipped_steps: v2.skipped_steps,
+            config: TrainConfig {
+                lr: c.lr,
+                final_lr: c.final_lr,
+                clip: c.clip,
+                epochs: c.epochs,
+                eval_every: c.eval_every,
+                checkpoint_every: c.checkpoint_every,
+                seed: c.seed,
+                shuffle: c.shuffle,
+                keep_best: None,
+            },
+            batches: v2.batches,
+            eval_names: v2.eval_names,
+            last_eval: v2.last_eval,
+            seconds: v2.seconds,
+            best: None,
+        }
+    }
 }
 
 impl Checkpoint {
-    /// Reads a checkpoint; a missing file is [`TrainError::NoCheckpoint`], an
-    /// unreadable or damaged one [`TrainError::Checkpoint`].
+    /// Reads a checkpoint (of this format version, or of version 2, carried
+    /// over); a missing file is [`TrainError::NoCheckpoint`], an unreadable or
+    /// damaged one [`TrainError::Checkpoint`].
     pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
-        read_versioned(path, CHECKPOINT_VERSION).map_err(|source| match source {
+        let read = match read_versioned(path, CHECKPOINT_VERSION) {
+            Err(ParamError::Version { found: 2, .. }) => read_versioned::<CheckpointV2>(path, 2).map(Checkpoint::from),
+            read => read,
+        };
+        read.map_err(|source| match source {
             ParamError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
                 TrainError::NoCheckpoint { path: path.to_path_buf() }
             }

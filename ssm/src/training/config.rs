@@ -30,6 +30,14 @@ pub struct TrainConfig {
     /// Visit the batches in a fresh random order each epoch (seeded from
     /// `(seed, epoch)`) rather than `0..batches` (default true).
     pub shuffle: bool,
+    /// If set, the name of an evaluation metric to maximise: the run keeps the
+    /// parameters of its best evaluation (the initial ones included) and returns
+    /// them rather than the last ones (default none: the last). Evaluations come
+    /// every `eval_every` steps, so that period is the resolution of the choice.
+    /// A fit that wanders off (a sharp policy on a few paths, SPEC §6) then
+    /// returns where it was best on the evaluation data, and the outcome says
+    /// how far the last evaluation fell below it ([`super::KeptBest`]).
+    pub keep_best: Option<String>,
 }
 
 impl Default for TrainConfig {
@@ -43,6 +51,7 @@ impl Default for TrainConfig {
             checkpoint_every: 10,
             seed: 0,
             shuffle: true,
+            keep_best: None,
         }
     }
 }
@@ -66,6 +75,7 @@ impl TrainConfig {
         cmp("checkpoint_every", self.checkpoint_every.to_string(), other.checkpoint_every.to_string());
         cmp("seed", self.seed.to_string(), other.seed.to_string());
         cmp("shuffle", self.shuffle.to_string(), other.shuffle.to_string());
+        cmp("keep_best", format!("{:?}", self.keep_best), format!("{:?}", other.keep_best));
         out
     }
 

@@ -23,7 +23,9 @@
 //!   and flushed row by row, so a crash loses at most the row being written.
 //!   [`CHECKPOINT_FILE`] (a [`Checkpoint`], versioned, checksummed, written
 //!   atomically) and [`PARAMS_FILE`] (the store alone, for `sefi eval --params`) are
-//!   written at step 0, every `checkpoint_every` steps and at the end.
+//!   written at step 0, every `checkpoint_every` steps and at the end; with
+//!   [`TrainConfig::keep_best`], [`PARAMS_FILE`] finally holds the kept parameters
+//!   (the checkpoint holds the last, to resume from).
 //! * **Resuming** reads the checkpoint, refuses a different config, drops the log
 //!   rows written after it and carries on. Starting afresh in a directory that holds
 //!   a run is refused rather than overwriting it.
@@ -86,6 +88,7 @@ use std::time::Instant;
 use autodiff::nn::ParamStore;
 use autodiff::optim::{clip_global_norm, global_norm, Adam, StepError};
 use autodiff::Tensor;
+use serde::{Deserialize, Serialize};
 
 /// The per-step log, one row per step.
 pub const TRAIN_LOG: &str = "train.csv";
@@ -96,7 +99,7 @@ pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
 /// The parameter store alone, as [`ParamStore::save`] writes it.
 pub const PARAMS_FILE: &str = "params.bin";
 /// Format version of [`CHECKPOINT_FILE`] (checked by [`autodiff::nn::read_versioned`]).
-pub const CHECKPOINT_VERSION: u32 = 2;
+pub const CHECKPOINT_VERSION: u32 = 3;
 /// Why each skipped step was skipped: one row per skip (header
 /// [`SKIP_LOG_HEADER`]), created with the train log, cut back on resume as it is.
 pub const SKIP_LOG: &str = "skipped.csv";
@@ -204,7 +207,8 @@ pub enum TrainEvent {
 /// What a finished training run produced.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainOutcome {
-    /// The trained parameters.
+    /// The trained parameters: the last ones, or with [`TrainConfig::keep_best`]
+    /// those of the best evaluation ([`TrainOutcome::kept`]).
     pub params: ParamStore<f64>,
     /// Steps of the whole run, skipped ones included (`epochs * batches`).
     pub steps: usize,
@@ -217,6 +221,30 @@ pub struct TrainOutcome {
     /// Wall-clock seconds of the run, summed over sessions (work redone after a
     /// resume counts once).
     pub seconds: f64,
+    /// With [`TrainConfig::keep_best`]: the evaluation whose parameters
+    /// [`TrainOutcome::params`] are, and the last one.
+    pub kept: Option<KeptBest>,
+}
+
+/// Which parameters a run with [`TrainConfig::keep_best`] returned.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct KeptBest {
+    /// The metric maximised.
+    pub metric: String,
+    /// The step of the best evaluation (0: the initial parameters).
+    pub step: usize,
+    /// Its value.
+    pub value: f64,
+    /// The value at the last evaluation (the end of the run; NaN when not finite).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub last: f64,
+}
+
+impl KeptBest {
+    /// How far the last evaluation fell below the best (0 when the run ended at its best).
+    pub fn fall(&self) -> f64 {
+        self.value - self.last
+    }
 }
 
 /// Per-unit log-likelihood, NaN without units.
@@ -239,6 +267,8 @@ struct Run<'a, O: Objective + ?Sized> {
     skipped: usize,
     eval_names: Option<Vec<String>>,
     last_eval: (usize, Vec<f64>),
+    /// With [`TrainConfig::keep_best`]: the best evaluation so far (step, value, parameters).
+    best: Option<(usize, f64, ParamStore<f64>)>,
     prior_seconds: f64,
     started: Instant,
     /// Created after the initial evaluation of a fresh run (never on a process
@@ -362,6 +392,16 @@ impl<O: Objective + ?Sized> Run<'_, O> {
             None => self.eval_names = Some(names.clone()),
         }
         self.last_eval = (step, metrics.iter().map(|(_, v)| *v).collect());
+        if let Some(name) = &self.config.keep_best {
+            let value = metrics.iter().find(|(n, _)| n == name).map(|(_, v)| *v).ok_or_else(|| {
+                TrainError::Evaluate { step, message: format!("no metric {name:?} to keep the best by in {names:?}") }
+            })?;
+            // A non-finite evaluation is never the best; the first finite one is.
+            let better = value.is_finite() && self.best.as_ref().is_none_or(|(_, b, _)| value > *b);
+            if better {
+                self.best = Some((step, value, self.params.clone()));
+            }
+        }
         if !self.writes {
             return Ok(TrainEvent::Evaluated { step, metrics });
         }
@@ -389,6 +429,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
             eval_names: self.eval_names.clone().unwrap_or_default(),
             last_eval: self.last_eval.clone(),
             seconds: self.seconds(),
+            best: self.best.clone(),
         };
         ckpt.save(&self.dir.join(CHECKPOINT_FILE))?;
         let path = self.dir.join(PARAMS_FILE);
@@ -477,6 +518,7 @@ pub fn train(
             skipped: ckpt.skipped_steps,
             eval_names: Some(ckpt.eval_names),
             last_eval: ckpt.last_eval,
+            best: ckpt.best,
             prior_seconds: ckpt.seconds,
             started,
             train_log,
@@ -502,6 +544,7 @@ pub fn train(
             skipped: 0,
             eval_names: None,
             last_eval: (0, Vec::new()),
+            best: None,
             prior_seconds: 0.0,
             started,
             train_log: None,
@@ -540,14 +583,21 @@ pub fn train(
             on_event(&run.checkpoint(step)?);
         }
     }
-    Ok(TrainOutcome {
-        final_eval: run.final_eval(),
-        seconds: run.seconds(),
-        steps: total,
-        skipped_steps: run.skipped,
-        steps_run: total - done,
-        params: run.params,
-    })
+    let final_eval = run.final_eval();
+    let (seconds, skipped_steps) = (run.seconds(), run.skipped);
+    let (params, kept) = match (&config.keep_best, run.best) {
+        (Some(metric), Some((step, value, params))) => {
+            let last = final_eval.iter().find(|(n, _)| n == metric).map_or(f64::NAN, |(_, v)| *v);
+            if writes {
+                let path = out_dir.join(PARAMS_FILE);
+                params.save(&path).map_err(|source| TrainError::Checkpoint { path, source })?;
+            }
+            (params, Some(KeptBest { metric: metric.clone(), step, value, last }))
+        }
+        // No finite evaluation at all: the last parameters, as without the setting.
+        _ => (run.params, None),
+    };
+    Ok(TrainOutcome { final_eval, seconds, steps: total, skipped_steps, steps_run: total - done, params, kept })
 }
 
 /// Why an estimate is not finite, in words: the log-likelihood's value and the
