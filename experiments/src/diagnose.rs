@@ -432,6 +432,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     if !r.not_fitted.is_empty() {
         let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
     }
+    s.push_str(&fits_kept(r));
     let _ = writeln!(s, "\n## The worst checks\n");
     let _ = writeln!(
         s,
@@ -440,6 +441,38 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     );
     for (name, file) in plots {
         let _ = writeln!(s, "![{name}]({file})\n");
+    }
+    s
+}
+
+/// The section on which parameters each fit kept (`DiagnoseConfig::keep_best_every`):
+/// the step of its best evaluation on the check part, that MLL and the last, so
+/// that a fit that wandered off shows; empty for a report whose fits kept their last.
+fn fits_kept(r: &Report) -> String {
+    let mut fits = vec![("base".to_string(), r.base_kept.as_ref())];
+    if let Some(reference) = &r.reference {
+        fits.push(("reference".into(), reference.kept.as_ref()));
+        if let Some(reseeded) = &reference.reseeded {
+            fits.push(("reference, reseeded".into(), reseeded.kept.as_ref()));
+        }
+    }
+    fits.extend(r.candidates.iter().map(|c| (c.cause.clone(), c.kept.as_ref())));
+    if fits.iter().all(|(_, kept)| kept.is_none()) {
+        return String::new();
+    }
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "\n## Parameters each fit kept\n\nEvery fit was evaluated on the check objects every {} steps (training filter \
+         and particles) and kept its best evaluation; a large fall from it means the fit wandered off after it.\n",
+        r.config.keep_best_every
+    );
+    let _ = writeln!(s, "| fit | step kept | check MLL there | at the end | fall |");
+    let _ = writeln!(s, "|---|---|---|---|---|");
+    for (name, kept) in fits {
+        if let Some(k) = kept {
+            let _ = writeln!(s, "| {name} | {} | {} | {} | {} |", k.step, fmt(k.value), fmt(k.last), fmt(k.fall()));
+        }
     }
     s
 }

@@ -17,6 +17,9 @@
 //!   written to [`SKIP_LOG`]); any other error aborts training with the step named.
 //! * **Clipping.** With `clip` set the global norm of the score is clipped before
 //!   the update; the log records the norm before clipping.
+//! * **Keeping the best.** With [`TrainConfig::keep_best`] naming an evaluation
+//!   metric, the run returns the parameters of its best evaluation rather than its
+//!   last ([`TrainOutcome::kept`] says where and how far the run fell after it).
 //! * **Files in `out_dir`.** [`TRAIN_LOG`] (one row per step, header
 //!   [`TRAIN_LOG_HEADER`]) and [`EVAL_LOG`] (`step` then the objective's metric
 //!   names; a row at step 0, every `eval_every` steps and at the end) are appended
