@@ -269,9 +269,9 @@ impl Objective for SceneObjective {
     }
 
     /// `test_mll` (nats per point, one filter run with `eval_particles`), the
-    /// test's collapsed steps and, for the hand-crafted policy, its sds. On a
-    /// process other than the first of a distributed job the filter is not run
-    /// and its two metrics are NaN (that process writes no logs).
+    /// test's collapsed steps and, for the hand-crafted policy, its sds. In a
+    /// distributed job only the first process runs the filter; the others receive
+    /// its two metrics ([`crate::reduce::Collective::share_first`]).
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
         let (ll, units, collapsed): (f64, usize, Option<usize>) = if self.is_root() {
@@ -292,24 +292,7 @@ impl Objective for SceneObjective {
         // (`TrainConfig::keep_best`) is the same on all.
         let mut shared =
             [if units > 0 { ll / units as f64 } else { f64::NAN }, collapsed.map_or(f64::NAN, |c| c as f64)];
-        if self.comm.size() > 1 {
-            for v in &mut shared {
-                // The maximum of the first's value and -inf elsewhere; NaN travels as +inf.
-                *v = if !self.is_root() {
-                    f64::NEG_INFINITY
-                } else if v.is_nan() {
-                    f64::INFINITY
-                } else {
-                    *v
-                };
-            }
-            self.comm.max_f64(&mut shared);
-            for v in &mut shared {
-                if *v == f64::INFINITY {
-                    *v = f64::NAN;
-                }
-            }
-        }
+        self.comm.share_first(&mut shared);
         let mut metrics = vec![(TEST_MLL.to_string(), shared[0]), ("test_collapsed_steps".to_string(), shared[1])];
         if let AnyPolicy::HandCrafted(_) = &models.policy {
             let p = models.policy.parameters();

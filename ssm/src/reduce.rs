@@ -39,6 +39,26 @@ pub trait Collective: Send + Sync {
     fn bytes_sent(&self) -> u64 {
         0
     }
+    /// Gives every process the first process's `values`, exactly (NaN and
+    /// infinities included), through one [`Collective::max_f64`] of twice the
+    /// length: the first sends each value (NaN as 0) and a NaN flag, the others
+    /// `-inf`, which never wins a maximum.
+    fn share_first(&self, values: &mut [f64]) {
+        if self.size() <= 1 {
+            return;
+        }
+        let n = values.len();
+        let mut sent = vec![f64::NEG_INFINITY; 2 * n];
+        if self.rank() == 0 {
+            for (i, v) in values.iter().enumerate() {
+                (sent[i], sent[n + i]) = if v.is_nan() { (0.0, 1.0) } else { (*v, 0.0) };
+            }
+        }
+        self.max_f64(&mut sent);
+        for (i, v) in values.iter_mut().enumerate() {
+            *v = if sent[n + i] > 0.0 { f64::NAN } else { sent[i] };
+        }
+    }
 }
 
 /// One process: both reductions are the identity.
@@ -280,6 +300,31 @@ mod tests {
 
     fn to_bits(v: &[f64]) -> Vec<u64> {
         v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    #[test]
+    fn share_first_gives_every_process_the_first_ones_values_exactly() {
+        let first = [1.5, f64::NAN, f64::INFINITY, f64::NEG_INFINITY, -0.0, -2.25e-300];
+        for size in [1, 2, 3] {
+            let group = ThreadGroup::new(size);
+            let answers: Vec<Vec<f64>> = std::thread::scope(|scope| {
+                let handles: Vec<_> = (0..size)
+                    .map(|rank| {
+                        let comm = group.member(rank);
+                        // The others hold values larger than the first's.
+                        let mut mine = if rank == 0 { first.to_vec() } else { vec![f64::MAX; first.len()] };
+                        scope.spawn(move || {
+                            comm.share_first(&mut mine);
+                            mine
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join().unwrap()).collect()
+            });
+            for a in &answers {
+                assert_eq!(to_bits(a), to_bits(&first), "{size} processes");
+            }
+        }
     }
 
     #[test]

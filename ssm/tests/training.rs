@@ -676,60 +676,36 @@ fn keep_best_returns_the_best_evaluation_and_survives_a_resume() {
 
 #[test]
 fn a_version_2_checkpoint_is_read_as_a_run_without_keep_best() {
-    // The layout of format version 2: the settings without `keep_best`, no `best`.
-    #[derive(serde::Serialize)]
-    struct ConfigV2 {
-        lr: f64,
-        final_lr: Option<f64>,
-        clip: Option<f64>,
-        epochs: usize,
-        eval_every: usize,
-        checkpoint_every: usize,
-        seed: u64,
-        shuffle: bool,
-    }
-    #[derive(serde::Serialize)]
-    struct CheckpointV2 {
-        step: usize,
-        params: ParamStore<f64>,
-        adam: Adam,
-        skipped_steps: usize,
-        config: ConfigV2,
-        batches: usize,
-        eval_names: Vec<String>,
-        last_eval: (usize, Vec<f64>),
-        seconds: f64,
-    }
-    let c = resume_config();
-    let v2 = CheckpointV2 {
-        step: 5,
-        params: store(START),
-        adam: Adam::new(c.lr),
-        skipped_steps: 1,
-        config: ConfigV2 {
-            lr: c.lr,
-            final_lr: c.final_lr,
-            clip: c.clip,
-            epochs: c.epochs,
-            eval_every: c.eval_every,
-            checkpoint_every: c.checkpoint_every,
-            seed: c.seed,
-            shuffle: c.shuffle,
-        },
-        batches: 3,
-        eval_names: vec!["test_mll".into(), "phi".into()],
-        last_eval: (3, vec![-1.5, 0.3]),
-        seconds: 2.5,
+    // A checkpoint written by the version-2 code (commit 985dab9: PF on the
+    // paper's experiment A, seed 0, at its last step), not a layout mirrored here.
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/checkpoint-v2.bin");
+    let bytes = std::fs::read(&fixture).unwrap();
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 2, "a version-2 file");
+    let read = Checkpoint::load(&fixture).unwrap();
+    let expected = TrainConfig {
+        lr: 0.01,
+        final_lr: None,
+        clip: None,
+        epochs: 100,
+        eval_every: 50,
+        checkpoint_every: 50,
+        seed: 0,
+        shuffle: true,
+        keep_best: None,
     };
+    assert_eq!((read.step, read.batches), (1000, 10));
+    assert_eq!((&read.config, &read.best), (&expected, &None));
+    assert_eq!((read.last_eval.0, read.eval_names[0].as_str()), (1000, "test_mll"));
+    assert!(!read.params.is_empty() && read.seconds > 0.0);
+    // Saved again, it is a version-3 checkpoint that reads back the same.
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join(CHECKPOINT_FILE);
-    autodiff::nn::write_versioned(&path, 2, &v2).unwrap();
-    let read = Checkpoint::load(&path).unwrap();
-    assert_eq!((read.step, read.skipped_steps, read.batches, read.seconds), (5, 1, 3, 2.5));
-    assert_eq!((read.config, read.best), (c, None));
-    assert_eq!(read.last_eval, (3, vec![-1.5, 0.3]));
+    read.save(&path).unwrap();
+    assert_eq!(Checkpoint::load(&path).unwrap(), read);
     // Another version is refused, naming the version found.
-    autodiff::nn::write_versioned(&path, 1, &v2).unwrap();
+    let mut v1 = bytes;
+    v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+    std::fs::write(&path, v1).unwrap();
     let err = Checkpoint::load(&path).unwrap_err();
     assert!(err.to_string().contains('1'), "{err}");
 }

@@ -1072,12 +1072,10 @@ fn fit(
     comm: &Arc<dyn Collective>,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Fitted, String> {
+    let train_tempering = config.train_tempered.then_some(config.train_tempering());
     let objective_config = ObjectiveConfig {
         estimator: Estimator::pf_sefi(config.lag),
-        estimator_config: EstimatorConfig::new(Sampling::new(
-            config.particles,
-            config.train_tempered.then_some(config.train_tempering()),
-        )),
+        estimator_config: EstimatorConfig::new(Sampling::new(config.particles, train_tempering)),
         scenes_per_step: config.scenes_per_step,
         // The check part's evaluations only rank the fit's own steps
         // (`keep_best_every`): the training filter suffices.
@@ -1086,7 +1084,7 @@ fn fit(
         extension_only: extension.is_some() && !config.refit,
         frozen: Vec::new(),
         proposal: None,
-        eval_tempering: config.train_tempered.then_some(config.train_tempering()),
+        eval_tempering: train_tempering,
     };
     let mut objective = SceneObjective::for_process(parts.fit, parts.check.clone(), objective_config, comm.clone())?;
     let batches = crate::training::Objective::batches(&objective).max(1);
