@@ -380,17 +380,18 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         s,
         "Each extension the check objects made plausible, started where their discrepancies point, {how}. A cause \
          must (a) raise the evaluation objects' log-likelihood over the reference's with a Holm-adjusted sign-flip \
-         p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially and (d) lower the \
-         |z| of a check that flagged it below the reference's.\n",
+         p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially, (d) lower the \
+         |z| of a check that flagged it below the reference's and (e), if it contains another fitted extension as \
+         a special case, beat that one by object (same test and minimum).\n",
         c.cause_level,
         r.gain_bar(),
         noise_note(r)
     );
     let _ = writeln!(
         s,
-        "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
+        "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | over nested (p) | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
     );
-    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|");
     let reference_checks = r.reference_checks();
     let abs_z = |results: &[CheckResult], name: &str| {
         results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
@@ -407,13 +408,14 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         };
         let _ = writeln!(
             s,
-            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",
+            "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",
             cand.cause,
             cand.gain,
             cand.gain_se,
             fmt(cand.gain_mc_sd),
             fmt(cand.p_adjusted),
             cand.over_reseeded.map_or("-".to_string(), |(gain, p)| format!("{gain:+.4} ({})", fmt(p))),
+            cand.over_nested.as_ref().map_or("-".to_string(), |n| format!("{}: {:+.4} ({})", n.nested, n.gain, fmt(n.p))),
             fmt(cand.top_two_share),
             cand.description,
             if cand.material { "yes" } else { "no" },

@@ -57,7 +57,7 @@ pub struct PowerArgs {
 /// Every effect id of the study, in the order of its tables (and the default of
 /// `--effects`).
 const STUDY_EFFECTS: &str =
-    "latency,clutter,size_bias,heavy_tailed_accel,student_t_accel,heading_flip,ego_pose_noise,none-points,none-boxes";
+    "latency,clutter,size_bias,heavy_tailed_accel,student_t_accel,heading_flip,persistent_flip,ego_pose_noise,none-points,none-boxes";
 
 /// The study's setting of one effect id: the hidden effect, the data's kind and
 /// scene count (boxes carry less information per step, and heavy tails act on a
@@ -87,6 +87,7 @@ impl StudyEffect {
             "heavy_tailed_accel" => ("heavy_tailed_accel", ObservationKind::Points, 16, "heavy_tailed_accel"),
             "student_t_accel" => ("student_t_accel", ObservationKind::Points, 16, "heavy_tailed_accel"),
             "heading_flip" => ("heading_flip", ObservationKind::Boxes, 32, "heading_flip"),
+            "persistent_flip" => ("persistent_flip", ObservationKind::Boxes, 32, "persistent_flip"),
             // Outside the catalogue: the right answer is that the model is wrong in
             // a way the catalogue does not cover.
             "ego_pose_noise" => ("ego_pose_noise", ObservationKind::Points, 8, UNEXPLAINED),

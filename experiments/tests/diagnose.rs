@@ -4,7 +4,8 @@
 //! gain that passes its permutation test and the minimum effect, must never blame
 //! a Student-t tail on an effect other than `heavy_tailed_accel` (the catalogue's
 //! heavy-tail extension; how often it is named is the power study's measure), and
-//! must name no catalogue cause on a control. It is told nothing about the
+//! must name no catalogue cause on a control, nor persistent flips where they
+//! are independent. It is told nothing about the
 //! data beyond the files. The power study (`sefi power-study`, README) runs the
 //! same at three strengths and five seeds each.
 
@@ -244,9 +245,28 @@ fn student_t_accelerations_are_never_blamed_on_another_effect() {
     assert_no_false_cause("student_t_accel", "2", "8", &["--scenes", "16"], Some("heavy_tailed_accel"));
 }
 
+/// Independent flips: named `heading_flip`; where the reversal persistence
+/// check also makes persistent flips plausible, the chain must not out-gain
+/// the independent flips by object.
 #[test]
 fn finds_stronger_heading_flip() {
     assert_found("heading_flip", "1.5", "9", &["--boxes", "--scenes", "32"], "heading_flip");
+}
+
+/// Reversed headings in runs (a flip chain: 20% of detections, persistence
+/// 0.8): named `persistent_flip`, which must beat `heading_flip` — fitted too,
+/// as the reversal fraction flags it — by object (rule (e)).
+#[test]
+fn finds_persistent_flip_over_independent_flips() {
+    let (report, out) = diagnose("persistent_flip", "1", "31", &["--boxes", "--scenes", "16"]);
+    assert_names(&report, &out, "persistent_flip");
+    let candidates = report["candidates"].as_array().unwrap();
+    let chain = candidates.iter().find(|c| c["cause"] == "persistent_flip").unwrap();
+    assert!(candidates.iter().any(|c| c["cause"] == "heading_flip"), "{}", summary(&report));
+    let over = &chain["over_nested"];
+    assert_eq!(over["nested"], "heading_flip", "{}", summary(&report));
+    assert!(over["gain"].as_f64().unwrap() > 0.0 && over["p"].as_f64().unwrap() < 0.05, "{over}");
+    assert!(std::fs::read_to_string(out.join("report.md")).unwrap().contains("heading_flip: +"), "over nested");
 }
 
 #[test]

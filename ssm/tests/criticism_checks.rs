@@ -4,10 +4,14 @@
 
 use std::f64::consts::{FRAC_PI_2, PI};
 
+use rand::rngs::SmallRng;
+use rand::SeedableRng;
+
 use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef, Direction, Suggestion};
 use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::models::extended::{lagged_pose, ObjectObservations};
+use ssm::models::flip_chain::FlipChain;
 use ssm::models::observation::edges::from_box_frame;
 use ssm::stats::normal_cdf;
 
@@ -84,6 +88,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
             "along_offset_vs_speed",
             "initial_lag",
             "yaw_reversal_fraction",
+            "yaw_reversal_persistence",
             "accel_kurtosis",
             "accel_peakedness",
             "pinch_kurtosis",
@@ -99,7 +104,7 @@ fn checks_per_kind_are_fixed_and_name_their_extensions() {
     );
     assert_eq!(
         suggests(ObservationKind::Boxes),
-        ["latency", "latency", "heading_flip", "heavy_tailed_accel", "heavy_tailed_accel"]
+        ["latency", "latency", "heading_flip", "persistent_flip", "heavy_tailed_accel", "heavy_tailed_accel"]
     );
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
         for d in checks_for(kind) {
@@ -236,6 +241,55 @@ fn box_statistics_see_lag_flips_and_line_of_sight_residuals() {
     assert!((stat(&data, &lag, "along_offset_vs_speed") - -delay).abs() < 1e-12);
 }
 
+/// Detections of one object heading east along `states()`, reversed where
+/// `reversed[t]`, missing where `None`.
+fn reversal_sample(object: usize, reversed: &[Option<bool>]) -> ObjectSample {
+    let s: Vec<State> = states().into_iter().cycle().take(reversed.len()).collect();
+    let dets = s.iter().zip(reversed).map(|(x, r)| r.map(|r| detection(x.x, x.y, if r { PI } else { 0.0 })));
+    sample(object, s.clone(), vec![], ObjectObservations::Boxes(dets.collect()))
+}
+
+/// `yaw_reversal_persistence` pairs detections of one object at consecutive
+/// steps only (a missed detection breaks the pair; objects are never paired),
+/// and is the lag-one correlation (phi) of the reversal indicators: about the
+/// chain's `lambda` over paths of a flip chain at any fraction, about 0 for
+/// independent flips, 0 without reversals.
+#[test]
+fn reversal_persistence_is_the_lag_one_covariance_of_consecutive_detections() {
+    let data = dataset(ObservationKind::Boxes, 2);
+    let (t, f) = (Some(true), Some(false));
+    // Pairs (f,t), (t,t), (t,f) and, across the gap, none; object 1: (f,f), (f,t).
+    let samples = [reversal_sample(0, &[f, t, t, f, None, t]), reversal_sample(1, &[f, f, t])];
+    // Both 1/5, first reversed 2/5, second reversed 3/5: phi = (0.2 - 0.24) / 0.24.
+    let want = (1.0 / 5.0 - (2.0 / 5.0) * (3.0 / 5.0)) / 0.24;
+    assert!((stat(&data, &samples, "yaw_reversal_persistence") - want).abs() < 1e-12);
+    assert!(stat(&data, &[reversal_sample(0, &[t, None, t])], "yaw_reversal_persistence").is_nan(), "no pair");
+    assert_eq!(stat(&data, &[reversal_sample(0, &[f, f, f])], "yaw_reversal_persistence"), 0.0, "no reversal");
+    let steps = 400;
+    let data = Dataset::builder(Meta::new(DT, steps), ObservationKind::Boxes);
+    let data = {
+        let mut b = data;
+        b.scene(0, &vec![Pose::default(); steps]);
+        for id in 0..50 {
+            let prior = Prior { mean: State::default(), sd: State { x: 1.0, y: 1.0, yaw: 0.1, v: 1.0, kappa: 0.01 } };
+            b.object(Object { scene: 0, id, length: LENGTH, width: WIDTH, prior });
+        }
+        b.build().expect("valid dataset")
+    };
+    let mut rng = SmallRng::seed_from_u64(3);
+    for (p, lambda) in [(0.2, 0.8), (0.05, 0.4), (0.2, 0.0), (0.02, 0.6)] {
+        let chain = FlipChain { fraction: p, persistence: lambda };
+        let samples: Vec<ObjectSample> = (0..50)
+            .map(|o| {
+                let path: Vec<Option<bool>> = chain.sample_path(steps, &mut rng).into_iter().map(Some).collect();
+                reversal_sample(o, &path)
+            })
+            .collect();
+        let got = stat(&data, &samples, "yaw_reversal_persistence");
+        assert!((got - lambda).abs() < 0.05, "p {p}, lambda {lambda}: {got}");
+    }
+}
+
 #[test]
 fn too_little_data_is_nan_never_a_panic() {
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
@@ -323,6 +377,8 @@ fn every_revealing_check_states_the_direction_its_extension_moves_it() {
                 // A lag puts observations behind the state: a negative slope and offset.
                 ("latency", _) => Lower,
                 ("clutter" | "heading_flip", _) => Higher,
+                // Runs of reversals raise the indicators' lag-one covariance.
+                ("persistent_flip", _) => Higher,
                 // The extent factors can be below or above 1.
                 ("size_bias", _) => Either,
                 ("heavy_tailed_accel", "accel_kurtosis") => Higher,

@@ -281,6 +281,36 @@ fn mixture_geary(p: f64, r: f64) -> f64 {
     GAUSSIAN_GEARY_RATIO * ((1.0 - p) + p * r) / ((1.0 - p) + p * r * r).sqrt()
 }
 
+/// A persistent flip starts at the fraction `yaw_reversal_fraction` measured in
+/// excess and the lag-one correlation `yaw_reversal_persistence` measured in
+/// excess as its persistence, kept inside [0.05, 0.95]; without a positive
+/// excess at the stated 0.5. `heading_flip` reads only the fraction.
+#[test]
+fn persistent_flip_starts_at_the_runs_the_check_part_measured() {
+    let ext = Extension::PersistentFlip;
+    let natural = |raw: Tensor<f64>| -> Vec<f64> { ext.natural(raw.data()).unwrap().iter().map(|v| v.1).collect() };
+    for (p, lambda) in [(0.2, 0.8), (0.05, 0.3), (0.1, 0.5)] {
+        let v = natural(ext.initial_from_checks(&[
+            ("yaw_reversal_fraction", p),
+            ("yaw_reversal_persistence", lambda),
+        ]));
+        assert!((v[0] - p).abs() < 1e-9 && (v[1] - lambda).abs() < 1e-9, "{v:?} for ({p}, {lambda})");
+    }
+    let v = natural(ext.initial_from_checks(&[("yaw_reversal_fraction", 0.2), ("yaw_reversal_persistence", 1.2)]));
+    assert!((v[1] - 0.95).abs() < 1e-9, "clamped: {v:?}");
+    for excess in [-0.1, 0.0, f64::NAN] {
+        let v =
+            natural(ext.initial_from_checks(&[("yaw_reversal_fraction", 0.2), ("yaw_reversal_persistence", excess)]));
+        assert!((v[1] - 0.5).abs() < 1e-9, "{excess}: {v:?}");
+    }
+    let flip = Extension::HeadingFlip;
+    assert_eq!(
+        flip.initial_from_checks(&[("yaw_reversal_fraction", 0.2), ("yaw_reversal_persistence", 0.1)]),
+        flip.initial_from_checks(&[("yaw_reversal_fraction", 0.2)])
+    );
+    assert_eq!(flip.initial_from_checks(&[]), flip.initial());
+}
+
 #[test]
 fn heavy_tail_start_has_the_peakedness_the_check_part_measured() {
     let ext = Extension::HeavyTailedAccel;

@@ -53,7 +53,7 @@ pub struct CheckDef {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Suggestion {
     /// The extension's id (`"latency"`, `"clutter"`, `"size_bias"`,
-    /// `"heavy_tailed_accel"`, `"heading_flip"`).
+    /// `"heavy_tailed_accel"`, `"heading_flip"`, `"persistent_flip"`).
     pub extension: &'static str,
     /// The sign of measured minus replicated under that extension.
     pub direction: Direction,
@@ -64,7 +64,8 @@ pub struct Suggestion {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Direction {
     /// The measured statistic is higher than the model's replicates (clutter's far
-    /// points, heading flips' reversals, heavy tails' kurtosis).
+    /// points, heading flips' reversals, persistent flips' runs of them, heavy
+    /// tails' kurtosis).
     Higher,
     /// The measured statistic is lower (a sensor lag's negative slope and initial
     /// offset, heavy tails' lower Geary ratio).
@@ -122,7 +123,7 @@ const fn revealing(
 }
 
 /// Every check, in the order [`checks_for`] and [`statistics`] use.
-static CHECKS: [Check; 16] = [
+static CHECKS: [Check; 17] = [
     revealing(
         "along_offset_vs_speed",
         "Least-squares slope, over observed object-steps, of the observation's mean offset along the heading \
@@ -159,6 +160,17 @@ static CHECKS: [Check; 16] = [
         "heading_flip",
         Direction::Higher,
         yaw_reversal_fraction,
+    ),
+    revealing(
+        "yaw_reversal_persistence",
+        "Lag-one correlation (phi coefficient) of the reversal indicators (heading more than pi/2 rad from the \
+         state's) over pairs of detections of one object at consecutive steps (unitless; 0 for reversals \
+         independent from step to step, and when no detection or every one is reversed; lambda for a two-state \
+         chain with lag-one correlation lambda).",
+        BOXES,
+        "persistent_flip",
+        Direction::Higher,
+        yaw_reversal_persistence,
     ),
     revealing(
         "length_extent_ratio",
@@ -303,6 +315,9 @@ struct View {
     /// Standardised acceleration innovations (empty when the samples have none).
     innovations: Vec<f64>,
     pinches: Vec<f64>,
+    /// Per pair of detections of one object at consecutive steps, whether each
+    /// reports the heading reversed (box data only).
+    reversal_pairs: Vec<(bool, bool)>,
     dt: f64,
 }
 
@@ -314,6 +329,7 @@ impl View {
             accels: Vec::new(),
             innovations: Vec::new(),
             pinches: Vec::new(),
+            reversal_pairs: Vec::new(),
             dt: data.dt(),
         };
         for s in samples {
@@ -331,7 +347,10 @@ impl View {
                 ObjectObservations::Points(p) => p.len(),
                 ObjectObservations::Boxes(b) => b.len(),
             };
+            // Whether the previous step's detection is reversed (None: no detection there).
+            let mut previous_reversal: Option<bool> = None;
             for t in 0..steps {
+                let reversal = previous_reversal.take();
                 let (Some(x), Some(a)) = (s.states.get(t), av.get(t)) else { continue };
                 let pose = Pose { x: x.x, y: x.y, yaw: x.yaw };
                 let (items, yaw_residual) = match &s.observations {
@@ -341,6 +360,13 @@ impl View {
                         None => continue,
                     },
                 };
+                if let Some(r) = yaw_residual {
+                    let reversed = r.abs() > FRAC_PI_2;
+                    if let Some(before) = reversal {
+                        view.reversal_pairs.push((before, reversed));
+                    }
+                    previous_reversal = Some(reversed);
+                }
                 if !items.is_empty() {
                     let av = to_box_frame(pose, [a.x, a.y]);
                     view.steps.push(Step {
@@ -395,6 +421,21 @@ fn far_point_fraction(view: &View) -> f64 {
 
 fn yaw_reversal_fraction(view: &View) -> f64 {
     fraction(view.steps.iter().filter_map(|s| s.yaw_residual).map(|r| r.abs() > FRAC_PI_2))
+}
+
+fn yaw_reversal_persistence(view: &View) -> f64 {
+    let pairs = &view.reversal_pairs;
+    let both = fraction(pairs.iter().map(|&(a, b)| a && b));
+    let (first, second) = (fraction(pairs.iter().map(|p| p.0)), fraction(pairs.iter().map(|p| p.1)));
+    let spread = (first * (1.0 - first) * second * (1.0 - second)).sqrt();
+    if spread > 0.0 {
+        (both - first * second) / spread
+    } else if pairs.is_empty() {
+        f64::NAN
+    } else {
+        // No reversal (or nothing but reversals) among the pairs: no runs.
+        0.0
+    }
 }
 
 fn length_extent_ratio(view: &View) -> f64 {

@@ -2,7 +2,7 @@
 //! catalogue extension explains it, and how much it gains.
 //!
 //! * [`extensions`](crate::models::extended): the catalogue — latency, clutter, size bias, heavy-tailed
-//!   acceleration, heading flips — each a model component with learnable
+//!   acceleration, heading flips, heading flips in runs — each a model component with learnable
 //!   parameters ([`ExtendedSsm`](crate::models::extended::ExtendedSsm)) that PF-SEFI trains like the base.
 //! * [`checks`]: discrepancy statistics of drawn paths and their observations,
 //!   computed alike on measured and replicated data (posterior predictive checks).

@@ -113,6 +113,10 @@ const INITIAL_FRACTION: f64 = 0.02;
 /// Initial persistence of `persistent_flip`: halfway between independent flips
 /// (0) and a flip that stays for the whole track (1), a stated rule.
 const INITIAL_PERSISTENCE: f64 = 0.5;
+/// Range of the persistence a check may suggest as a start: clear of both
+/// ends of the logit, where its gradient vanishes.
+const MIN_INITIAL_PERSISTENCE: f64 = 0.05;
+const MAX_INITIAL_PERSISTENCE: f64 = 0.95;
 /// Least persistence for `persistent_flip` to be a material change over
 /// independent flips (`heading_flip`, persistence 0).
 const MATERIAL_PERSISTENCE: f64 = 0.1;
@@ -177,12 +181,15 @@ impl Extension {
         }
     }
 
-    /// Whether `sefi diagnose` fits it as a candidate: every entry but
-    /// `persistent_flip`, whose refit in a quick diagnosis was measured to fit
-    /// worse than `heading_flip`'s even on data with persistent flips (README,
-    /// "Persistent flips"); fit it with `sefi train --extension`.
-    pub fn is_diagnosed(self) -> bool {
-        self != Extension::PersistentFlip
+    /// The catalogue entry this one contains as a special case, if any:
+    /// `persistent_flip` at persistence 0 is `heading_flip`. A diagnosis names
+    /// the larger only where it beats the smaller by object (its extra
+    /// parameter must earn its place).
+    pub fn nests(self) -> Option<Extension> {
+        match self {
+            Extension::PersistentFlip => Some(Extension::HeadingFlip),
+            _ => None,
+        }
     }
 
     /// The extension with catalogue id `id`.
@@ -231,7 +238,9 @@ impl Extension {
     /// `(name, measured - replicated)`. A sensor lag shows directly in
     /// `initial_lag` (about minus the delay) and reversed headings in
     /// `yaw_reversal_fraction` (the excess fraction), so those extensions start
-    /// there; heavy tails start at 5% of draws with the sd ratio whose mixture has
+    /// there, persistent flips with the excess lag-one correlation of the
+    /// reversals `yaw_reversal_persistence` measured as their persistence (in
+    /// [0.05, 0.95]); heavy tails start at 5% of draws with the sd ratio whose mixture has
     /// the excess kurtosis `accel_kurtosis` measured beyond the replicates (or,
     /// without one, the Geary ratio `accel_peakedness` measured below them). The
     /// others (and these without their check) start at [`Extension::initial`].
@@ -247,14 +256,22 @@ impl Extension {
                 }
                 _ => self.initial(),
             },
-            Extension::HeadingFlip | Extension::PersistentFlip => match find("yaw_reversal_fraction") {
-                Some(excess) if excess > INITIAL_FRACTION => {
-                    let mut raw = self.initial().data().to_vec();
-                    raw[0] = logit(excess.min(0.5));
-                    Tensor::from_vec(raw)
+            Extension::HeadingFlip | Extension::PersistentFlip => {
+                let mut raw = self.initial().data().to_vec();
+                let fraction = match find("yaw_reversal_fraction") {
+                    Some(excess) if excess > INITIAL_FRACTION => excess.min(0.5),
+                    _ => INITIAL_FRACTION,
+                };
+                raw[0] = logit(fraction);
+                // The chain's persistence is the lag-one correlation of its
+                // indicators, which the check measures.
+                if let (Extension::PersistentFlip, Some(excess)) = (self, find("yaw_reversal_persistence")) {
+                    if excess > 0.0 {
+                        raw[1] = logit(excess.clamp(MIN_INITIAL_PERSISTENCE, MAX_INITIAL_PERSISTENCE));
+                    }
                 }
-                _ => self.initial(),
-            },
+                Tensor::from_vec(raw)
+            }
             Extension::HeavyTailedAccel => {
                 let from_kurtosis = find("accel_kurtosis")
                     .filter(|&excess| excess > 0.0)

@@ -41,8 +41,13 @@
 //!    noise ([`DiagnoseConfig::refit_noise`]: the base refitted alone with
 //!    another seed; the candidate's gain over that refit, paired by object,
 //!    passes the same test and the same minimum, [`beats_reseeded`]), (c) change the model
-//!    materially and (d) improve a check that flagged them (its |z| on the check
-//!    part falls below the reference's: [`improves_flagged_checks`]).
+//!    materially, (d) improve a check that flagged them (its |z| on the check
+//!    part falls below the reference's: [`improves_flagged_checks`]) and (e),
+//!    for an extension that contains another fitted candidate as a special case
+//!    ([`Extension::nests`]: persistent flips at persistence 0 are independent
+//!    ones), beat that candidate by object with the same test and minimum
+//!    ([`nested_comparisons`]): the larger model is named only where its extra
+//!    parameter earns its place.
 //! 6. **The outcome**: the cause; else `unexplained` when some check of the
 //!    reference fails at the family-wise level (the model is wrong in a way the
 //!    catalogue does not cover); else `none`.
@@ -401,6 +406,13 @@ pub struct CandidateReport {
     /// reports written before it was made.
     #[serde(default)]
     pub over_reseeded: Option<(f64, f64)>,
+    /// Rule (e), for an extension that nests another fitted candidate
+    /// ([`Extension::nests`]: `persistent_flip` nests `heading_flip`): its gain
+    /// over that candidate, paired by object, and the gain's one-sided
+    /// sign-flip p. `None` when it nests none that was fitted, and in reports
+    /// written before the rule.
+    #[serde(default)]
+    pub over_nested: Option<NestedComparison>,
     /// The share of the total gain carried by the two objects with the largest gains.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub top_two_share: f64,
@@ -432,13 +444,59 @@ pub struct CandidateReport {
     pub kept: Option<KeptBest>,
 }
 
+/// A candidate against the catalogue entry it nests, both fitted: rule (e).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NestedComparison {
+    /// The nested extension's id.
+    pub nested: String,
+    /// The candidate's held-out gain over it (nats per observed unit, paired
+    /// over the evaluation objects).
+    pub gain: f64,
+    /// That gain's one-sided sign-flip p (one comparison per nesting
+    /// candidate, and a further condition on a cause: no adjustment).
+    pub p: f64,
+}
+
+impl NestedComparison {
+    /// Whether the larger extension earns its extra parameters: a gain over
+    /// the nested one of at least `min_gain` with p below `cause_level`.
+    pub fn beats_nested(&self, min_gain: f64, cause_level: f64) -> bool {
+        self.gain >= min_gain && self.p < cause_level
+    }
+}
+
+/// Rule (e)'s comparisons: per candidate `ids[i]` that nests another fitted
+/// candidate, its per-object gains minus that one's (both over the
+/// reference), summed per observed unit, with the one-sided sign-flip p.
+pub fn nested_comparisons(
+    ids: &[Extension],
+    object_gains: &[&[f64]],
+    units: usize,
+    config: &DiagnoseConfig,
+) -> Vec<Option<NestedComparison>> {
+    ids.iter()
+        .enumerate()
+        .map(|(i, ext)| {
+            let j = ids.iter().position(|other| Some(*other) == ext.nests())?;
+            let d = differences(object_gains[i], object_gains[j]);
+            let p = sign_flip_p(&d, config.permutations, stream_seed(config.seed ^ NESTED_PERMUTATIONS, i as u64));
+            Some(NestedComparison {
+                nested: ids[j].id().to_string(),
+                gain: d.iter().sum::<f64>() / units.max(1) as f64,
+                p,
+            })
+        })
+        .collect()
+}
+
 impl CandidateReport {
     /// Whether the candidate passes the decision's rules on its learned
     /// parameters and its gain — material, a finite gain of at least `gain_bar`
-    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`, and
+    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`,
     /// `beats_refit` on `over_reseeded` (its comparison with the reseeded
-    /// refit: its own, or one made since for a report written without it) —
-    /// leaving out only rule (d), that it lowers a flagging check's |z|.
+    /// refit: its own, or one made since for a report written without it) and
+    /// rule (e) on `over_nested` — leaving out only rule (d), that it lowers a
+    /// flagging check's |z|.
     /// `qualifies` is this, on its own comparison, and `checks_improved`.
     pub fn passes_gain_rules(
         &self,
@@ -452,6 +510,7 @@ impl CandidateReport {
             && self.gain >= gain_bar
             && self.p_adjusted < cause_level
             && beats_refit(over_reseeded, min_gain, cause_level)
+            && self.over_nested.as_ref().is_none_or(|n| n.beats_nested(min_gain, cause_level))
     }
 }
 
@@ -496,6 +555,8 @@ pub fn beats_reseeded(
 const REFERENCE_PERMUTATIONS: u64 = 0x5f1b;
 /// Seeds those of [`beats_reseeded`].
 const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
+/// Seeds those of [`nested_comparisons`].
+const NESTED_PERMUTATIONS: u64 = 0x5f1d;
 
 /// Rule (d) of the decision: the extension lowers the |z| of at least one check
 /// that flagged it (`flagged_by`) below the reference's, both calibrated on the
@@ -865,7 +926,7 @@ fn run(
     // 4. The plausible extensions, started from the check part.
     let mut not_fitted = Vec::new();
     let mut plausible = Vec::new();
-    for extension in Extension::for_kind(kind).into_iter().filter(|e| e.is_diagnosed()) {
+    for extension in Extension::for_kind(kind) {
         let flagged_by: Vec<String> = before
             .iter()
             .filter(|c| {
@@ -953,6 +1014,11 @@ fn run(
         }
         None => vec![None; fits.len()],
     };
+    let over_nested = {
+        let ids: Vec<Extension> = fits.iter().map(|f| f.extension).collect();
+        let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
+        nested_comparisons(&ids, &gains, reference_eval.units, config)
+    };
     let mut candidates = Vec::new();
     for (i, (f, d)) in fits.iter().zip(object_gains).enumerate() {
         let ext = f.extension;
@@ -974,6 +1040,7 @@ fn run(
             top_two_share: top_two_share(&d),
             object_gains: d,
             over_reseeded: over_reseeded[i],
+            over_nested: over_nested[i].clone(),
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
@@ -1273,7 +1340,19 @@ mod tests {
         let over = beats_reseeded(&[&candidate], &lost, units, &config);
         assert!(over[0].1 < 0.05 && over[0].0 > 0.0, "{over:?}");
         // The rules with and without the comparison.
-        let cand = CandidateReport {
+        let cand = qualifying_candidate();
+        assert!(cand.passes_gain_rules(0.003, None, 0.003, 0.05));
+        assert!(cand.passes_gain_rules(0.003, Some((0.1, 0.001)), 0.003, 0.05));
+        assert!(!cand.passes_gain_rules(0.003, Some((0.1, 0.2)), 0.003, 0.05), "not significantly beyond the refit");
+        assert!(
+            !cand.passes_gain_rules(0.003, Some((0.001, 0.001)), 0.003, 0.05),
+            "beyond it by less than the minimum"
+        );
+    }
+
+    /// A candidate that passes every rule on its own numbers.
+    fn qualifying_candidate() -> CandidateReport {
+        CandidateReport {
             cause: "latency".into(),
             gain: 0.2,
             gain_se: 0.01,
@@ -1283,6 +1362,7 @@ mod tests {
             p_adjusted: 0.001,
             object_gains: vec![],
             over_reseeded: None,
+            over_nested: None,
             top_two_share: 0.1,
             params: vec![],
             description: String::new(),
@@ -1294,14 +1374,38 @@ mod tests {
             skipped_steps: 0,
             train_seconds: 0.0,
             kept: None,
-        };
-        assert!(cand.passes_gain_rules(0.003, None, 0.003, 0.05));
-        assert!(cand.passes_gain_rules(0.003, Some((0.1, 0.001)), 0.003, 0.05));
-        assert!(!cand.passes_gain_rules(0.003, Some((0.1, 0.2)), 0.003, 0.05), "not significantly beyond the refit");
-        assert!(
-            !cand.passes_gain_rules(0.003, Some((0.001, 0.001)), 0.003, 0.05),
-            "beyond it by less than the minimum"
-        );
+        }
+    }
+
+    /// Rule (e): persistent flips are compared with independent flips by
+    /// object when both were fitted, and only then; one that gains what the
+    /// independent flips gain does not pass, one that gains more on every
+    /// object does, by its gain per unit.
+    #[test]
+    fn a_nesting_extension_must_beat_the_one_it_nests() {
+        let config = DiagnoseConfig { seed: 5, ..DiagnoseConfig::quick() };
+        let n = 30;
+        let units = 3 * n;
+        let wobble = |i: usize| ((i * 37 % 11) as f64 - 5.0) * 0.2;
+        let flips: Vec<f64> = (0..n).map(|i| 1.0 + wobble(i)).collect();
+        let like_flips: Vec<f64> = flips.iter().enumerate().map(|(i, g)| g + 0.05 * wobble(i * 7 + 3)).collect();
+        let beyond: Vec<f64> = like_flips.iter().map(|g| g + 0.5).collect();
+        let ids = [Extension::HeadingFlip, Extension::PersistentFlip, Extension::Latency];
+        let compared = nested_comparisons(&ids, &[&flips, &beyond, &flips], units, &config);
+        assert!(compared[0].is_none() && compared[2].is_none(), "{compared:?}");
+        let over = compared[1].clone().expect("persistent_flip against heading_flip");
+        assert_eq!(over.nested, "heading_flip");
+        assert!((over.gain - 0.5 * n as f64 / units as f64).abs() < 0.01 && over.p < 1e-3, "{over:?}");
+        assert!(over.beats_nested(MIN_GAIN, 0.05));
+        let like = nested_comparisons(&ids, &[&flips, &like_flips, &flips], units, &config)[1].clone().unwrap();
+        assert!(like.p > 0.05 && !like.beats_nested(MIN_GAIN, 0.05), "{like:?}");
+        assert!(nested_comparisons(&ids[1..], &[&beyond, &flips], units, &config)[0].is_none(), "nothing nested");
+        let mut cand = qualifying_candidate();
+        assert!(cand.passes_gain_rules(MIN_GAIN, None, MIN_GAIN, 0.05));
+        cand.over_nested = Some(over);
+        assert!(cand.passes_gain_rules(MIN_GAIN, None, MIN_GAIN, 0.05));
+        cand.over_nested = Some(like);
+        assert!(!cand.passes_gain_rules(MIN_GAIN, None, MIN_GAIN, 0.05), "no better than the nested extension");
     }
 
     fn check_with_z(name: &str, z: f64) -> CheckResult {
