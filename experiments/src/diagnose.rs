@@ -415,7 +415,12 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             fmt(cand.gain_mc_sd),
             fmt(cand.p_adjusted),
             cand.over_reseeded.map_or("-".to_string(), |(gain, p)| format!("{gain:+.4} ({})", fmt(p))),
-            cand.over_nested.as_ref().map_or("-".to_string(), |n| format!("{}: {:+.4} ({})", n.nested, n.gain, fmt(n.p))),
+            cand.over_nested.as_ref().map_or("-".to_string(), |n| format!(
+                "{}: {:+.4} ({})",
+                n.nested,
+                n.gain,
+                fmt(n.p)
+            )),
             fmt(cand.top_two_share),
             cand.description,
             if cand.material { "yes" } else { "no" },

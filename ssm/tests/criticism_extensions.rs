@@ -290,10 +290,7 @@ fn persistent_flip_starts_at_the_runs_the_check_part_measured() {
     let ext = Extension::PersistentFlip;
     let natural = |raw: Tensor<f64>| -> Vec<f64> { ext.natural(raw.data()).unwrap().iter().map(|v| v.1).collect() };
     for (p, lambda) in [(0.2, 0.8), (0.05, 0.3), (0.1, 0.5)] {
-        let v = natural(ext.initial_from_checks(&[
-            ("yaw_reversal_fraction", p),
-            ("yaw_reversal_persistence", lambda),
-        ]));
+        let v = natural(ext.initial_from_checks(&[("yaw_reversal_fraction", p), ("yaw_reversal_persistence", lambda)]));
         assert!((v[0] - p).abs() < 1e-9 && (v[1] - lambda).abs() < 1e-9, "{v:?} for ({p}, {lambda})");
     }
     let v = natural(ext.initial_from_checks(&[("yaw_reversal_fraction", 0.2), ("yaw_reversal_persistence", 1.2)]));
