@@ -246,7 +246,8 @@ fn box_statistics_see_lag_flips_and_line_of_sight_residuals() {
 fn reversal_sample(object: usize, reversed: &[Option<bool>]) -> ObjectSample {
     let s: Vec<State> = states().into_iter().cycle().take(reversed.len()).collect();
     let dets = s.iter().zip(reversed).map(|(x, r)| r.map(|r| detection(x.x, x.y, if r { PI } else { 0.0 })));
-    sample(object, s.clone(), vec![], ObjectObservations::Boxes(dets.collect()))
+    let observations = ObjectObservations::Boxes(dets.collect());
+    sample(object, s, vec![], observations)
 }
 
 /// `yaw_reversal_persistence` pairs detections of one object at consecutive
@@ -255,7 +256,7 @@ fn reversal_sample(object: usize, reversed: &[Option<bool>]) -> ObjectSample {
 /// chain's `lambda` over paths of a flip chain at any fraction, about 0 for
 /// independent flips, 0 without reversals.
 #[test]
-fn reversal_persistence_is_the_lag_one_covariance_of_consecutive_detections() {
+fn reversal_persistence_is_the_lag_one_correlation_of_consecutive_detections() {
     let data = dataset(ObservationKind::Boxes, 2);
     let (t, f) = (Some(true), Some(false));
     // Pairs (f,t), (t,t), (t,f) and, across the gap, none; object 1: (f,f), (f,t).
@@ -377,7 +378,7 @@ fn every_revealing_check_states_the_direction_its_extension_moves_it() {
                 // A lag puts observations behind the state: a negative slope and offset.
                 ("latency", _) => Lower,
                 ("clutter" | "heading_flip", _) => Higher,
-                // Runs of reversals raise the indicators' lag-one covariance.
+                // Runs of reversals raise the indicators' lag-one correlation.
                 ("persistent_flip", _) => Higher,
                 // The extent factors can be below or above 1.
                 ("size_bias", _) => Either,

@@ -461,7 +461,7 @@ impl NestedComparison {
     /// Whether the larger extension earns its extra parameters: a gain over
     /// the nested one of at least `min_gain` with p below `cause_level`.
     pub fn beats_nested(&self, min_gain: f64, cause_level: f64) -> bool {
-        self.gain >= min_gain && self.p < cause_level
+        clears_bar(self.gain, self.p, min_gain, cause_level)
     }
 }
 
@@ -480,11 +480,7 @@ pub fn nested_comparisons(
             let j = ids.iter().position(|other| Some(*other) == ext.nests())?;
             let d = differences(object_gains[i], object_gains[j]);
             let p = sign_flip_p(&d, config.permutations, stream_seed(config.seed ^ NESTED_PERMUTATIONS, i as u64));
-            Some(NestedComparison {
-                nested: ids[j].id().to_string(),
-                gain: d.iter().sum::<f64>() / units.max(1) as f64,
-                p,
-            })
+            Some(NestedComparison { nested: ids[j].id().to_string(), gain: gain_of(&d, units).0, p })
         })
         .collect()
 }
@@ -518,7 +514,13 @@ impl CandidateReport {
 /// from [`beats_reseeded`]) is at least `min_gain` with p below `cause_level`;
 /// true without the comparison.
 fn beats_refit(over_reseeded: Option<(f64, f64)>, min_gain: f64, cause_level: f64) -> bool {
-    over_reseeded.is_none_or(|(gain, p)| gain >= min_gain && p < cause_level)
+    over_reseeded.is_none_or(|(gain, p)| clears_bar(gain, p, min_gain, cause_level))
+}
+
+/// The bar of every paired comparison of the decision (rules (b) and (e)): a
+/// gain of at least `min_gain` nats per unit with p below `cause_level`.
+fn clears_bar(gain: f64, p: f64, min_gain: f64, cause_level: f64) -> bool {
+    gain >= min_gain && p < cause_level
 }
 
 /// Each candidate's one-sided sign-flip p of its per-object differences `d`,
@@ -547,7 +549,7 @@ pub fn beats_reseeded(
 ) -> Vec<(f64, f64)> {
     let over: Vec<Vec<f64>> = object_gains.iter().map(|g| differences(g, reseeded)).collect();
     let adjusted = holm(&sign_flip_ps(&over, config, RESEEDED_PERMUTATIONS));
-    over.iter().zip(adjusted).map(|(d, p)| (d.iter().sum::<f64>() / units.max(1) as f64, p)).collect()
+    over.iter().zip(adjusted).map(|(d, p)| (gain_of(d, units).0, p)).collect()
 }
 
 /// Seeds the sign-flip permutations of the candidates against the reference
@@ -1007,18 +1009,15 @@ fn run(
         fits.iter().map(|f| differences(&f.eval.object_ll, &reference_eval.object_ll)).collect();
     let p_values = sign_flip_ps(&object_gains, config, REFERENCE_PERMUTATIONS);
     let adjusted = holm(&p_values);
+    let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
     let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded {
         Some(r) => {
-            let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
             beats_reseeded(&gains, &r.object_gains, reference_eval.units, config).into_iter().map(Some).collect()
         }
         None => vec![None; fits.len()],
     };
-    let over_nested = {
-        let ids: Vec<Extension> = fits.iter().map(|f| f.extension).collect();
-        let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
-        nested_comparisons(&ids, &gains, reference_eval.units, config)
-    };
+    let ids: Vec<Extension> = fits.iter().map(|f| f.extension).collect();
+    let over_nested = nested_comparisons(&ids, &gains, reference_eval.units, config);
     let mut candidates = Vec::new();
     for (i, (f, d)) in fits.iter().zip(object_gains).enumerate() {
         let ext = f.extension;
