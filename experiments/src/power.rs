@@ -101,17 +101,20 @@ impl StudyEffect {
     }
 }
 
-/// The true magnitude the learned one is compared with: `(parameter, value)`.
-fn true_magnitude(effect: &HiddenEffect) -> Option<(&'static str, f64)> {
+/// The true magnitudes the learned ones are compared with, `(parameter, value)`,
+/// the effect's size first: one for most effects; the flip chain's fraction and
+/// its persistence.
+fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
     match *effect {
-        HiddenEffect::Latency { delay } => Some(("delay", delay)),
-        HiddenEffect::Clutter { fraction, .. } => Some(("fraction", fraction)),
-        HiddenEffect::SizeBias { length_factor, .. } => Some(("length_factor", length_factor)),
-        HiddenEffect::HeavyTailedAccel { ratio, .. } => Some(("sd_ratio", ratio)),
-        HiddenEffect::HeadingFlip { fraction } | HiddenEffect::PersistentFlip { fraction, .. } => {
-            Some(("fraction", fraction))
+        HiddenEffect::Latency { delay } => vec![("delay", delay)],
+        HiddenEffect::Clutter { fraction, .. } => vec![("fraction", fraction)],
+        HiddenEffect::SizeBias { length_factor, .. } => vec![("length_factor", length_factor)],
+        HiddenEffect::HeavyTailedAccel { ratio, .. } => vec![("sd_ratio", ratio)],
+        HiddenEffect::HeadingFlip { fraction } => vec![("fraction", fraction)],
+        HiddenEffect::PersistentFlip { fraction, persistence } => {
+            vec![("fraction", fraction), ("persistence", persistence)]
         }
-        HiddenEffect::None | HiddenEffect::StudentTAccel { .. } | HiddenEffect::EgoPoseNoise { .. } => None,
+        HiddenEffect::None | HiddenEffect::StudentTAccel { .. } | HiddenEffect::EgoPoseNoise { .. } => Vec::new(),
     }
 }
 
@@ -122,8 +125,10 @@ struct Cell {
     seed: u64,
     cause: String,
     named: bool,
-    /// Learned over true magnitude minus 1 (NaN when not applicable or not named).
-    relative_error: f64,
+    /// Per parameter of [`true_magnitudes`], learned over true minus 1 (NaN
+    /// where the cause was not named or the parameter not learned; empty when
+    /// the effect has no magnitude to compare).
+    relative_errors: Vec<(&'static str, f64)>,
     gain: f64,
     seconds: f64,
     /// The cause the diagnosis would name without rule (d), that an extension
@@ -285,21 +290,27 @@ fn finished_cells(out: &Path) -> Result<Vec<(String, f64, u64)>, String> {
 
 /// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
 fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
-    let mut csv =
-        String::from("effect,strength,seed,cause,named,relative_error,gain,seconds,cause_without_check_rule\n");
+    let mut csv = String::from(
+        "effect,strength,seed,cause,named,relative_error,gain,seconds,cause_without_check_rule,other_relative_errors\n",
+    );
     for c in cells {
+        // The effect's size in `relative_error` (as before); any further
+        // parameter as `name:error` pairs joined by `;`.
+        let size = c.relative_errors.first().map_or(f64::NAN, |e| e.1);
+        let others: Vec<String> = c.relative_errors.iter().skip(1).map(|(n, e)| format!("{n}:{e}")).collect();
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{:.1},{}",
+            "{},{},{},{},{},{},{},{:.1},{},{}",
             c.effect,
             c.strength,
             c.seed,
             c.cause,
             c.named,
-            c.relative_error,
+            size,
             c.gain,
             c.seconds,
-            c.cause_without_check_rule
+            c.cause_without_check_rule,
+            others.join(";")
         );
     }
     write_atomic(&out.join("power.csv"), csv.as_bytes())?;
@@ -381,12 +392,13 @@ fn run_cell(
     // rule (d) count as the protocol would decide them now.
     let (cause, chosen) = report.decided(true);
     let named = cause == e.expected;
-    let relative_error = match (named, chosen, true_magnitude(&effect)) {
-        (true, Some(c), Some((name, truth))) => {
-            c.params.iter().find(|p| p.0 == name).map_or(f64::NAN, |p| p.1 / truth - 1.0)
-        }
-        _ => f64::NAN,
-    };
+    let relative_errors = true_magnitudes(&effect)
+        .into_iter()
+        .map(|(name, truth)| {
+            let learned = chosen.filter(|_| named).and_then(|c| c.params.iter().find(|p| p.0 == name));
+            (name, learned.map_or(f64::NAN, |p| p.1 / truth - 1.0))
+        })
+        .collect();
     Ok(Some(Cell {
         cause_without_check_rule: report.decided(false).0,
         effect: e.id.clone(),
@@ -394,10 +406,36 @@ fn run_cell(
         seed,
         cause,
         named,
-        relative_error,
+        relative_errors,
         gain: chosen.map_or(0.0, |c| c.gain),
         seconds: report.seconds,
     }))
+}
+
+/// The median |relative error| of each learned magnitude over `group`'s cells
+/// that learned it (`-` where none did): `12%` for an effect of one magnitude,
+/// `fraction 12%, persistence 3%` for more.
+fn median_errors(group: &[&Cell]) -> String {
+    let names: Vec<&str> = group.first().map_or(Vec::new(), |c| c.relative_errors.iter().map(|e| e.0).collect());
+    let medians: Vec<(&str, String)> = names
+        .iter()
+        .enumerate()
+        .map(|(i, &name)| {
+            let mut errors: Vec<f64> = group
+                .iter()
+                .filter_map(|c| c.relative_errors.get(i))
+                .map(|e| e.1.abs())
+                .filter(|x| x.is_finite())
+                .collect();
+            errors.sort_by(f64::total_cmp);
+            (name, errors.get(errors.len() / 2).map_or("-".to_string(), |m| format!("{:.0}%", 100.0 * m)))
+        })
+        .collect();
+    match medians.as_slice() {
+        [] => "-".to_string(),
+        [(_, one)] => one.clone(),
+        many => many.iter().map(|(n, m)| format!("{n} {m}")).collect::<Vec<_>>().join(", "),
+    }
 }
 
 /// The study's table: per effect and strength, the share named, false causes,
@@ -420,10 +458,7 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
             let catalogue = |c: &&Cell| c.cause != NO_CAUSE && c.cause != UNEXPLAINED;
             let false_cause = group.iter().filter(|c| catalogue(c) && !c.named).count() as f64 / n;
             let unexplained = group.iter().filter(|c| c.cause == UNEXPLAINED).count() as f64 / n;
-            let mut errors: Vec<f64> = group.iter().map(|c| c.relative_error.abs()).filter(|x| x.is_finite()).collect();
-            errors.sort_by(f64::total_cmp);
-            let error =
-                if errors.is_empty() { "-".to_string() } else { format!("{:.0}%", 100.0 * errors[errors.len() / 2]) };
+            let error = median_errors(&group);
             let time = group.iter().map(|c| c.seconds).sum::<f64>() / n;
             let loose = |c: &&&Cell| c.cause_without_check_rule == e.expected;
             let named_loose = group.iter().filter(loose).count() as f64 / n;
@@ -461,6 +496,7 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// A finished cell is read back and decided again; a report of another data
     /// size or refit rate in the same study directory (an `--out` reused with
@@ -516,6 +552,36 @@ mod tests {
         assert_eq!(csv.lines().count(), 5, "{csv}");
         assert_eq!(cells, ["0", "0", "0", "1"], "the middle strength and the controls first, then x2");
         assert_eq!(std::fs::read_to_string(out.join("power.md")).unwrap(), table);
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    /// The flip chain's cell compares both learned magnitudes with the truth:
+    /// the fraction in `relative_error`, the persistence beside it, and the
+    /// table's medians name each.
+    #[test]
+    fn the_flip_chain_reports_the_error_of_its_fraction_and_its_persistence() {
+        let out = std::env::temp_dir().join(format!("sefi-power-chain-{}", std::process::id()));
+        let cell = "persistent_flip/x1/seed0";
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-persistent-flip");
+        std::fs::create_dir_all(out.join(cell)).unwrap();
+        std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
+        let effect = StudyEffect::of("persistent_flip").unwrap();
+        let read = run_cell(&out, &effect, 1.0, 0, DiagnoseConfig::quick().candidate_lr, true).unwrap().unwrap();
+        assert!(read.named);
+        let names: Vec<&str> = read.relative_errors.iter().map(|e| e.0).collect();
+        assert_eq!(names, ["fraction", "persistence"]);
+        // The report's learned values, against the generator's 20% at persistence 0.8.
+        let report: Report =
+            serde_json::from_str(&std::fs::read_to_string(out.join(cell).join("report.json")).unwrap()).unwrap();
+        let chain = report.candidates.iter().find(|c| c.cause == "persistent_flip").unwrap();
+        let learned = |name: &str| chain.params.iter().find(|p| p.0 == name).unwrap().1;
+        assert!((read.relative_errors[0].1 - (learned("fraction") / 0.2 - 1.0)).abs() < 1e-12);
+        assert!((read.relative_errors[1].1 - (learned("persistence") / HIDDEN_FLIP_PERSISTENCE - 1.0)).abs() < 1e-12);
+        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, DiagnoseConfig::quick().candidate_lr).unwrap();
+        let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
+        assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
+        let csv = std::fs::read_to_string(out.join("power.csv")).unwrap();
+        assert!(csv.lines().nth(1).unwrap().contains(",persistence:"), "{csv}");
         std::fs::remove_dir_all(&out).unwrap();
     }
 }
