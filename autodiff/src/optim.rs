@@ -86,6 +86,22 @@ impl Adam {
     /// gradient leaves parameters and state untouched and returns
     /// [`StepError::NonFinite`].
     pub fn step<F: Float>(&mut self, params: &mut ParamStore<F>, grads: &[Tensor<F>]) -> Result<(), StepError> {
+        self.step_with_rates(params, grads, None)
+    }
+
+    /// [`Adam::step`] with parameter tensor `i` moved at `rate_factors[i]` times
+    /// the learning rate (`None`: every tensor at the rate). The moment estimates
+    /// are the same either way; only the size of each tensor's update changes.
+    /// A factor list of the wrong length is a [`StepError::Layout`].
+    pub fn step_with_rates<F: Float>(
+        &mut self,
+        params: &mut ParamStore<F>,
+        grads: &[Tensor<F>],
+        rate_factors: Option<&[f64]>,
+    ) -> Result<(), StepError> {
+        if let Some(f) = rate_factors.filter(|f| f.len() != params.len()) {
+            return Err(StepError::Layout(format!("{} rate factors for {} parameters", f.len(), params.len())));
+        }
         if grads.len() != params.len() {
             return Err(StepError::Layout(format!("{} gradients for {} parameters", grads.len(), params.len())));
         }
@@ -105,13 +121,14 @@ impl Adam {
         let c1 = 1.0 - self.beta1.powi(self.t as i32);
         let c2 = 1.0 - self.beta2.powi(self.t as i32);
         for (i, (p, g)) in params.values_mut().iter_mut().zip(grads).enumerate() {
+            let lr = self.lr * rate_factors.map_or(1.0, |f| f[i]);
             for (j, (x, &gj)) in p.data_mut().iter_mut().zip(g.data()).enumerate() {
                 let gj = gj.to_f64();
                 let m = &mut self.m[i][j];
                 let v = &mut self.v[i][j];
                 *m = self.beta1 * *m + (1.0 - self.beta1) * gj;
                 *v = self.beta2 * *v + (1.0 - self.beta2) * gj * gj;
-                let update = self.lr * (*m / c1) / ((*v / c2).sqrt() + self.eps);
+                let update = lr * (*m / c1) / ((*v / c2).sqrt() + self.eps);
                 *x = F::from_f64(x.to_f64() - update);
             }
         }
@@ -157,5 +174,31 @@ mod tests {
         adam.step(&mut store, &[Tensor::from_vec(vec![5.0, -0.001])]).unwrap();
         let d = store.values()[0].data();
         assert!((d[0] + 0.01).abs() < 1e-8 && (d[1] - 0.01).abs() < 1e-6, "{d:?}");
+    }
+
+    /// A tensor's rate factor scales its update and nothing else: the same
+    /// moments, so factor 1 is a plain step, 0.1 a tenth of it and 0 none.
+    #[test]
+    fn rate_factors_scale_each_tensors_update() {
+        let mut plain = ParamStore::<f64>::new();
+        plain.add("base", Tensor::from_vec(vec![1.0, -1.0]));
+        plain.add("ext", Tensor::from_vec(vec![0.5]));
+        let (mut scaled, mut frozen) = (plain.clone(), plain.clone());
+        let grads = [Tensor::from_vec(vec![2.0, -3.0]), Tensor::from_vec(vec![0.7])];
+        let (mut a, mut b, mut c) = (Adam::new(0.01), Adam::new(0.01), Adam::new(0.01));
+        for _ in 0..3 {
+            a.step(&mut plain, &grads).unwrap();
+            b.step_with_rates(&mut scaled, &grads, Some(&[0.1, 1.0])).unwrap();
+            c.step_with_rates(&mut frozen, &grads, Some(&[0.0, 1.0])).unwrap();
+        }
+        for j in 0..2 {
+            let (start, moved) = ([1.0, -1.0][j], plain.values()[0].data()[j]);
+            assert!(((scaled.values()[0].data()[j] - start) - 0.1 * (moved - start)).abs() < 1e-15);
+            assert_eq!(frozen.values()[0].data()[j], start);
+        }
+        assert_eq!(scaled.values()[1].data(), plain.values()[1].data());
+        assert_eq!(frozen.values()[1].data(), plain.values()[1].data());
+        let err = a.step_with_rates(&mut plain, &grads, Some(&[1.0]));
+        assert!(matches!(err, Err(StepError::Layout(m)) if m.contains("1 rate factors for 2 parameters")));
     }
 }

@@ -82,6 +82,11 @@ pub struct DiagnoseArgs {
     /// Adam learning rate of the candidates' fits and the reference's.
     #[arg(long)]
     candidate_lr: Option<f64>,
+    /// Adam learning rate at which the refits move the base's parameters (the extensions' own parameters stay at
+    /// --candidate-lr) [default: --candidate-lr for all; the base's final rate, --lr / 10, continues the base
+    /// where it ended].
+    #[arg(long)]
+    refit_base_lr: Option<f64>,
     /// Evaluate every fit on the check objects every this many steps and keep its best parameters (0: keep the
     /// last) [default: 25].
     #[arg(long)]
@@ -119,6 +124,7 @@ impl DiagnoseArgs {
         set(&mut c.scenes_per_step, self.scenes_per_step);
         set(&mut c.lr, self.lr);
         set(&mut c.candidate_lr, self.candidate_lr);
+        c.refit_base_lr = self.refit_base_lr.or(c.refit_base_lr);
         set(&mut c.keep_best_every, self.keep_best_every);
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;

@@ -353,6 +353,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         extension: None,
         extension_only: false,
         frozen: Vec::new(),
+        base_rate_factor: None,
         proposal: None,
         eval_tempering: None,
     };

@@ -57,6 +57,11 @@ pub struct ObjectiveConfig {
     /// zero), by name: a detector drift calibrated on labels, say.
     #[serde(default)]
     pub frozen: Vec<String>,
+    /// Every parameter but the extension's moves at this multiple of the
+    /// learning rate (`None`: all at the rate): a refit that continues a fitted
+    /// base at the rate it ended at while a new extension learns at the full one.
+    #[serde(default)]
+    pub base_rate_factor: Option<f64>,
     /// The filter's proposal for the actions, if not the transition (PF-SEFI and
     /// the evaluation only: the through-filter baselines replay the transition).
     #[serde(default)]
@@ -236,6 +241,13 @@ impl Objective for SceneObjective {
 
     fn is_root(&self) -> bool {
         self.comm.rank() == 0
+    }
+
+    fn rate_factors(&self, params: &ParamStore<f64>) -> Option<Vec<f64>> {
+        let factor = self.config.base_rate_factor?;
+        let extension = self.config.extension.map(|e| e.param_name());
+        let is_extension = |name: &str| extension.as_deref() == Some(name);
+        Some(params.iter().map(|(name, _)| if is_extension(name) { 1.0 } else { factor }).collect())
     }
 
     fn estimate(&mut self, params: &ParamStore<f64>, batch: usize, seed: u64) -> Result<BatchEstimate, EstimateError> {

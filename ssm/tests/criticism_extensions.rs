@@ -491,3 +491,57 @@ fn persistent_flips_without_persistence_filter_as_independent_flips() {
         assert!(sticky < independent - 10.0, "{sticky} vs {independent}");
     }
 }
+
+/// A refit's rates (`ObjectiveConfig::base_rate_factor`): the extension's
+/// parameter learns at the full rate, every other at the factor. Adam's first
+/// step moves each coordinate by its rate (sign of the score), so after one
+/// training step the base's coordinates moved at most a tenth of the
+/// extension's; without the factor every tensor moves at the rate.
+#[test]
+fn a_refit_moves_the_base_at_its_rate_and_the_extension_at_the_full_rate() {
+    use ssm::estimators::{Estimator, EstimatorConfig};
+    use ssm::objective::{ObjectiveConfig, SceneObjective};
+    use ssm::training::{train, Objective, TrainConfig};
+    let kind = ObservationKind::Points;
+    let data = data(kind);
+    let ext = Extension::HeavyTailedAccel;
+    let mut start = models(kind).to_store();
+    start.add(&ext.param_name(), ext.initial());
+    for factor in [Some(0.1), None] {
+        let config = ObjectiveConfig {
+            estimator: Estimator::pf_sefi(2),
+            estimator_config: EstimatorConfig::new(Sampling::new(32, None)),
+            scenes_per_step: 2,
+            eval_particles: 32,
+            extension: Some(ext),
+            extension_only: false,
+            frozen: Vec::new(),
+            base_rate_factor: factor,
+            proposal: None,
+            eval_tempering: None,
+        };
+        let mut objective = SceneObjective::new(&data, data.clone(), config).unwrap();
+        let rates = objective.rate_factors(&start);
+        let expected: Option<Vec<f64>> =
+            factor.map(|f| start.iter().map(|(name, _)| if name == ext.param_name() { 1.0 } else { f }).collect());
+        assert_eq!(rates, expected);
+        let dir = std::env::temp_dir().join(format!("sefi-refit-rates-{}-{factor:?}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let lr = 0.01;
+        let train_config = TrainConfig { lr, epochs: 1, ..TrainConfig::default() };
+        let steps = objective.batches();
+        assert_eq!(steps, 1, "one batch: one step");
+        let outcome = train(&mut objective, start.clone(), &train_config, &dir, false, &mut |_| {}).unwrap();
+        let moved = |name: &str| -> f64 {
+            let (a, b) = (start.get(start.id(name).unwrap()), outcome.params.get(outcome.params.id(name).unwrap()));
+            a.data().iter().zip(b.data()).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+        };
+        let ext_name = ext.param_name();
+        let ext_moved = moved(&ext_name);
+        let base_moved = start.iter().map(|(name, _)| name).filter(|n| *n != ext_name).map(moved).fold(0.0, f64::max);
+        let base_rate = lr * factor.unwrap_or(1.0);
+        assert!(ext_moved > 0.5 * lr && ext_moved <= lr * (1.0 + 1e-6), "extension moved {ext_moved}");
+        assert!(base_moved > 0.5 * base_rate && base_moved <= base_rate * (1.0 + 1e-6), "base moved {base_moved}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -43,6 +43,7 @@ fn config(estimator: Estimator, chunk_objects: usize, scenes_per_step: usize) ->
         extension: None,
         extension_only: false,
         frozen: Vec::new(),
+        base_rate_factor: None,
         proposal: None,
         eval_tempering: None,
     }

@@ -162,6 +162,13 @@ pub trait Objective {
     /// [`EVAL_LOG`] and must be the same, in the same order, on every call.
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String>;
 
+    /// Multiples of the learning rate at which each of `params`' tensors moves,
+    /// in store order (`None`, the default: every tensor at the rate). A refit
+    /// can so continue fitted parameters slowly while new ones learn at the rate.
+    fn rate_factors(&self, _params: &ParamStore<f64>) -> Option<Vec<f64>> {
+        None
+    }
+
     /// Whether this process writes the run's files: true but on the processes
     /// other than the first of a distributed job, which train alongside it (the
     /// same steps, the same updates) and write nothing.
@@ -332,7 +339,8 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                             g.data_mut().iter_mut().for_each(|x| *x = -*x);
                         }
                         self.adam.lr = self.config.lr_at(step, self.config.epochs * self.batches);
-                        match self.adam.step(&mut self.params, &grad) {
+                        let rates = self.objective.rate_factors(&self.params);
+                        match self.adam.step_with_rates(&mut self.params, &grad, rates.as_deref()) {
                             Ok(()) => {}
                             Err(StepError::NonFinite) => {
                                 skipped = true;

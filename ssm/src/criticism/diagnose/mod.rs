@@ -147,6 +147,15 @@ pub struct DiagnoseConfig {
     /// of one heavy-tail diagnosis fell from -0.84 to -2.2 nats per point, with
     /// gradient norms of 8e4, while its candidates did not).
     pub candidate_lr: f64,
+    /// The rate at which the refits (the references' and the candidates') move
+    /// the base's parameters, decaying to a tenth like `candidate_lr`, which
+    /// stays the rate of an extension's own parameters; `None` (the default):
+    /// every parameter at `candidate_lr`. Refits restarted at the full rate from
+    /// a base that ended at a tenth of it move their check MLLs on point data by
+    /// more than a heavy tail's gain (README, "Every fit keeps its best
+    /// evaluation"); the base's final rate (`lr / 10`) continues it where it ended.
+    #[serde(default)]
+    pub refit_base_lr: Option<f64>,
     /// Global gradient-norm clipping.
     pub clip: Option<f64>,
     /// Every fit (base, references, candidates) is evaluated on the check part
@@ -217,6 +226,7 @@ impl Default for DiagnoseConfig {
             lag: 15,
             lr: 0.01,
             candidate_lr: 0.01,
+            refit_base_lr: None,
             clip: Some(0.5),
             keep_best_every: 25,
             scenes_per_step: 16,
@@ -295,7 +305,8 @@ impl DiagnoseConfig {
         for tempering in self.tempering.iter().chain(&self.train_tempering) {
             tempering.validate()?;
         }
-        for (setting, lr) in [("lr", self.lr), ("candidate_lr", self.candidate_lr)] {
+        let refit_base_lr = self.refit_base_lr.unwrap_or(self.candidate_lr);
+        for (setting, lr) in [("lr", self.lr), ("candidate_lr", self.candidate_lr), ("refit_base_lr", refit_base_lr)] {
             SettingError::check(lr > 0.0 && lr.is_finite(), setting, lr, "positive and finite")?;
         }
         Ok(())
@@ -911,8 +922,7 @@ fn run(
         parts,
         None,
         initial,
-        config.base_steps,
-        config.lr,
+        (config.base_steps, config.lr, false),
         config,
         &out_dir.join(TRAINING_RUN_DIRS[0]),
         comm,
@@ -950,8 +960,7 @@ fn run(
             parts,
             None,
             base.params.clone(),
-            steps,
-            lr,
+            (steps, lr, true),
             config,
             &out_dir.join(TRAINING_RUN_DIRS[1]),
             comm,
@@ -973,7 +982,7 @@ fn run(
         (Some(_), true) => {
             let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
             let dir = out_dir.join(TRAINING_RUN_DIRS[2]);
-            let run = fit(parts, None, base.params.clone(), steps, lr, &reseeded_config, &dir, comm, progress)?;
+            let run = fit(parts, None, base.params.clone(), (steps, lr, true), &reseeded_config, &dir, comm, progress)?;
             progress(&Stage::Evaluating { model: TRAINING_RUN_DIRS[2].into() });
             let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
             let object_gains = differences(&eval.object_ll, &reference_eval.object_ll);
@@ -996,7 +1005,7 @@ fn run(
         let mut start = base.params.clone();
         start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
-        let run = fit(parts, Some(extension), start, steps, lr, config, &dir, comm, progress)?;
+        let run = fit(parts, Some(extension), start, (steps, lr, true), config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
@@ -1125,14 +1134,14 @@ struct Fitted {
 
 /// Trains `initial` (with `extension`, if any) by PF-SEFI for `steps` at learning
 /// rate `lr` decaying to a tenth, in `dir`, resuming a run found there, as one
-/// process of `comm` holding its share of the fit part's objects.
+/// process of `comm` holding its share of the fit part's objects. A refit (of the
+/// fitted base) moves the base's parameters at [`DiagnoseConfig::refit_base_lr`].
 #[allow(clippy::too_many_arguments)]
 fn fit(
     parts: Parts<'_>,
     extension: Option<Extension>,
     initial: ParamStore<f64>,
-    steps: usize,
-    lr: f64,
+    (steps, lr, refit): (usize, f64, bool),
     config: &DiagnoseConfig,
     dir: &Path,
     comm: &Arc<dyn Collective>,
@@ -1149,6 +1158,7 @@ fn fit(
         extension,
         extension_only: extension.is_some() && !config.refit,
         frozen: Vec::new(),
+        base_rate_factor: if refit { config.refit_base_lr.map(|base| base / lr) } else { None },
         proposal: None,
         eval_tempering: train_tempering,
     };
