@@ -580,8 +580,16 @@ mod tests {
         let table = write_study_tables(&out, &[effect], &[1.0], 1, None, DiagnoseConfig::quick().candidate_lr).unwrap();
         let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
         assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
+        // One cell: each median is that cell's |error|.
+        let (fraction, persistence) = (read.relative_errors[0].1, read.relative_errors[1].1);
+        let medians =
+            format!("| fraction {:.0}%, persistence {:.0}% |", 100.0 * fraction.abs(), 100.0 * persistence.abs());
+        assert!(row.contains(&medians), "{row} lacks {medians}");
         let csv = std::fs::read_to_string(out.join("power.csv")).unwrap();
         assert!(csv.lines().nth(1).unwrap().contains(",persistence:"), "{csv}");
+        let columns: Vec<&str> = csv.lines().nth(1).unwrap().split(',').collect();
+        assert_eq!(columns[5].parse::<f64>().unwrap(), fraction, "relative_error is the fraction's");
+        assert_eq!(columns[9], format!("persistence:{persistence}"));
         std::fs::remove_dir_all(&out).unwrap();
     }
 }

@@ -288,6 +288,9 @@ struct Run<'a, O: Objective + ?Sized> {
     skip_log: Option<CsvLog>,
     /// Whether this process writes the run's files ([`Objective::is_root`]).
     writes: bool,
+    /// Each tensor's multiple of the rate ([`Objective::rate_factors`]), asked
+    /// once: the store's tensors do not change during a run.
+    rates: Option<Vec<f64>>,
 }
 
 impl<O: Objective + ?Sized> Run<'_, O> {
@@ -339,8 +342,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
                             g.data_mut().iter_mut().for_each(|x| *x = -*x);
                         }
                         self.adam.lr = self.config.lr_at(step, self.config.epochs * self.batches);
-                        let rates = self.objective.rate_factors(&self.params);
-                        match self.adam.step_with_rates(&mut self.params, &grad, rates.as_deref()) {
+                        match self.adam.step_with_rates(&mut self.params, &grad, self.rates.as_deref()) {
                             Ok(()) => {}
                             Err(StepError::NonFinite) => {
                                 skipped = true;
@@ -536,6 +538,7 @@ pub fn train(
             eval_log,
             skip_log,
             writes,
+            rates: None,
         };
         (run, ckpt.step)
     } else {
@@ -562,10 +565,12 @@ pub fn train(
             eval_log: None,
             skip_log: None,
             writes,
+            rates: None,
         };
         (run, 0)
     };
 
+    run.rates = run.objective.rate_factors(&run.params);
     on_event(&TrainEvent::Started { total_steps: total, first_step: done + 1 });
     if !resume {
         // Nothing is written before the objective has evaluated the initial

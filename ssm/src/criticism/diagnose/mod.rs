@@ -922,7 +922,7 @@ fn run(
         parts,
         None,
         initial,
-        (config.base_steps, config.lr, false),
+        FitSchedule::base(config),
         config,
         &out_dir.join(TRAINING_RUN_DIRS[0]),
         comm,
@@ -954,13 +954,13 @@ fn run(
     }
     // The reference every candidate is compared with: the base refitted alone
     // exactly as the candidates are refitted (when any is), else the base.
-    let (steps, lr) = (config.candidate_steps, config.candidate_lr);
+    let refit_schedule = FitSchedule::refit(config);
     let refitted = if config.refit && !plausible.is_empty() {
         let run = fit(
             parts,
             None,
             base.params.clone(),
-            (steps, lr, true),
+            refit_schedule,
             config,
             &out_dir.join(TRAINING_RUN_DIRS[1]),
             comm,
@@ -982,7 +982,7 @@ fn run(
         (Some(_), true) => {
             let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
             let dir = out_dir.join(TRAINING_RUN_DIRS[2]);
-            let run = fit(parts, None, base.params.clone(), (steps, lr, true), &reseeded_config, &dir, comm, progress)?;
+            let run = fit(parts, None, base.params.clone(), refit_schedule, &reseeded_config, &dir, comm, progress)?;
             progress(&Stage::Evaluating { model: TRAINING_RUN_DIRS[2].into() });
             let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
             let object_gains = differences(&eval.object_ll, &reference_eval.object_ll);
@@ -1005,7 +1005,7 @@ fn run(
         let mut start = base.params.clone();
         start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
-        let run = fit(parts, Some(extension), start, (steps, lr, true), config, &dir, comm, progress)?;
+        let run = fit(parts, Some(extension), start, refit_schedule, config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
@@ -1132,16 +1132,38 @@ struct Fitted {
     kept: Option<KeptBest>,
 }
 
-/// Trains `initial` (with `extension`, if any) by PF-SEFI for `steps` at learning
-/// rate `lr` decaying to a tenth, in `dir`, resuming a run found there, as one
-/// process of `comm` holding its share of the fit part's objects. A refit (of the
-/// fitted base) moves the base's parameters at [`DiagnoseConfig::refit_base_lr`].
+/// How long and how fast one fit trains: `steps` at learning rate `lr` decaying
+/// to a tenth, the base's parameters at `base_rate_factor` times it, if set.
+#[derive(Clone, Copy, Debug)]
+struct FitSchedule {
+    steps: usize,
+    lr: f64,
+    base_rate_factor: Option<f64>,
+}
+
+impl FitSchedule {
+    /// The base fit's, from scratch.
+    fn base(config: &DiagnoseConfig) -> Self {
+        FitSchedule { steps: config.base_steps, lr: config.lr, base_rate_factor: None }
+    }
+
+    /// Every refit's (the references' and the candidates'): the base's parameters
+    /// at [`DiagnoseConfig::refit_base_lr`], an extension's at the candidate rate.
+    fn refit(config: &DiagnoseConfig) -> Self {
+        let lr = config.candidate_lr;
+        FitSchedule { steps: config.candidate_steps, lr, base_rate_factor: config.refit_base_lr.map(|base| base / lr) }
+    }
+}
+
+/// Trains `initial` (with `extension`, if any) by PF-SEFI on `schedule`, in
+/// `dir`, resuming a run found there, as one process of `comm` holding its share
+/// of the fit part's objects.
 #[allow(clippy::too_many_arguments)]
 fn fit(
     parts: Parts<'_>,
     extension: Option<Extension>,
     initial: ParamStore<f64>,
-    (steps, lr, refit): (usize, f64, bool),
+    schedule: FitSchedule,
     config: &DiagnoseConfig,
     dir: &Path,
     comm: &Arc<dyn Collective>,
@@ -1158,17 +1180,17 @@ fn fit(
         extension,
         extension_only: extension.is_some() && !config.refit,
         frozen: Vec::new(),
-        base_rate_factor: if refit { config.refit_base_lr.map(|base| base / lr) } else { None },
+        base_rate_factor: schedule.base_rate_factor,
         proposal: None,
         eval_tempering: train_tempering,
     };
     let mut objective = SceneObjective::for_process(parts.fit, parts.check.clone(), objective_config, comm.clone())?;
     let batches = crate::training::Objective::batches(&objective).max(1);
     let train_config = TrainConfig {
-        lr,
-        final_lr: Some(lr * FINAL_LR_FRACTION),
+        lr: schedule.lr,
+        final_lr: Some(schedule.lr * FINAL_LR_FRACTION),
         clip: config.clip,
-        epochs: steps.div_ceil(batches),
+        epochs: schedule.steps.div_ceil(batches),
         eval_every: config.keep_best_every,
         checkpoint_every: 25,
         seed: config.seed,
