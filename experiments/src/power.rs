@@ -47,6 +47,11 @@ pub struct PowerArgs {
     /// refit rate. Use a fresh `--out` for it.
     #[arg(long)]
     candidate_lr: Option<f64>,
+    /// Adam's learning rate of the base model's parameters in every refit, while
+    /// an extension's learn at the refit rate (`sefi diagnose --refit-base-lr`):
+    /// the study with the base refitted at its own rate. Use a fresh `--out` for it.
+    #[arg(long)]
+    refit_base_lr: Option<f64>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -118,6 +123,39 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
     }
 }
 
+/// The refit rates every diagnosis of a study shares (`--candidate-lr`,
+/// `--refit-base-lr`): a study's directory holds one setting.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RefitRates {
+    /// Adam's rate of every refit (an extension's parameters).
+    candidate_lr: f64,
+    /// The base's parameters' rate in the refits; `None`: `candidate_lr`.
+    refit_base_lr: Option<f64>,
+}
+
+impl RefitRates {
+    /// The quick diagnosis's rates with the given ones in their place, each
+    /// positive and finite.
+    fn new(candidate_lr: Option<f64>, refit_base_lr: Option<f64>) -> Result<RefitRates, String> {
+        let quick = DiagnoseConfig::quick();
+        let rates = RefitRates {
+            candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
+            refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
+        };
+        for (flag, lr) in [("--candidate-lr", Some(rates.candidate_lr)), ("--refit-base-lr", rates.refit_base_lr)] {
+            if let Some(lr) = lr.filter(|lr| !(lr.is_finite() && *lr > 0.0)) {
+                return Err(format!("power-study: {flag} must be positive and finite, got {lr}"));
+            }
+        }
+        Ok(rates)
+    }
+
+    /// The rates a diagnosis ran with.
+    fn of(config: &DiagnoseConfig) -> RefitRates {
+        RefitRates { candidate_lr: config.candidate_lr, refit_base_lr: config.refit_base_lr }
+    }
+}
+
 /// One diagnosis of the study.
 struct Cell {
     effect: String,
@@ -145,10 +183,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
-    let candidate_lr = args.candidate_lr.unwrap_or(DiagnoseConfig::quick().candidate_lr);
-    if !(candidate_lr.is_finite() && candidate_lr > 0.0) {
-        return Err(format!("power-study: --candidate-lr must be positive and finite, got {candidate_lr}"));
-    }
+    let rates = RefitRates::new(args.candidate_lr, args.refit_base_lr)?;
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -165,17 +200,17 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
                 bar.inc(1);
                 continue;
             }
-            if run_cell(&args.out, e, strength, seed, candidate_lr, false)?.is_none() {
+            if run_cell(&args.out, e, strength, seed, rates, false)?.is_none() {
                 continue;
             }
             // The tables so far after every diagnosis: an interrupted study
             // shows what it has.
-            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, candidate_lr)?;
+            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, rates)?;
             bar.inc(1);
         }
         bar.finish_and_clear();
     }
-    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, candidate_lr)?);
+    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, rates)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
 }
@@ -234,7 +269,7 @@ fn write_study_tables(
     strengths: &[f64],
     seeds: u64,
     scenes: Option<usize>,
-    candidate_lr: f64,
+    rates: RefitRates,
 ) -> Result<String, String> {
     let mut ids: Vec<String> = effects.iter().map(|e| e.id.clone()).collect();
     let (mut strengths, mut seeds) = (strengths.to_vec(), seeds);
@@ -253,7 +288,7 @@ fn write_study_tables(
     let effects = study_effects(ids.iter().map(String::as_str), scenes)?;
     let mut cells = Vec::new();
     for (e, strength, seed) in plan(&effects, &strengths, seeds) {
-        cells.extend(run_cell(out, e, strength, seed, candidate_lr, true)?);
+        cells.extend(run_cell(out, e, strength, seed, rates, true)?);
     }
     write_tables(out, &effects, &strengths, &cells)?;
     Ok(summarise(&effects, &strengths, &cells))
@@ -329,7 +364,7 @@ fn run_cell(
     e: &StudyEffect,
     strength: f64,
     seed: u64,
-    candidate_lr: f64,
+    rates: RefitRates,
     table_only: bool,
 ) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
@@ -351,10 +386,15 @@ fn run_cell(
             };
             if report_path.is_file() {
                 // Finished by another process between the read and the claim.
-                return run_cell(out, e, strength, seed, candidate_lr, table_only);
+                return run_cell(out, e, strength, seed, rates, table_only);
             }
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
-            let diagnose_config = DiagnoseConfig { seed, candidate_lr, ..DiagnoseConfig::quick() };
+            let diagnose_config = DiagnoseConfig {
+                seed,
+                candidate_lr: rates.candidate_lr,
+                refit_base_lr: rates.refit_base_lr,
+                ..DiagnoseConfig::quick()
+            };
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
@@ -378,14 +418,19 @@ fn run_cell(
             config.objects_per_scene
         ));
     }
-    // Nor is a report of another refit rate (an `--out` reused with another
-    // `--candidate-lr`).
-    if report.config.candidate_lr != candidate_lr {
+    // Nor is a report of other refit rates (an `--out` reused with another
+    // `--candidate-lr` or `--refit-base-lr`).
+    let (found, base) =
+        (RefitRates::of(&report.config), |r: RefitRates| r.refit_base_lr.map_or("off".into(), |b| b.to_string()));
+    if found != rates {
         return Err(format!(
-            "{}: a diagnosis refitted at learning rate {}, where this study's refit at {candidate_lr} (another \
-             --candidate-lr? use another --out)",
+            "{}: a diagnosis refitted at learning rate {} (base's rate {}), where this study's refit at {} (base's \
+             rate {}) (another --candidate-lr or --refit-base-lr? use another --out)",
             report_path.display(),
-            report.config.candidate_lr
+            found.candidate_lr,
+            base(found),
+            rates.candidate_lr,
+            base(rates)
         ));
     }
     // Decided again under the current rules: cells diagnosed under an earlier
@@ -499,9 +544,10 @@ mod tests {
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// A finished cell is read back and decided again; a report of another data
-    /// size or refit rate in the same study directory (an `--out` reused with
-    /// another `--scenes` or `--candidate-lr`) is refused with its path, not
-    /// mixed into the table.
+    /// size or refit rates in the same study directory (an `--out` reused with
+    /// another `--scenes`, `--candidate-lr` or `--refit-base-lr`) is refused
+    /// with its path, not mixed into the table; a rate that is not positive and
+    /// finite is refused by its flag.
     #[test]
     fn a_report_of_another_data_size_or_refit_rate_is_refused() {
         let out = std::env::temp_dir().join(format!("sefi-power-scenes-{}", std::process::id()));
@@ -512,13 +558,20 @@ mod tests {
             .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
         std::fs::copy(&committed, cell.join("report.json")).unwrap();
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
-        let lr = DiagnoseConfig::quick().candidate_lr;
-        let read = run_cell(&out, &effect, 1.0, 0, lr, true).unwrap().expect("the finished cell is read back");
+        let rates = RefitRates::new(None, None).unwrap();
+        let lr = rates.candidate_lr;
+        let read = run_cell(&out, &effect, 1.0, 0, rates, true).unwrap().expect("the finished cell is read back");
         assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
-        let err = run_cell(&out, &effect, 1.0, 0, lr / 5.0, true).err().expect("a report of another refit rate");
-        assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr}")), "{err}");
+        let other_rate = RefitRates { candidate_lr: lr / 5.0, ..rates };
+        let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
+        assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
+        let base_rate = RefitRates::new(None, Some(lr / 10.0)).unwrap();
+        let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
+        assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
+        assert!(RefitRates::new(None, Some(0.0)).unwrap_err().contains("--refit-base-lr"));
+        assert!(RefitRates::new(Some(f64::NAN), None).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;
-        let err = run_cell(&out, &effect, 1.0, 0, lr, true).err().expect("a 16-scene report in a 32-scene study");
+        let err = run_cell(&out, &effect, 1.0, 0, rates, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
         std::fs::remove_dir_all(&out).unwrap();
     }
@@ -540,7 +593,7 @@ mod tests {
         // Every id of the study's order is a known effect.
         assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
-        let table = write_study_tables(&out, &latency, &[1.0], 1, None, DiagnoseConfig::quick().candidate_lr).unwrap();
+        let table = write_study_tables(&out, &latency, &[1.0], 1, None, RefitRates::new(None, None).unwrap()).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
         let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
         assert_eq!(
@@ -566,7 +619,7 @@ mod tests {
         std::fs::create_dir_all(out.join(cell)).unwrap();
         std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
         let effect = StudyEffect::of("persistent_flip").unwrap();
-        let read = run_cell(&out, &effect, 1.0, 0, DiagnoseConfig::quick().candidate_lr, true).unwrap().unwrap();
+        let read = run_cell(&out, &effect, 1.0, 0, RefitRates::new(None, None).unwrap(), true).unwrap().unwrap();
         assert!(read.named);
         let names: Vec<&str> = read.relative_errors.iter().map(|e| e.0).collect();
         assert_eq!(names, ["fraction", "persistence"]);
@@ -577,7 +630,7 @@ mod tests {
         let learned = |name: &str| chain.params.iter().find(|p| p.0 == name).unwrap().1;
         assert!((read.relative_errors[0].1 - (learned("fraction") / 0.2 - 1.0)).abs() < 1e-12);
         assert!((read.relative_errors[1].1 - (learned("persistence") / HIDDEN_FLIP_PERSISTENCE - 1.0)).abs() < 1e-12);
-        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, DiagnoseConfig::quick().candidate_lr).unwrap();
+        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, RefitRates::new(None, None).unwrap()).unwrap();
         let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
         assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
         // One cell: each median is that cell's |error|.
