@@ -12,8 +12,8 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::training::{
-    non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError, TrainEvent,
-    CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, SKIP_LOG, TRAIN_LOG, TRAIN_LOG_HEADER,
+    eval_seed, non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError,
+    TrainEvent, CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, SKIP_LOG, TRAIN_LOG, TRAIN_LOG_HEADER,
 };
 
 /// The data's parameters: `(phi, ln s_v, ln s_w)`.
@@ -708,4 +708,44 @@ fn a_version_2_checkpoint_is_read_as_a_run_without_keep_best() {
     std::fs::write(&path, v1).unwrap();
     let err = Checkpoint::load(&path).unwrap_err();
     assert!(err.to_string().contains('1'), "{err}");
+}
+
+#[test]
+fn every_evaluation_of_a_run_uses_one_seed() {
+    // Keep-best ranks a run's evaluations by their differences: with one filter
+    // seed for all (common random numbers) those are the parameters', not the
+    // evaluating filter's noise. A run of another seed evaluates with another.
+    struct Recording {
+        inner: LgssmObjective,
+        seeds: Vec<u64>,
+    }
+    impl Objective for Recording {
+        fn batches(&self) -> usize {
+            self.inner.batches()
+        }
+        fn estimate(
+            &mut self,
+            params: &ParamStore<f64>,
+            batch: usize,
+            seed: u64,
+        ) -> Result<BatchEstimate, EstimateError> {
+            self.inner.estimate(params, batch, seed)
+        }
+        fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
+            self.seeds.push(seed);
+            self.inner.evaluate(params, seed)
+        }
+    }
+    let seeds_of = |seed: u64| {
+        let config = TrainConfig { eval_every: 2, epochs: 3, seed, ..resume_config() };
+        let mut objective = Recording { inner: LgssmObjective::new(3, 20, 2), seeds: Vec::new() };
+        let dir = tempfile::tempdir().unwrap();
+        train(&mut objective, store(START), &config, dir.path(), false, &mut quiet()).unwrap();
+        objective.seeds
+    };
+    let seeds = seeds_of(42);
+    // At step 0, every 2 steps and at the last (9).
+    assert_eq!(seeds.len(), 6, "{seeds:?}");
+    assert!(seeds.iter().all(|&s| s == eval_seed(42)), "{seeds:?}");
+    assert!(seeds_of(43).iter().all(|&s| s == eval_seed(43) && s != eval_seed(42)));
 }

@@ -391,7 +391,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
     fn evaluate(&mut self, step: usize) -> Result<TrainEvent, TrainError> {
         let metrics = self
             .objective
-            .evaluate(&self.params, eval_seed(self.config.seed, step))
+            .evaluate(&self.params, eval_seed(self.config.seed))
             .map_err(|message| TrainError::Evaluate { step, message })?;
         let names: Vec<String> = metrics.iter().map(|(n, _)| n.clone()).collect();
         match &self.eval_names {

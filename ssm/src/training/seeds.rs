@@ -27,9 +27,19 @@ pub fn step_seed(seed: u64, step: usize) -> u64 {
     derive_seed(seed, STEP_STREAM, step as u64)
 }
 
-/// The seed [`train`](super::train) passes to [`Objective::evaluate`](super::Objective::evaluate) after `step` steps.
-pub fn eval_seed(seed: u64, step: usize) -> u64 {
-    derive_seed(seed, EVAL_STREAM, step as u64)
+/// The seed [`train`](super::train) passes to [`Objective::evaluate`](super::Objective::evaluate) at every
+/// evaluation of a run: the same after every step (common random numbers), so
+/// that the differences between a run's evaluations, the ranking
+/// [`TrainConfig::keep_best`](super::TrainConfig::keep_best) makes, are the
+/// parameters' and not the evaluating filter's Monte Carlo noise.
+///
+/// ```
+/// use ssm::training::{eval_seed, step_seed};
+/// assert_ne!(eval_seed(7), eval_seed(8));
+/// assert_ne!(eval_seed(7), step_seed(7, 0));
+/// ```
+pub fn eval_seed(seed: u64) -> u64 {
+    derive_seed(seed, EVAL_STREAM, 0)
 }
 
 /// The order in which epoch `epoch` visits batches `0..batches`: a permutation
