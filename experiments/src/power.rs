@@ -156,6 +156,17 @@ impl RefitRates {
     }
 }
 
+impl std::fmt::Display for RefitRates {
+    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "learning rate {} (base's rate ", self.candidate_lr)?;
+        match self.refit_base_lr {
+            Some(base) => write!(f, "{base})"),
+            None => write!(f, "off)"),
+        }
+    }
+}
+
 /// One diagnosis of the study.
 struct Cell {
     effect: String,
@@ -420,17 +431,12 @@ fn run_cell(
     }
     // Nor is a report of other refit rates (an `--out` reused with another
     // `--candidate-lr` or `--refit-base-lr`).
-    let (found, base) =
-        (RefitRates::of(&report.config), |r: RefitRates| r.refit_base_lr.map_or("off".into(), |b| b.to_string()));
+    let found = RefitRates::of(&report.config);
     if found != rates {
         return Err(format!(
-            "{}: a diagnosis refitted at learning rate {} (base's rate {}), where this study's refit at {} (base's \
-             rate {}) (another --candidate-lr or --refit-base-lr? use another --out)",
+            "{}: a diagnosis refitted at {found}, where this study's refit at {rates} (another --candidate-lr or \
+             --refit-base-lr? use another --out)",
             report_path.display(),
-            found.candidate_lr,
-            base(found),
-            rates.candidate_lr,
-            base(rates)
         ));
     }
     // Decided again under the current rules: cells diagnosed under an earlier
