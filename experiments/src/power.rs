@@ -134,20 +134,20 @@ struct RefitRates {
 }
 
 impl RefitRates {
-    /// The quick diagnosis's rates with the given ones in their place, each
-    /// positive and finite.
+    /// The quick diagnosis's rates with the given ones in their place, checked
+    /// by the diagnosis's own [`DiagnoseConfig::validate`] (an error names the
+    /// flag: `--refit-base-lr = 0: expected positive and finite`).
     fn new(candidate_lr: Option<f64>, refit_base_lr: Option<f64>) -> Result<RefitRates, String> {
         let quick = DiagnoseConfig::quick();
-        let rates = RefitRates {
+        let config = DiagnoseConfig {
             candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
             refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
+            ..quick
         };
-        for (flag, lr) in [("--candidate-lr", Some(rates.candidate_lr)), ("--refit-base-lr", rates.refit_base_lr)] {
-            if let Some(lr) = lr.filter(|lr| !(lr.is_finite() && *lr > 0.0)) {
-                return Err(format!("power-study: {flag} must be positive and finite, got {lr}"));
-            }
-        }
-        Ok(rates)
+        config.validate().map_err(|e| {
+            format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
+        })?;
+        Ok(RefitRates::of(&config))
     }
 
     /// The rates a diagnosis ran with.
