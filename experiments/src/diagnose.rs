@@ -402,7 +402,8 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     let abs_z = |results: &[CheckResult], name: &str| {
         results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
     };
-    for cand in &r.candidates {
+    let verdicts = r.verdicts(true);
+    for (cand, verdict) in r.candidates.iter().zip(verdicts) {
         let flagged = if cand.flagged_by.is_empty() {
             "(fit all)".to_string()
         } else {
@@ -430,7 +431,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
             fmt(cand.top_two_share),
             cand.description,
             if cand.material { "yes" } else { "no" },
-            if cand.qualifies { "**yes**" } else { "no" }
+            verdict.map_or("**yes**".to_string(), |rule| format!("no: {rule}"))
         );
     }
     let _ = writeln!(

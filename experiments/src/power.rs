@@ -183,6 +183,9 @@ struct Cell {
     /// The cause the diagnosis would name without rule (d), that an extension
     /// must lower its flagging checks' |z| (the same decision otherwise).
     cause_without_check_rule: String,
+    /// Why the expected outcome was not reached ([`Report::why_not`]); `None`
+    /// where it was.
+    why_missed: Option<String>,
 }
 
 /// Runs `sefi power-study`.
@@ -336,30 +339,43 @@ fn finished_cells(out: &Path) -> Result<Vec<(String, f64, u64)>, String> {
 
 /// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
 fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
-    let mut csv = String::from(
-        "effect,strength,seed,cause,named,relative_error,gain,seconds,cause_without_check_rule,other_relative_errors\n",
-    );
+    let mut csv = csv::Writer::from_writer(Vec::new());
+    let header = [
+        "effect",
+        "strength",
+        "seed",
+        "cause",
+        "named",
+        "relative_error",
+        "gain",
+        "seconds",
+        "cause_without_check_rule",
+        "other_relative_errors",
+        "why_missed",
+    ];
+    let mut write = |record: &[String]| csv.write_record(record).map_err(|e| format!("power.csv: {e}"));
+    write(&header.map(str::to_string))?;
     for c in cells {
         // The effect's size in `relative_error` (as before); any further
         // parameter as `name:error` pairs joined by `;`.
         let size = c.relative_errors.first().map_or(f64::NAN, |e| e.1);
         let others: Vec<String> = c.relative_errors.iter().skip(1).map(|(n, e)| format!("{n}:{e}")).collect();
-        let _ = writeln!(
-            csv,
-            "{},{},{},{},{},{},{},{:.1},{},{}",
-            c.effect,
-            c.strength,
-            c.seed,
-            c.cause,
-            c.named,
-            size,
-            c.gain,
-            c.seconds,
-            c.cause_without_check_rule,
-            others.join(";")
-        );
+        write(&[
+            c.effect.clone(),
+            c.strength.to_string(),
+            c.seed.to_string(),
+            c.cause.clone(),
+            c.named.to_string(),
+            size.to_string(),
+            c.gain.to_string(),
+            format!("{:.1}", c.seconds),
+            c.cause_without_check_rule.clone(),
+            others.join(";"),
+            c.why_missed.clone().unwrap_or_default(),
+        ])?;
     }
-    write_atomic(&out.join("power.csv"), csv.as_bytes())?;
+    let csv = csv.into_inner().map_err(|e| format!("power.csv: {e}"))?;
+    write_atomic(&out.join("power.csv"), &csv)?;
     write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())
 }
 
@@ -452,6 +468,7 @@ fn run_cell(
         .collect();
     Ok(Some(Cell {
         cause_without_check_rule: report.decided(false).0,
+        why_missed: report.why_not(e.expected),
         effect: e.id.clone(),
         strength,
         seed,
@@ -541,6 +558,15 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
          tails), `unexplained` for `ego_pose_noise` (outside the catalogue), `none` for the controls. `false cause`: \
          a catalogue cause other than the expected one.\n",
     );
+    let missed: Vec<&Cell> = cells.iter().filter(|c| c.why_missed.is_some()).collect();
+    if !missed.is_empty() {
+        s.push_str("\nSeeds that missed, and why (the outcome; then the first rule the expected cause fails, with its numbers):\n\n");
+        for c in missed {
+            let control = effects.iter().any(|e| e.id == c.effect && e.is_control());
+            let strength = if control { String::new() } else { format!(" × {}", c.strength) };
+            let _ = writeln!(s, "- {}{strength}, seed {}: {}", c.effect, c.seed, c.why_missed.as_deref().unwrap_or(""));
+        }
+    }
     s
 }
 
@@ -611,6 +637,68 @@ mod tests {
         assert_eq!(csv.lines().count(), 5, "{csv}");
         assert_eq!(cells, ["0", "0", "0", "1"], "the middle strength and the controls first, then x2");
         assert_eq!(std::fs::read_to_string(out.join("power.md")).unwrap(), table);
+        std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    /// Every cell that missed says why, in `power.csv` and under the table:
+    /// the outcome, then the first rule its expected cause fails with the
+    /// numbers that failed it, or that it was not fitted; a control, the checks
+    /// that fail. Cells that named what they should say nothing.
+    #[test]
+    fn each_missed_cell_says_why() {
+        let out = std::env::temp_dir().join(format!("sefi-power-why-{}", std::process::id()));
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-eval-crn");
+        let cells = [
+            "heavy_tailed_accel/x1/seed0",
+            "heavy_tailed_accel/x1/seed2",
+            "heavy_tailed_accel/x1/seed3",
+            "latency/x1/seed0",
+            "none-points/x1/seed3",
+        ];
+        for cell in cells {
+            std::fs::create_dir_all(out.join(cell)).unwrap();
+            std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
+        }
+        let effects = study_effects(["heavy_tailed_accel", "latency", "none-points"], None).unwrap();
+        let table = write_study_tables(&out, &effects, &[1.0], 5, None, RefitRates::new(None, None).unwrap()).unwrap();
+        let mut reader = csv::Reader::from_path(out.join("power.csv")).unwrap();
+        let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
+        let why = |effect: &str, seed: &str| {
+            let row = rows.iter().find(|r| &r[0] == effect && &r[2] == seed).unwrap();
+            row[10].to_string()
+        };
+        // The same reports, read directly: what each holds.
+        let report = |cell: &str| -> Report {
+            serde_json::from_str(&std::fs::read_to_string(out.join(cell).join("report.json")).unwrap()).unwrap()
+        };
+        let seed3 = report(cells[2]);
+        let tails = seed3.candidates.iter().find(|c| c.cause == "heavy_tailed_accel").unwrap();
+        let reference_z = seed3.reference_checks().iter().find(|c| c.name == "accel_kurtosis").unwrap().z.abs();
+        let after_z = tails.checks_after.iter().find(|c| c.name == "accel_kurtosis").unwrap().z.abs();
+        assert!(after_z > reference_z, "the committed report fails rule (d): {reference_z} -> {after_z}");
+        let expected = format!(
+            "`unexplained`: `heavy_tailed_accel` fails (d) no flagging check improved: accel_kurtosis |z| {reference_z:.2} → {after_z:.2}"
+        );
+        assert_eq!(why("heavy_tailed_accel", "3"), expected);
+        assert!(report(cells[1]).candidates.iter().all(|c| c.cause != "heavy_tailed_accel"));
+        assert_eq!(why("heavy_tailed_accel", "2"), "`unexplained`: `heavy_tailed_accel` not fitted");
+        let seed0 = report(cells[0]);
+        let (over, p) =
+            seed0.candidates.iter().find(|c| c.cause == "heavy_tailed_accel").unwrap().over_reseeded.unwrap();
+        assert!(over < seed0.config.min_gain || p >= seed0.config.cause_level);
+        assert!(why("heavy_tailed_accel", "0")
+            .contains(&format!("fails (b) not over the reseeded refit: over it {over:+.4}")));
+        assert_eq!(why("latency", "0"), "", "named: nothing to explain");
+        let control = why("none-points", "3");
+        assert!(
+            control.starts_with("`unexplained`: checks fail") && control.contains("length_extent_ratio"),
+            "{control}"
+        );
+        // Under the table, one line per missed cell, in the table's order.
+        let listed: Vec<&str> = table.lines().filter(|l| l.starts_with("- ")).collect();
+        assert_eq!(listed.len(), 4, "{table}");
+        assert_eq!(listed[2], format!("- heavy_tailed_accel × 1, seed 3: {expected}"));
+        assert!(listed[3].starts_with("- none-points, seed 3: "), "a control without a strength: {}", listed[3]);
         std::fs::remove_dir_all(&out).unwrap();
     }
 

@@ -498,13 +498,10 @@ pub fn nested_comparisons(
 
 impl CandidateReport {
     /// Whether the candidate passes the decision's rules on its learned
-    /// parameters and its gain — material, a finite gain of at least `gain_bar`
-    /// ([`Report::gain_bar`]) with a Holm-adjusted p below `cause_level`,
-    /// `beats_refit` on `over_reseeded` (its comparison with the reseeded
-    /// refit: its own, or one made since for a report written without it) and
-    /// rule (e) on `over_nested` — leaving out only rule (d), that it lowers a
-    /// flagging check's |z|.
-    /// `qualifies` is this, on its own comparison, and `checks_improved`.
+    /// parameters and its gain — every rule of step 5 but (d), that it lowers a
+    /// flagging check's |z| ([`CandidateReport::failed_gain_rule`] finds none
+    /// that it fails). `qualifies` is this, on its own comparison, and
+    /// `checks_improved`.
     pub fn passes_gain_rules(
         &self,
         gain_bar: f64,
@@ -512,12 +509,67 @@ impl CandidateReport {
         min_gain: f64,
         cause_level: f64,
     ) -> bool {
-        self.material
-            && self.gain.is_finite()
-            && self.gain >= gain_bar
-            && self.p_adjusted < cause_level
-            && beats_refit(over_reseeded, min_gain, cause_level)
-            && self.over_nested.as_ref().is_none_or(|n| n.beats_nested(min_gain, cause_level))
+        self.failed_gain_rule(gain_bar, over_reseeded, min_gain, cause_level).is_none()
+    }
+
+    /// The first rule of step 5 but (d) that the candidate fails, in the order
+    /// the rules are listed: (a) a Holm-adjusted p below `cause_level`, (b) a
+    /// finite gain of at least `gain_bar` ([`Report::gain_bar`]) and
+    /// `beats_refit` on `over_reseeded` (its comparison with the reseeded
+    /// refit: its own, or one made since for a report written without it), (c)
+    /// material, (e) beating the candidate it nests (`over_nested`). `None`
+    /// when it passes them all.
+    pub fn failed_gain_rule(
+        &self,
+        gain_bar: f64,
+        over_reseeded: Option<(f64, f64)>,
+        min_gain: f64,
+        cause_level: f64,
+    ) -> Option<FailedRule> {
+        // A NaN p fails the level too.
+        if self.p_adjusted.partial_cmp(&cause_level) != Some(std::cmp::Ordering::Less) {
+            Some(FailedRule::Level)
+        } else if !(self.gain.is_finite() && self.gain >= gain_bar) {
+            Some(FailedRule::LeastGain)
+        } else if !beats_refit(over_reseeded, min_gain, cause_level) {
+            Some(FailedRule::Reseeded)
+        } else if !self.material {
+            Some(FailedRule::NotMaterial)
+        } else if !self.over_nested.as_ref().is_none_or(|n| n.beats_nested(min_gain, cause_level)) {
+            Some(FailedRule::Nested)
+        } else {
+            None
+        }
+    }
+}
+
+/// A rule of step 5 that a candidate fails: why it is not the cause.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FailedRule {
+    /// (a) Its Holm-adjusted p is not below the cause level.
+    Level,
+    /// (b) Its gain is under the least gain that names a cause.
+    LeastGain,
+    /// (b) It does not beat the reseeded refit by that least gain at the level.
+    Reseeded,
+    /// (c) Its learned parameters do not change the model materially.
+    NotMaterial,
+    /// (d) It lowers no flagging check's |z| below the reference's.
+    Checks,
+    /// (e) It does not beat the fitted extension it nests.
+    Nested,
+}
+
+impl std::fmt::Display for FailedRule {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FailedRule::Level => "(a) p adj. not below the level",
+            FailedRule::LeastGain => "(b) under the least gain",
+            FailedRule::Reseeded => "(b) not over the reseeded refit",
+            FailedRule::NotMaterial => "(c) not material",
+            FailedRule::Checks => "(d) no flagging check improved",
+            FailedRule::Nested => "(e) not over the nested extension",
+        })
     }
 }
 
@@ -683,6 +735,17 @@ impl Report {
         if self.candidates.is_empty() {
             return (self.cause.clone(), None);
         }
+        let verdicts = self.verdicts(check_rule);
+        match choose(&self.candidates, |i, _| verdicts[i].is_none()) {
+            Some(i) => (self.candidates[i].cause.clone(), Some(&self.candidates[i])),
+            None => (outcome_without_cause(&self.reference_checks()).0, None),
+        }
+    }
+
+    /// Per candidate, the first rule of step 5 it fails under the current
+    /// rules (`None`: it qualifies), as [`Report::decided`] judges them; rule
+    /// (d) only with `check_rule`.
+    pub fn verdicts(&self, check_rule: bool) -> Vec<Option<FailedRule>> {
         let reference = self.reference_checks();
         let bar = self.gain_bar();
         let improved = |c: &CandidateReport| {
@@ -692,24 +755,89 @@ impl Report {
                 improves_flagged_checks(&c.flagged_by, &reference, &c.checks_after)
             }
         };
-        // Reports whose candidates were not compared with the reseeded refit
-        // (written before that comparison) but that kept its per-object gains
-        // are compared now.
+        let over = self.over_reseeded();
+        let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
+        self.candidates
+            .iter()
+            .enumerate()
+            .map(|(i, c)| {
+                c.failed_gain_rule(bar, over[i], min_gain, level)
+                    .or_else(|| (check_rule && !improved(c)).then_some(FailedRule::Checks))
+            })
+            .collect()
+    }
+
+    /// Why the outcome is not `expected` (a cause, `none` or `unexplained`),
+    /// in a phrase for a table; `None` when it is. For an expected cause: not
+    /// fitted, the rule it fails with the numbers that failed it, or the cause
+    /// that gained more; else the cause named, or the failing checks.
+    pub fn why_not(&self, expected: &str) -> Option<String> {
+        let (cause, chosen) = self.decided(true);
+        if cause == expected {
+            return None;
+        }
+        let verdicts = self.verdicts(true);
+        let candidate = self.candidates.iter().position(|c| c.cause == expected);
+        let why = match (candidate, chosen) {
+            (Some(i), _) => {
+                let c = &self.candidates[i];
+                match verdicts[i] {
+                    Some(rule) => {
+                        format!("`{expected}` fails {rule}: {}", self.failure_numbers(c, self.over_reseeded()[i], rule))
+                    }
+                    None => format!("`{expected}` qualifies, but `{cause}` gains more"),
+                }
+            }
+            (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => format!("`{expected}` not fitted"),
+            (None, Some(c)) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
+            (None, None) => match outcome_without_cause(&self.reference_checks()).1 {
+                failing if failing.is_empty() => "no check of the reference fails at the family-wise level".to_string(),
+                failing => failing,
+            },
+        };
+        Some(format!("`{cause}`: {why}"))
+    }
+
+    /// The numbers by which candidate `c` (its gain over the reseeded refit
+    /// `over_reseeded`) fails `rule`.
+    fn failure_numbers(&self, c: &CandidateReport, over_reseeded: Option<(f64, f64)>, rule: FailedRule) -> String {
+        let abs_z = |results: &[CheckResult], name: &str| {
+            results.iter().find(|r| r.name == name).map_or("-".to_string(), |r| format_z(r.z.abs(), 2))
+        };
+        match rule {
+            FailedRule::Level => format!("gain {:+.4}, p adj. {:.4}", c.gain, c.p_adjusted),
+            FailedRule::LeastGain => format!("gain {:+.4} under {:.4}", c.gain, self.gain_bar()),
+            FailedRule::Reseeded => {
+                over_reseeded.map_or(String::new(), |(gain, p)| format!("over it {gain:+.4}, p adj. {p:.4}"))
+            }
+            FailedRule::NotMaterial => c.description.clone(),
+            FailedRule::Checks => {
+                let reference = self.reference_checks();
+                let each = c
+                    .flagged_by
+                    .iter()
+                    .map(|name| format!("{name} |z| {} → {}", abs_z(&reference, name), abs_z(&c.checks_after, name)));
+                each.collect::<Vec<_>>().join("; ")
+            }
+            FailedRule::Nested => c
+                .over_nested
+                .as_ref()
+                .map_or(String::new(), |n| format!("over `{}` {:+.4}, p {:.4}", n.nested, n.gain, n.p)),
+        }
+    }
+
+    /// Per candidate, its gain over the reseeded refit and the gain's Holm p:
+    /// as recorded, or, in reports whose candidates were not compared with it
+    /// (written before that comparison) but that kept its per-object gains,
+    /// compared now.
+    fn over_reseeded(&self) -> Vec<Option<(f64, f64)>> {
         let reseeded = self.reference.as_ref().and_then(|r| r.reseeded.as_ref()).filter(|r| !r.object_gains.is_empty());
-        let over: Vec<Option<(f64, f64)>> = match reseeded {
+        match reseeded {
             Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
                 let gains: Vec<&[f64]> = self.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
                 beats_reseeded(&gains, &r.object_gains, self.eval_units, &self.config).into_iter().map(Some).collect()
             }
             _ => self.candidates.iter().map(|c| c.over_reseeded).collect(),
-        };
-        let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
-        let qualifies = |i: usize, c: &CandidateReport| {
-            c.passes_gain_rules(bar, over[i], min_gain, level) && (!check_rule || improved(c))
-        };
-        match choose(&self.candidates, qualifies) {
-            Some(i) => (self.candidates[i].cause.clone(), Some(&self.candidates[i])),
-            None => (outcome_without_cause(&reference).0, None),
         }
     }
 }
@@ -1440,6 +1568,29 @@ mod tests {
         assert!(cand.passes_gain_rules(MIN_GAIN, None, MIN_GAIN, 0.05));
         cand.over_nested = Some(like);
         assert!(!cand.passes_gain_rules(MIN_GAIN, None, MIN_GAIN, 0.05), "no better than the nested extension");
+    }
+
+    /// A candidate that fails several rules is turned away by the first in the
+    /// order they are listed (a, b, c, e), with its numbers; one that fails
+    /// none passes, as `passes_gain_rules` says.
+    #[test]
+    fn the_first_failed_rule_names_why_a_candidate_is_not_the_cause() {
+        let (bar, level) = (MIN_GAIN, 0.05);
+        let mut cand = qualifying_candidate();
+        assert_eq!(cand.failed_gain_rule(bar, None, bar, level), None);
+        cand.over_nested = Some(NestedComparison { nested: "heading_flip".into(), gain: 0.0, p: 0.5 });
+        assert_eq!(cand.failed_gain_rule(bar, None, bar, level), Some(FailedRule::Nested));
+        cand.material = false;
+        assert_eq!(cand.failed_gain_rule(bar, None, bar, level), Some(FailedRule::NotMaterial));
+        assert_eq!(cand.failed_gain_rule(bar, Some((0.001, 0.001)), bar, level), Some(FailedRule::Reseeded));
+        cand.gain = 0.5 * bar;
+        assert_eq!(cand.failed_gain_rule(bar, Some((0.001, 0.001)), bar, level), Some(FailedRule::LeastGain));
+        cand.gain = f64::NAN;
+        assert_eq!(cand.failed_gain_rule(bar, None, bar, level), Some(FailedRule::LeastGain), "a non-finite gain");
+        cand.p_adjusted = level;
+        assert_eq!(cand.failed_gain_rule(bar, None, bar, level), Some(FailedRule::Level));
+        assert!(!cand.passes_gain_rules(bar, None, bar, level));
+        assert_eq!(FailedRule::Checks.to_string(), "(d) no flagging check improved");
     }
 
     fn check_with_z(name: &str, z: f64) -> CheckResult {
