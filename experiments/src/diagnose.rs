@@ -565,3 +565,28 @@ fn check_plot(path: &Path, c: &CheckReport) -> Result<(), String> {
     }
     root.present().map_err(|e| err(&e))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A committed report of the power study.
+    fn committed(cell: &str) -> Report {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-eval-crn").join(cell);
+        serde_json::from_str(&std::fs::read_to_string(path.join("report.json")).unwrap()).unwrap()
+    }
+
+    /// `report.md`'s candidate table says, per candidate, whether it qualifies
+    /// and, where not, the first rule it fails (as `Report::verdicts` judges).
+    #[test]
+    fn the_candidate_table_names_the_rule_each_candidate_fails() {
+        let row =
+            |md: &str, cause: &str| md.lines().find(|l| l.starts_with(&format!("| {cause} |"))).unwrap().to_string();
+        let tails = markdown(&committed("heavy_tailed_accel/x1/seed3"), Path::new("data"), &[]);
+        let tails_row = row(&tails, "heavy_tailed_accel");
+        assert!(tails_row.ends_with("| no: (d) no flagging check improved |"), "{tails_row}");
+        let lag = markdown(&committed("latency/x1/seed0"), Path::new("data"), &[]);
+        assert!(row(&lag, "latency").ends_with("| **yes** |"), "{lag}");
+        assert!(row(&lag, "heavy_tailed_accel").contains("| no: ("), "{lag}");
+    }
+}
