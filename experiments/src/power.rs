@@ -558,13 +558,13 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
          tails), `unexplained` for `ego_pose_noise` (outside the catalogue), `none` for the controls. `false cause`: \
          a catalogue cause other than the expected one.\n",
     );
-    let missed: Vec<&Cell> = cells.iter().filter(|c| c.why_missed.is_some()).collect();
+    let missed: Vec<(&Cell, &str)> = cells.iter().filter_map(|c| Some((c, c.why_missed.as_deref()?))).collect();
     if !missed.is_empty() {
         s.push_str("\nSeeds that missed, and why (the outcome; then the first rule the expected cause fails, with its numbers):\n\n");
-        for c in missed {
+        for (c, why) in missed {
             let control = effects.iter().any(|e| e.id == c.effect && e.is_control());
             let strength = if control { String::new() } else { format!(" × {}", c.strength) };
-            let _ = writeln!(s, "- {}{strength}, seed {}: {}", c.effect, c.seed, c.why_missed.as_deref().unwrap_or(""));
+            let _ = writeln!(s, "- {}{strength}, seed {}: {why}", c.effect, c.seed);
         }
     }
     s

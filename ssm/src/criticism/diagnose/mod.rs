@@ -543,6 +543,10 @@ impl CandidateReport {
     }
 }
 
+/// A candidate's gain over the reseeded refit and that gain's Holm p
+/// ([`CandidateReport::over_reseeded`]).
+type OverReseeded = Option<(f64, f64)>;
+
 /// A rule of step 5 that a candidate fails: why it is not the cause.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FailedRule {
@@ -732,10 +736,16 @@ impl Report {
     /// left out (what the outcome would be if extensions did not have to improve
     /// their checks). A report without candidates keeps its outcome.
     pub fn decided(&self, check_rule: bool) -> (String, Option<&CandidateReport>) {
+        self.outcome(&self.verdicts(check_rule))
+    }
+
+    /// The outcome of candidates judged `verdicts` ([`Report::verdicts`]):
+    /// the qualifying one with the largest gain, else `unexplained` or `none`
+    /// by the reference's checks; without candidates, the recorded outcome.
+    fn outcome(&self, verdicts: &[Option<FailedRule>]) -> (String, Option<&CandidateReport>) {
         if self.candidates.is_empty() {
             return (self.cause.clone(), None);
         }
-        let verdicts = self.verdicts(check_rule);
         match choose(&self.candidates, |i, _| verdicts[i].is_none()) {
             Some(i) => (self.candidates[i].cause.clone(), Some(&self.candidates[i])),
             None => (outcome_without_cause(&self.reference_checks()).0, None),
@@ -746,6 +756,12 @@ impl Report {
     /// rules (`None`: it qualifies), as [`Report::decided`] judges them; rule
     /// (d) only with `check_rule`.
     pub fn verdicts(&self, check_rule: bool) -> Vec<Option<FailedRule>> {
+        self.judged(check_rule).0
+    }
+
+    /// [`Report::verdicts`], with the comparisons with the reseeded refit
+    /// they were judged on ([`Report::over_reseeded`]).
+    fn judged(&self, check_rule: bool) -> (Vec<Option<FailedRule>>, Vec<OverReseeded>) {
         let reference = self.reference_checks();
         let bar = self.gain_bar();
         let improved = |c: &CandidateReport| {
@@ -757,14 +773,16 @@ impl Report {
         };
         let over = self.over_reseeded();
         let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
-        self.candidates
+        let verdicts = self
+            .candidates
             .iter()
             .enumerate()
             .map(|(i, c)| {
                 c.failed_gain_rule(bar, over[i], min_gain, level)
                     .or_else(|| (check_rule && !improved(c)).then_some(FailedRule::Checks))
             })
-            .collect()
+            .collect();
+        (verdicts, over)
     }
 
     /// Why the outcome is not `expected` (a cause, `none` or `unexplained`),
@@ -772,18 +790,20 @@ impl Report {
     /// fitted, the rule it fails with the numbers that failed it, or the cause
     /// that gained more; else the cause named, or the failing checks.
     pub fn why_not(&self, expected: &str) -> Option<String> {
-        let (cause, chosen) = self.decided(true);
+        // Judged once: the comparisons with the reseeded refit of an earlier
+        // report are permutation tests.
+        let (verdicts, over) = self.judged(true);
+        let (cause, chosen) = self.outcome(&verdicts);
         if cause == expected {
             return None;
         }
-        let verdicts = self.verdicts(true);
         let candidate = self.candidates.iter().position(|c| c.cause == expected);
         let why = match (candidate, chosen) {
             (Some(i), _) => {
                 let c = &self.candidates[i];
                 match verdicts[i] {
                     Some(rule) => {
-                        format!("`{expected}` fails {rule}: {}", self.failure_numbers(c, self.over_reseeded()[i], rule))
+                        format!("`{expected}` fails {rule}: {}", self.failure_numbers(c, over[i], rule))
                     }
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
                 }
@@ -830,7 +850,7 @@ impl Report {
     /// as recorded, or, in reports whose candidates were not compared with it
     /// (written before that comparison) but that kept its per-object gains,
     /// compared now.
-    fn over_reseeded(&self) -> Vec<Option<(f64, f64)>> {
+    fn over_reseeded(&self) -> Vec<OverReseeded> {
         let reseeded = self.reference.as_ref().and_then(|r| r.reseeded.as_ref()).filter(|r| !r.object_gains.is_empty());
         match reseeded {
             Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
