@@ -702,6 +702,39 @@ mod tests {
         std::fs::remove_dir_all(&out).unwrap();
     }
 
+    /// The two answers of `why_not` no committed miss holds: a control on which
+    /// a cause is named says which, with its gain and p; a cause that qualifies
+    /// but is not chosen says what gained more. Built on a committed report that
+    /// names the mixture, with one candidate added (a copy, gaining less).
+    #[test]
+    fn a_miss_names_the_false_cause_or_the_larger_gain() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../results/power-study-eval-crn-32-scenes/heavy_tailed_accel/x1/seed0/report.json");
+        let mut report: Report = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let (cause, chosen) = report.decided(true);
+        assert_eq!(cause, "heavy_tailed_accel");
+        let (gain, p) = (chosen.unwrap().gain, chosen.unwrap().p_adjusted);
+        assert_eq!(report.why_not("heavy_tailed_accel"), None);
+        let named = format!("`heavy_tailed_accel`: `heavy_tailed_accel` named (gain {gain:+.4}, p adj. {p:.4})");
+        assert_eq!(report.why_not(NO_CAUSE).as_deref(), Some(named.as_str()), "a control");
+        assert_eq!(report.why_not(UNEXPLAINED).as_deref(), Some(named.as_str()));
+        assert_eq!(
+            report.why_not("clutter").as_deref(),
+            Some("`heavy_tailed_accel`: `clutter` not fitted"),
+            "a cause without a candidate"
+        );
+        let mut runner_up = chosen.unwrap().clone();
+        runner_up.cause = "clutter".into();
+        runner_up.gain *= 0.9;
+        report.candidates.push(runner_up);
+        assert_eq!(report.verdicts(true).last(), Some(&None), "the copy passes every rule");
+        assert_eq!(report.decided(true).0, "heavy_tailed_accel", "the larger gain is chosen");
+        assert_eq!(
+            report.why_not("clutter").as_deref(),
+            Some("`heavy_tailed_accel`: `clutter` qualifies, but `heavy_tailed_accel` gains more")
+        );
+    }
+
     /// The flip chain's cell compares both learned magnitudes with the truth:
     /// the fraction in `relative_error`, the persistence beside it, and the
     /// table's medians name each.
