@@ -372,6 +372,36 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         let _ = writeln!(s, "- `{}`: {}", ch.name, ch.description);
     }
     let _ = writeln!(s, "\n## Candidate extensions\n");
+    if r.candidates.is_empty() {
+        let _ = writeln!(
+            s,
+            "None was fitted: no check that suggests an extension had an uncorrected p below {} in the direction \
+             the extension moves it.",
+            c.plausible_p
+        );
+    } else {
+        candidate_table(&mut s, r);
+    }
+    if !r.not_fitted.is_empty() {
+        let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
+    }
+    s.push_str(&fits_kept(r));
+    let _ = writeln!(s, "\n## The worst checks\n");
+    let _ = writeln!(
+        s,
+        "Each dot is one smoother draw: the statistic on the measured data and on data replicated from the base model \
+         (and from the extended model, if one was chosen).\n"
+    );
+    for (name, file) in plots {
+        let _ = writeln!(s, "![{name}]({file})\n");
+    }
+    s
+}
+
+/// `report.md`'s table of the fitted candidates, under the rules that decide
+/// among them, each row ending with the first rule it fails (or **yes**).
+fn candidate_table(s: &mut String, r: &Report) {
+    let c = &r.config;
     let how = if r.reference.is_some() {
         format!(
             "every parameter refitted with the extension's by PF-SEFI on the fit objects ({} steps from the base), \
@@ -443,20 +473,6 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         c.eval_particles,
         fmt(r.candidates.iter().map(|c| c.worst_object_mc_sd).fold(f64::NAN, f64::max))
     );
-    if !r.not_fitted.is_empty() {
-        let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
-    }
-    s.push_str(&fits_kept(r));
-    let _ = writeln!(s, "\n## The worst checks\n");
-    let _ = writeln!(
-        s,
-        "Each dot is one smoother draw: the statistic on the measured data and on data replicated from the base model \
-         (and from the extended model, if one was chosen).\n"
-    );
-    for (name, file) in plots {
-        let _ = writeln!(s, "![{name}]({file})\n");
-    }
-    s
 }
 
 /// The section on which parameters each fit kept (`DiagnoseConfig::keep_best_every`):
@@ -588,5 +604,14 @@ mod tests {
         let lag = markdown(&committed("latency/x1/seed0"), Path::new("data"), &[]);
         assert!(row(&lag, "latency").ends_with("| **yes** |"), "{lag}");
         assert!(row(&lag, "heavy_tailed_accel").contains("| no: ("), "{lag}");
+        // Nothing fitted (the box control): a sentence, not an empty table.
+        let control = markdown(&committed("none-boxes/x1/seed0"), Path::new("data"), &[]);
+        let section = control.split("## Candidate extensions").nth(1).unwrap();
+        assert!(section.contains("None was fitted: no check that suggests an extension had an uncorrected p below 0.2"));
+        assert!(
+            section.contains("Not fitted (no check made them plausible): latency, heavy_tailed_accel"),
+            "{section}"
+        );
+        assert!(!section.contains("| extension |") && !section.contains("uncertain by"), "{section}");
     }
 }
