@@ -417,7 +417,8 @@ fn candidate_table(s: &mut String, r: &Report) {
         "Each extension the check objects made plausible, started where their discrepancies point, {how}. A cause \
          must (a) raise the evaluation objects' log-likelihood over the reference's with a Holm-adjusted sign-flip \
          p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially, (d) lower the \
-         |z| of a check that flagged it below the reference's and (e), if it contains another fitted extension as \
+         |z| of a check that flagged it below the reference's (or carry it past the measured value without \
+         failing it, where the reference still flagged it) and (e), if it contains another fitted extension as \
          a special case, beat that one by object (same test and minimum).\n",
         c.cause_level,
         r.gain_bar(),

@@ -42,7 +42,9 @@
 //!    another seed; the candidate's gain over that refit, paired by object,
 //!    passes the same test and the same minimum, [`beats_reseeded`]), (c) change the model
 //!    materially, (d) improve a check that flagged them (its |z| on the check
-//!    part falls below the reference's: [`improves_flagged_checks`]) and (e),
+//!    part falls below the reference's, or the extension carries it past the
+//!    measured value without failing it where the reference still flagged it:
+//!    [`improves_flagged_checks`]) and (e),
 //!    for an extension that contains another fitted candidate as a special case
 //!    ([`Extension::nests`]: persistent flips at persistence 0 are independent
 //!    ones), beat that candidate by object with the same test and minimum
@@ -433,7 +435,7 @@ pub struct CandidateReport {
     pub description: String,
     /// The checks whose p made it plausible (empty when fitted because of `fit_all`).
     pub flagged_by: Vec<String>,
-    /// Rule (d): whether the extension lowers the |z| of a check that flagged it
+    /// Rule (d): whether the extension improves a check that flagged it
     /// ([`improves_flagged_checks`]; only such an extension can be the cause).
     pub checks_improved: bool,
     /// Every check calibrated on this extended model (the check part; empty in
@@ -627,17 +629,44 @@ const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
 /// Seeds those of [`nested_comparisons`].
 const NESTED_PERMUTATIONS: u64 = 0x5f1d;
 
-/// Rule (d) of the decision: the extension lowers the |z| of at least one check
-/// that flagged it (`flagged_by`) below the reference's, both calibrated on the
-/// check part. One is enough: two checks can flag the same extension (kurtosis
-/// and Geary's ratio for heavy tails), and a mixture that explains the kurtosis
-/// can leave the Geary ratio's z larger as its replicates' spread narrows
-/// (measured: |z| 1.16 -> 0.82 and 0.91 -> 2.42 on one diagnosis). Until
-/// 2026-11-26 the mean |z| over the flagging checks had to fall; on the power
-/// study's 98 diagnoses then finished both rules gave the same outcomes.
-pub fn improves_flagged_checks(flagged_by: &[String], reference: &[CheckResult], extended: &[CheckResult]) -> bool {
-    let z = |results: &[CheckResult], name: &str| results.iter().find(|c| c.name == name).map(|c| c.z.abs());
-    flagged_by.iter().any(|name| matches!((z(reference, name), z(extended, name)), (Some(r), Some(e)) if e < r))
+/// Rule (d) of the decision: the extension improves at least one check that
+/// flagged it (`flagged_by`), both calibrated on the check part. A check
+/// improves when its |z| falls below the reference's, or when the extension
+/// carries it past the measured value without failing it: the reference still
+/// showed the discrepancy the extension addresses (screen p below
+/// `plausible_p`), the extended model's z has the other sign, and the extended
+/// model does not fail that check at the family-wise level. An extension that
+/// moves its flagging check further the same way, or that turns a check the
+/// reference no longer flagged, or whose overshoot is itself a failure, does
+/// not improve it. One check is enough: two checks can flag the same extension
+/// (kurtosis and Geary's ratio for heavy tails), and a mixture that explains
+/// the kurtosis can leave the Geary ratio's z larger as its replicates' spread
+/// narrows (measured: |z| 1.16 -> 0.82 and 0.91 -> 2.42 on one diagnosis).
+/// Until 2026-11-26 the mean |z| over the flagging checks had to fall; until
+/// 2026-11-29 (twenty-fifth session) an overshoot did not count.
+pub fn improves_flagged_checks(
+    flagged_by: &[String],
+    reference: &[CheckResult],
+    extended: &[CheckResult],
+    plausible_p: f64,
+) -> bool {
+    let find = |results: &[CheckResult], name: &str| results.iter().position(|c| c.name == name);
+    flagged_by.iter().any(|name| match (find(reference, name), find(extended, name)) {
+        (Some(r), Some(e)) => {
+            let (r, e) = (&reference[r], &extended[e]);
+            e.z.abs() < r.z.abs() || carries_past_without_failing(r, e, plausible_p)
+        }
+        _ => false,
+    })
+}
+
+/// Rule (d)'s overshoot: the reference still flags the check (screen p below
+/// `plausible_p`), the extended model's discrepancy has the other sign and the
+/// extended model does not fail the check at the family-wise level.
+fn carries_past_without_failing(reference: &CheckResult, extended: &CheckResult, plausible_p: f64) -> bool {
+    let still_flagged = reference.screen_p.is_some_and(|p| p < plausible_p);
+    let other_sign = reference.z * extended.z < 0.0;
+    still_flagged && other_sign && !extended.significant
 }
 
 /// Step 5's choice: among `candidates`, the index of the one with the largest
@@ -768,7 +797,7 @@ impl Report {
             if c.checks_after.is_empty() {
                 c.checks_improved
             } else {
-                improves_flagged_checks(&c.flagged_by, &reference, &c.checks_after)
+                improves_flagged_checks(&c.flagged_by, &reference, &c.checks_after, self.config.plausible_p)
             }
         };
         let over = self.over_reseeded();
@@ -1181,7 +1210,7 @@ fn run(
         let (gain, gain_se) = gain_of(&d, reference_eval.units);
         let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
-        let checks_improved = improves_flagged_checks(&f.flagged_by, reference_checks, &after);
+        let checks_improved = improves_flagged_checks(&f.flagged_by, reference_checks, &after, config.plausible_p);
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         let material = ext.is_material(&raw)?;
@@ -1630,22 +1659,44 @@ mod tests {
     }
 
     /// Rule (d): one flagging check whose |z| falls is enough; checks that did
-    /// not flag the extension, or that a model lacks, do not count.
+    /// not flag the extension, or that a model lacks, do not count. An
+    /// overshoot counts only while the reference still flagged the check and
+    /// the extended model does not fail it.
     #[test]
     fn rule_d_needs_one_flagging_check_to_improve() {
+        let level = 0.2;
+        let improves = |flagged: &[String], reference: &[CheckResult], extended: &[CheckResult]| {
+            improves_flagged_checks(flagged, reference, extended, level)
+        };
         let flagged = vec!["accel_kurtosis".to_string(), "accel_peakedness".to_string()];
         let reference = [check_with_z("accel_kurtosis", 1.16), check_with_z("accel_peakedness", -0.91)];
         // The measured case: kurtosis explained, the Geary ratio's z larger (mean |z| up).
         let one_better = [check_with_z("accel_kurtosis", 0.82), check_with_z("accel_peakedness", -2.42)];
-        assert!(improves_flagged_checks(&flagged, &reference, &one_better));
-        let overshoot = [check_with_z("accel_kurtosis", -0.5), check_with_z("accel_peakedness", 0.3)];
-        assert!(improves_flagged_checks(&flagged, &reference, &overshoot), "|z| counts, not its sign");
+        assert!(improves(&flagged, &reference, &one_better));
+        let within = [check_with_z("accel_kurtosis", -0.5), check_with_z("accel_peakedness", 0.3)];
+        assert!(improves(&flagged, &reference, &within), "|z| counts, not its sign");
         let both_worse = [check_with_z("accel_kurtosis", 1.5), check_with_z("accel_peakedness", -0.91)];
-        assert!(!improves_flagged_checks(&flagged, &reference, &both_worse), "an equal |z| is no improvement");
+        assert!(!improves(&flagged, &reference, &both_worse), "an equal |z| is no improvement");
         let only_kurtosis = vec!["accel_kurtosis".to_string()];
-        assert!(!improves_flagged_checks(&only_kurtosis, &reference, &both_worse));
-        assert!(!improves_flagged_checks(&only_kurtosis, &reference[1..], &one_better), "missing on the reference");
-        assert!(!improves_flagged_checks(&[], &reference, &one_better), "fitted without a flag: nothing to improve");
+        assert!(!improves(&only_kurtosis, &reference, &both_worse));
+        assert!(!improves(&only_kurtosis, &reference[1..], &one_better), "missing on the reference");
+        assert!(!improves(&[], &reference, &one_better), "fitted without a flag: nothing to improve");
+
+        // Carried past the measured value: the clutter cell of the power study
+        // (far-point |z| 1.27 -> 1.46 with the other sign, the reference's screen p 0.10).
+        let far = vec!["far_point_fraction".to_string()];
+        let flagging =
+            |z: f64, screen_p: f64| CheckResult { screen_p: Some(screen_p), ..check_with_z("far_point_fraction", z) };
+        let reference = [flagging(1.27, 0.10)];
+        let overshoot = [check_with_z("far_point_fraction", -1.46)];
+        assert!(improves(&far, &reference, &overshoot));
+        let further = [check_with_z("far_point_fraction", 1.46)];
+        assert!(!improves(&far, &reference, &further), "further the same way");
+        let failing = [CheckResult { significant: true, ..check_with_z("far_point_fraction", -4.0) }];
+        assert!(!improves(&far, &reference, &failing), "an overshoot the extended model fails");
+        let unflagged = [flagging(0.37, 0.36)];
+        assert!(!improves(&far, &unflagged, &overshoot), "the reference no longer flagged it");
+        assert!(!improves(&far, &[flagging(1.27, 0.10)], &[check_with_z("far_point_fraction", 0.0)][..0]), "missing");
     }
 
     /// Three disjoint, covering parts with the requested sizes.
