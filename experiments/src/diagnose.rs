@@ -8,9 +8,10 @@ use std::path::{Path, PathBuf};
 use clap::Args;
 use indicatif::ProgressBar;
 use plotters::prelude::*;
-use ssm::criticism::checks::{format_z, z_bound, CheckResult};
+use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
+    diagnose, diagnose_split, flagged_check_moves, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage,
+    NO_CAUSE, UNEXPLAINED,
 };
 use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
 
@@ -426,23 +427,16 @@ fn candidate_table(s: &mut String, r: &Report) {
     );
     let _ = writeln!(
         s,
-        "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | over nested (p) | top-2 share | learned | material | flagged by: |z| reference → extended | qualifies |"
+        "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | over nested (p) | top-2 share | learned | material | flagged by: z reference → extended | qualifies |"
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|");
     let reference_checks = r.reference_checks();
-    let abs_z = |results: &[CheckResult], name: &str| {
-        results.iter().find(|c| c.name == name).map_or("-".to_string(), |c| fmt(c.z.abs()))
-    };
     let verdicts = r.verdicts(true);
     for (cand, verdict) in r.candidates.iter().zip(verdicts) {
         let flagged = if cand.flagged_by.is_empty() {
             "(fit all)".to_string()
         } else {
-            let each = cand
-                .flagged_by
-                .iter()
-                .map(|name| format!("{name} {} → {}", abs_z(&reference_checks, name), abs_z(&cand.checks_after, name)));
-            each.collect::<Vec<_>>().join("; ")
+            flagged_check_moves(&cand.flagged_by, &reference_checks, &cand.checks_after)
         };
         let _ = writeln!(
             s,

@@ -650,14 +650,29 @@ pub fn improves_flagged_checks(
     extended: &[CheckResult],
     plausible_p: f64,
 ) -> bool {
-    let find = |results: &[CheckResult], name: &str| results.iter().position(|c| c.name == name);
-    flagged_by.iter().any(|name| match (find(reference, name), find(extended, name)) {
-        (Some(r), Some(e)) => {
-            let (r, e) = (&reference[r], &extended[e]);
-            e.z.abs() < r.z.abs() || carries_past_without_failing(r, e, plausible_p)
-        }
+    flagged_by.iter().any(|name| match (check_named(reference, name), check_named(extended, name)) {
+        (Some(r), Some(e)) => e.z.abs() < r.z.abs() || carries_past_without_failing(r, e, plausible_p),
         _ => false,
     })
+}
+
+/// How each check that flagged a candidate (`flagged_by`) moved from the
+/// reference to the extended model, as rule (d) judges it: `name z 1.27 → -1.46`
+/// per check (`-` where a model lacks it), `, failed` where the extended model
+/// fails it at the family-wise level; joined by `; `.
+pub fn flagged_check_moves(flagged_by: &[String], reference: &[CheckResult], extended: &[CheckResult]) -> String {
+    let each = flagged_by.iter().map(|name| {
+        let z = |c: Option<&CheckResult>| c.map_or("-".to_string(), |c| format_z(c.z, 2));
+        let after = check_named(extended, name);
+        let failed = if after.is_some_and(|c| c.significant) { ", failed" } else { "" };
+        format!("{name} z {} → {}{failed}", z(check_named(reference, name)), z(after))
+    });
+    each.collect::<Vec<_>>().join("; ")
+}
+
+/// The check called `name` among `results`.
+fn check_named<'a>(results: &'a [CheckResult], name: &str) -> Option<&'a CheckResult> {
+    results.iter().find(|c| c.name == name)
 }
 
 /// Rule (d)'s overshoot: the reference still flags the check (screen p below
@@ -850,9 +865,6 @@ impl Report {
     /// The numbers by which candidate `c` (its gain over the reseeded refit
     /// `over_reseeded`) fails `rule`.
     fn failure_numbers(&self, c: &CandidateReport, over_reseeded: Option<(f64, f64)>, rule: FailedRule) -> String {
-        let abs_z = |results: &[CheckResult], name: &str| {
-            results.iter().find(|r| r.name == name).map_or("-".to_string(), |r| format_z(r.z.abs(), 2))
-        };
         match rule {
             FailedRule::Level => format!("gain {:+.4}, p adj. {:.4}", c.gain, c.p_adjusted),
             FailedRule::LeastGain => format!("gain {:+.4} under {:.4}", c.gain, self.gain_bar()),
@@ -860,14 +872,7 @@ impl Report {
                 over_reseeded.map_or(String::new(), |(gain, p)| format!("over it {gain:+.4}, p adj. {p:.4}"))
             }
             FailedRule::NotMaterial => c.description.clone(),
-            FailedRule::Checks => {
-                let reference = self.reference_checks();
-                let each = c
-                    .flagged_by
-                    .iter()
-                    .map(|name| format!("{name} |z| {} → {}", abs_z(&reference, name), abs_z(&c.checks_after, name)));
-                each.collect::<Vec<_>>().join("; ")
-            }
+            FailedRule::Checks => flagged_check_moves(&c.flagged_by, &self.reference_checks(), &c.checks_after),
             FailedRule::Nested => c
                 .over_nested
                 .as_ref()
@@ -1697,6 +1702,10 @@ mod tests {
         let unflagged = [flagging(0.37, 0.36)];
         assert!(!improves(&far, &unflagged, &overshoot), "the reference no longer flagged it");
         assert!(!improves(&far, &[flagging(1.27, 0.10)], &[check_with_z("far_point_fraction", 0.0)][..0]), "missing");
+        // What a reader is shown: signed z, and whether the extended model fails the check.
+        assert_eq!(flagged_check_moves(&far, &reference, &overshoot), "far_point_fraction z 1.27 → -1.46");
+        assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
+        assert_eq!(flagged_check_moves(&far, &reference, &[]), "far_point_fraction z 1.27 → -");
     }
 
     /// Three disjoint, covering parts with the requested sizes.
