@@ -457,7 +457,8 @@ fn run_cell(
     }
     // Decided again under the current rules: cells diagnosed under an earlier
     // rule (d) count as the protocol would decide them now.
-    let (cause, chosen) = report.decided(true);
+    let decision = report.decided_for(e.expected);
+    let (cause, chosen) = (decision.cause, decision.chosen);
     let named = cause == e.expected;
     let relative_errors = true_magnitudes(&effect)
         .into_iter()
@@ -467,8 +468,8 @@ fn run_cell(
         })
         .collect();
     Ok(Some(Cell {
-        cause_without_check_rule: report.decided(false).0,
-        why_missed: report.why_not(e.expected),
+        cause_without_check_rule: decision.cause_without_check_rule,
+        why_missed: decision.why_missed,
         effect: e.id.clone(),
         strength,
         seed,
@@ -685,6 +686,11 @@ mod tests {
             after.z
         );
         assert_eq!(why("heavy_tailed_accel", "3"), expected);
+        // Without rule (d), from the same judging: what deciding again without it gives.
+        let decision = seed3.decided_for("heavy_tailed_accel");
+        assert_eq!(decision.cause_without_check_rule, "heavy_tailed_accel");
+        assert_eq!(decision.cause_without_check_rule, seed3.decided(false).0);
+        assert_eq!((decision.cause.as_str(), decision.why_missed.as_deref()), ("unexplained", Some(expected.as_str())));
         assert!(report(cells[1]).candidates.iter().all(|c| c.cause != "heavy_tailed_accel"));
         assert_eq!(why("heavy_tailed_accel", "2"), "`unexplained`: `heavy_tailed_accel` not fitted");
         let seed0 = report(cells[0]);

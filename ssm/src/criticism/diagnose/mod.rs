@@ -549,6 +549,19 @@ impl CandidateReport {
 /// ([`CandidateReport::over_reseeded`]).
 type OverReseeded = Option<(f64, f64)>;
 
+/// A report decided for a study that expected one outcome ([`Report::decided_for`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StudyDecision<'a> {
+    /// The outcome under the current rules ([`Report::decided`]).
+    pub cause: String,
+    /// The candidate named, if any.
+    pub chosen: Option<&'a CandidateReport>,
+    /// The outcome without rule (d).
+    pub cause_without_check_rule: String,
+    /// Why the outcome is not the expected one ([`Report::why_not`]); `None` when it is.
+    pub why_missed: Option<String>,
+}
+
 /// A rule of step 5 that a candidate fails: why it is not the cause.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FailedRule {
@@ -661,8 +674,8 @@ pub fn improves_flagged_checks(
 /// per check (`-` where a model lacks it), `, failed` where the extended model
 /// fails it at the family-wise level; joined by `; `.
 pub fn flagged_check_moves(flagged_by: &[String], reference: &[CheckResult], extended: &[CheckResult]) -> String {
+    let z = |c: Option<&CheckResult>| c.map_or("-".to_string(), |c| format_z(c.z, 2));
     let each = flagged_by.iter().map(|name| {
-        let z = |c: Option<&CheckResult>| c.map_or("-".to_string(), |c| format_z(c.z, 2));
         let after = check_named(extended, name);
         let failed = if after.is_some_and(|c| c.significant) { ", failed" } else { "" };
         format!("{name} z {} → {}{failed}", z(check_named(reference, name)), z(after))
@@ -834,32 +847,41 @@ impl Report {
     /// fitted, the rule it fails with the numbers that failed it, or the cause
     /// that gained more; else the cause named, or the failing checks.
     pub fn why_not(&self, expected: &str) -> Option<String> {
-        // Judged once: the comparisons with the reseeded refit of an earlier
-        // report are permutation tests.
+        self.decided_for(expected).why_missed
+    }
+
+    /// What a study that expected `expected` reads off this report, from one
+    /// judging of its candidates (on reports written before the paired rule
+    /// (b), the comparisons with the reseeded refit are permutation tests):
+    /// [`Report::decided`] with and without rule (d), and [`Report::why_not`].
+    pub fn decided_for(&self, expected: &str) -> StudyDecision<'_> {
         let (verdicts, over) = self.judged(true);
+        // Rule (d) is judged last, so leaving it out frees exactly the
+        // candidates it alone turned away.
+        let without_check_rule: Vec<_> = verdicts.iter().map(|v| v.filter(|r| *r != FailedRule::Checks)).collect();
         let (cause, chosen) = self.outcome(&verdicts);
-        if cause == expected {
-            return None;
-        }
-        let candidate = self.candidates.iter().position(|c| c.cause == expected);
-        let why = match (candidate, chosen) {
-            (Some(i), _) => {
-                let c = &self.candidates[i];
-                match verdicts[i] {
-                    Some(rule) => {
-                        format!("`{expected}` fails {rule}: {}", self.failure_numbers(c, over[i], rule))
-                    }
+        let why_missed = (cause != expected).then(|| {
+            let candidate = self.candidates.iter().position(|c| c.cause == expected);
+            let why = match (candidate, chosen) {
+                (Some(i), _) => match verdicts[i] {
+                    Some(rule) => format!(
+                        "`{expected}` fails {rule}: {}",
+                        self.failure_numbers(&self.candidates[i], over[i], rule)
+                    ),
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
-                }
-            }
-            (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => format!("`{expected}` not fitted"),
-            (None, Some(c)) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
-            (None, None) => match outcome_without_cause(&self.reference_checks()).1 {
-                failing if failing.is_empty() => "no check of the reference fails at the family-wise level".to_string(),
-                failing => failing,
-            },
-        };
-        Some(format!("`{cause}`: {why}"))
+                },
+                (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => format!("`{expected}` not fitted"),
+                (None, Some(c)) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
+                (None, None) => match outcome_without_cause(&self.reference_checks()).1 {
+                    failing if failing.is_empty() => {
+                        "no check of the reference fails at the family-wise level".to_string()
+                    }
+                    failing => failing,
+                },
+            };
+            format!("`{cause}`: {why}")
+        });
+        StudyDecision { cause_without_check_rule: self.outcome(&without_check_rule).0, cause, chosen, why_missed }
     }
 
     /// The numbers by which candidate `c` (its gain over the reseeded refit
@@ -1701,7 +1723,7 @@ mod tests {
         assert!(!improves(&far, &reference, &failing), "an overshoot the extended model fails");
         let unflagged = [flagging(0.37, 0.36)];
         assert!(!improves(&far, &unflagged, &overshoot), "the reference no longer flagged it");
-        assert!(!improves(&far, &[flagging(1.27, 0.10)], &[check_with_z("far_point_fraction", 0.0)][..0]), "missing");
+        assert!(!improves(&far, &[flagging(1.27, 0.10)], &[]), "missing on the extended model");
         // What a reader is shown: signed z, and whether the extended model fails the check.
         assert_eq!(flagged_check_moves(&far, &reference, &overshoot), "far_point_fraction z 1.27 → -1.46");
         assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
