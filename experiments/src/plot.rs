@@ -1,8 +1,13 @@
-//! SVG line plots of curves (training losses, metric curves) with plotters.
+//! SVG plots with plotters: line plots of curves (training losses, metric curves)
+//! and shares with their intervals against a log axis (a power study's curves).
 
+use std::fmt::Display;
 use std::path::Path;
 
+use plotters::coord::Shift;
 use plotters::prelude::*;
+
+use crate::output::write_atomic;
 
 /// A curve of `(x, y)` points, e.g. `(training step, value)`.
 pub type Curve = Vec<(f64, f64)>;
@@ -11,6 +16,42 @@ pub type Curve = Vec<(f64, f64)>;
 pub struct Series {
     pub name: String,
     pub points: Curve,
+}
+
+/// The size of every chart, in pixels.
+const CHART_SIZE: (u32, u32) = (800, 500);
+/// The width of a legend drawn beside its chart, in pixels.
+const LEGEND_WIDTH: u32 = 230;
+
+/// A chart's drawing area, in memory.
+type Canvas<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+
+/// Renders a chart in memory — `draw` is given the white canvas below the
+/// caption `title` and an error formatter naming `path` — and writes it to
+/// `path` through a temporary file, so an existing chart is replaced whole or
+/// not at all.
+fn write_svg(
+    path: &Path,
+    title: &str,
+    draw: impl FnOnce(&Canvas, &dyn Fn(&dyn Display) -> String) -> Result<(), String>,
+) -> Result<(), String> {
+    let err = |e: &dyn Display| format!("{}: {e}", path.display());
+    let mut svg = String::new();
+    {
+        let root: Canvas = SVGBackend::with_string(&mut svg, CHART_SIZE).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| err(&e))?;
+        let below = root.titled(title, ("sans-serif", 22)).map_err(|e| err(&e))?;
+        draw(&below, &err)?;
+        root.present().map_err(|e| err(&e))?;
+    }
+    write_atomic(path, svg.as_bytes())
+}
+
+/// A chart's frame on `area`: its margin and label areas.
+fn frame<'a, 'b>(area: &'a Canvas<'b>) -> ChartBuilder<'a, 'b, SVGBackend<'b>> {
+    let mut builder = ChartBuilder::on(area);
+    builder.margin(12).x_label_area_size(40).y_label_area_size(60);
+    builder
 }
 
 /// Draws `series` as lines on one chart and writes it to `path` as SVG.
@@ -30,25 +71,129 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
     let pad = ((y1 - y0) * 0.05).max(1e-9);
     let (y0, y1) = (y0 - pad, y1 + pad);
     let x1 = if x1 > x0 { x1 } else { x0 + 1.0 };
-    let root = SVGBackend::new(path, (800, 500)).into_drawing_area();
-    let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 22))
-        .margin(12)
-        .x_label_area_size(40)
-        .y_label_area_size(60)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(|e| err(&e))?;
-    chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(|e| err(&e))?;
-    for (i, s) in series.iter().enumerate() {
-        let color = Palette99::pick(i).to_rgba();
-        chart
-            .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
-            .map_err(|e| err(&e))?
-            .label(s.name.clone())
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+    write_svg(path, title, |area, err| {
+        let mut chart = frame(area).build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(&e))?;
+        chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(|e| err(&e))?;
+        for (i, s) in series.iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            chart
+                .draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(2)))
+                .map_err(|e| err(&e))?
+                .label(s.name.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], color.stroke_width(2)));
+        }
+        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(&e))
+    })
+}
+
+/// A share between 0 and 1 at one `x`, with its interval (`low..=high`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Share {
+    pub x: f64,
+    pub share: f64,
+    pub low: f64,
+    pub high: f64,
+}
+
+/// One named series of shares, e.g. an effect's share of seeds named at each strength.
+pub struct ShareSeries {
+    pub name: String,
+    pub shares: Vec<Share>,
+}
+
+/// Draws each series' shares against `x` on a log axis — a line through the
+/// points and each interval as a vertical bar, the series set a little apart
+/// along `x` so that equal shares stay visible — with `goal`, if any, as a
+/// dashed line and the legend beside the chart, and writes the chart to `path`
+/// as SVG. `x` must be positive; the axis is labelled at its powers of 2.
+pub fn share_chart(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[ShareSeries],
+    goal: Option<f64>,
+) -> Result<(), String> {
+    let xs = series.iter().flat_map(|s| s.shares.iter().map(|p| p.x));
+    let (x0, x1) = xs.fold((f64::MAX, f64::MIN), |(lo, hi), x| (lo.min(x), hi.max(x)));
+    if !(x0 > 0.0 && x1.is_finite()) {
+        return Err(format!("{}: a share chart needs positive, finite x", path.display()));
     }
-    chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| err(&e))?;
-    root.present().map_err(|e| err(&e))
+    // Drawn in octaves (log2 x). The series sit side by side within 0.3 of an
+    // octave of each point; the axis reaches half an octave past the outer points.
+    let octave = |p: &Share, i: usize| p.x.log2() + 0.3 * ((i as f64 + 0.5) / series.len() as f64 - 0.5);
+    let (lo, hi) = (x0.log2().floor() - 0.5, x1.log2().ceil() + 0.5);
+    let black = BLACK.stroke_width(1);
+    write_svg(path, title, |area, err| {
+        // (name, style, dashed) of each entry, drawn beside the chart.
+        let mut legend: Vec<(String, ShapeStyle, bool)> = Vec::new();
+        let (plot, side) = area.split_horizontally(CHART_SIZE.0 - LEGEND_WIDTH);
+        let mut chart = frame(&plot).build_cartesian_2d(lo..hi, -0.02..1.02).map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .light_line_style(WHITE)
+            .x_labels(2 * (hi - lo) as usize + 1)
+            .x_label_formatter(&|x| if x.fract() == 0.0 { format!("{}", x.exp2()) } else { String::new() })
+            .y_label_formatter(&|y| format!("{:.0}%", 100.0 * y))
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .draw()
+            .map_err(|e| err(&e))?;
+        if let Some(goal) = goal {
+            chart.draw_series(DashedLineSeries::new(vec![(lo, goal), (hi, goal)], 6, 4, black)).map_err(|e| err(&e))?;
+            legend.push((format!("goal ({:.0}%)", 100.0 * goal), black, true));
+        }
+        for (i, s) in series.iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            let at = |p: &Share| (octave(p, i), p.share);
+            chart.draw_series(LineSeries::new(s.shares.iter().map(at), color.stroke_width(2))).map_err(|e| err(&e))?;
+            chart.draw_series(s.shares.iter().map(|p| Circle::new(at(p), 4, color.filled()))).map_err(|e| err(&e))?;
+            let bars =
+                s.shares.iter().map(|p| PathElement::new(vec![(octave(p, i), p.low), (octave(p, i), p.high)], color));
+            chart.draw_series(bars).map_err(|e| err(&e))?;
+            legend.push((s.name.clone(), color.stroke_width(2), false));
+        }
+        for (k, (name, style, dashed)) in legend.iter().enumerate() {
+            let y = 30 + 22 * k as i32;
+            let sample = if *dashed { vec![(4, y), (10, y), (16, y), (22, y)] } else { vec![(4, y), (22, y)] };
+            let segments: Vec<PathElement<(i32, i32)>> = if *dashed {
+                sample.chunks(2).map(|c| PathElement::new(c.to_vec(), *style)).collect()
+            } else {
+                vec![PathElement::new(sample, *style)]
+            };
+            for segment in segments {
+                side.draw(&segment).map_err(|e| err(&e))?;
+            }
+            side.draw(&Text::new(name.clone(), (28, y - 7), ("sans-serif", 13))).map_err(|e| err(&e))?;
+        }
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A share chart holds every series and the goal in its legend, and
+    /// refuses an x it cannot draw on a log axis, leaving no file behind.
+    #[test]
+    fn a_share_chart_draws_every_series_and_refuses_a_nonpositive_x() {
+        let dir = std::env::temp_dir().join(format!("sefi-share-chart-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let share = |x: f64, share: f64| Share { x, share, low: share * 0.5, high: 1.0 };
+        let series = [
+            ShareSeries { name: "weak".into(), shares: vec![share(0.5, 0.2), share(1.0, 0.6), share(2.0, 1.0)] },
+            ShareSeries { name: "strong".into(), shares: vec![share(1.0, 1.0)] },
+        ];
+        let path = dir.join("shares.svg");
+        share_chart(&path, "shares", "x", "share", &series, Some(0.9)).unwrap();
+        let svg = std::fs::read_to_string(&path).unwrap();
+        assert!(["weak", "strong", "goal (90%)", "0.5", "100%"].iter().all(|t| svg.contains(t)), "{svg}");
+        let bad = [ShareSeries { name: "zero".into(), shares: vec![share(0.0, 0.5)] }];
+        let err = share_chart(&dir.join("bad.svg"), "bad", "x", "share", &bad, None).unwrap_err();
+        assert!(err.contains("bad.svg") && err.contains("positive"), "{err}");
+        assert!(!dir.join("bad.svg").exists());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

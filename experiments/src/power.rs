@@ -17,9 +17,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
+use ssm::stats::wilson_interval;
 
 use crate::cluster::Cluster;
 use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
+use crate::plot::{share_chart, Share, ShareSeries};
 
 /// Arguments of `sefi power-study`.
 #[derive(Args, Debug)]
@@ -376,7 +378,8 @@ fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &
     }
     let csv = csv.into_inner().map_err(|e| format!("power.csv: {e}"))?;
     write_atomic(&out.join("power.csv"), &csv)?;
-    write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())
+    write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())?;
+    write_power_chart(out, effects, strengths, cells)
 }
 
 /// The directory of one cell of the study under `out`.
@@ -507,22 +510,67 @@ fn median_errors(group: &[&Cell]) -> String {
     }
 }
 
+/// The cells of effect `e` at each strength of `strengths` (a control's at 1
+/// only), weakest first, leaving out strengths without a finished cell.
+fn strength_groups<'a>(e: &StudyEffect, strengths: &[f64], cells: &'a [Cell]) -> Vec<(f64, Vec<&'a Cell>)> {
+    let mut list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
+    list.sort_by(f64::total_cmp);
+    list.into_iter()
+        .map(|st| (st, cells.iter().filter(|c| c.effect == e.id && c.strength == st).collect::<Vec<_>>()))
+        .filter(|(_, group)| !group.is_empty())
+        .collect()
+}
+
+/// The 95% Wilson interval of the share of `group`'s seeds that reached the
+/// expected outcome.
+fn named_interval(group: &[&Cell]) -> (f64, f64) {
+    wilson_interval(group.iter().filter(|c| c.named).count(), group.len(), 0.95)
+}
+
+/// Draws `power.svg` into `out`: for every hidden effect (not the controls),
+/// the share of seeds named at each strength with its 95% interval, against
+/// the goal of 90%. Nothing is drawn before a cell of an effect has finished.
+fn write_power_chart(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
+    let series: Vec<ShareSeries> = effects
+        .iter()
+        .filter(|e| !e.is_control())
+        .map(|e| {
+            let shares = strength_groups(e, strengths, cells)
+                .into_iter()
+                .map(|(x, group)| {
+                    let (low, high) = named_interval(&group);
+                    let share = group.iter().filter(|c| c.named).count() as f64 / group.len() as f64;
+                    Share { x, share, low, high }
+                })
+                .collect();
+            ShareSeries { name: format!("{} ({} scenes)", e.id, e.scenes), shares }
+        })
+        .filter(|s| !s.shares.is_empty())
+        .collect();
+    if series.is_empty() {
+        return Ok(());
+    }
+    share_chart(
+        &out.join("power.svg"),
+        "Share of seeds on which the diagnosis names the hidden effect",
+        "strength (x the generator's default)",
+        "named (95% interval)",
+        &series,
+        Some(0.9),
+    )
+}
+
 /// The study's table: per effect and strength, the share named, false causes,
 /// `unexplained`, and the median |relative error| of the learned magnitude.
 fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> String {
     let mut s = String::from(
-        "| effect | scenes | strength | seeds | named | false cause | unexplained | median abs. error of the magnitude | mean time (s) | without rule (d): named | without rule (d): false cause |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| effect | scenes | strength | seeds | named | named: 95% interval | false cause | unexplained | median abs. error of the magnitude | mean time (s) | without rule (d): named | without rule (d): false cause |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for e in effects {
-        let mut list = if e.is_control() { vec![1.0] } else { strengths.to_vec() };
-        list.sort_by(f64::total_cmp);
-        for st in list {
-            let group: Vec<&Cell> = cells.iter().filter(|c| c.effect == e.id && c.strength == st).collect();
-            if group.is_empty() {
-                continue;
-            }
+        for (st, group) in strength_groups(e, strengths, cells) {
             let n = group.len() as f64;
+            let (low, high) = named_interval(&group);
             let named = group.iter().filter(|c| c.named).count() as f64 / n;
             let catalogue = |c: &&Cell| c.cause != NO_CAUSE && c.cause != UNEXPLAINED;
             let false_cause = group.iter().filter(|c| catalogue(c) && !c.named).count() as f64 / n;
@@ -541,12 +589,14 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
                 / n;
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {} | {:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} | {:.0}% | {:.0}% |",
+                "| {} | {} | {} | {} | {:.0}% | {:.0}–{:.0}% | {:.0}% | {:.0}% | {error} | {time:.0} | {:.0}% | {:.0}% |",
                 e.id,
                 e.scenes,
                 if e.is_control() { "-".to_string() } else { format!("{st}") },
                 group.len(),
                 100.0 * named,
+                100.0 * low,
+                100.0 * high,
                 100.0 * false_cause,
                 100.0 * unexplained,
                 100.0 * named_loose,
@@ -556,8 +606,9 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
     }
     s.push_str(
         "\n`named`: the expected outcome — the hidden effect's catalogue cause (`heavy_tailed_accel` for Student-t \
-         tails), `unexplained` for `ego_pose_noise` (outside the catalogue), `none` for the controls. `false cause`: \
-         a catalogue cause other than the expected one.\n",
+         tails), `unexplained` for `ego_pose_noise` (outside the catalogue), `none` for the controls; its 95% \
+         interval is Wilson's over the seeds (5 of 5 is 57–100%). `false cause`: a catalogue cause other than the \
+         expected one. `power.svg` draws the share named against the strength.\n",
     );
     let missed: Vec<(&Cell, &str)> = cells.iter().filter_map(|c| Some((c, c.why_missed.as_deref()?))).collect();
     if !missed.is_empty() {
@@ -638,6 +689,13 @@ mod tests {
         assert_eq!(csv.lines().count(), 5, "{csv}");
         assert_eq!(cells, ["0", "0", "0", "1"], "the middle strength and the controls first, then x2");
         assert_eq!(std::fs::read_to_string(out.join("power.md")).unwrap(), table);
+        // Each row's 95% interval of the share named: latency x1 seed 0 named
+        // (1 of 1: 21–100%).
+        assert!(table.contains("| latency | 8 | 1 | 1 | 100% | 21–100% |"), "{table}");
+        // The chart draws the hidden effects, not the controls.
+        let svg = std::fs::read_to_string(out.join("power.svg")).unwrap();
+        assert!(svg.contains("latency (8 scenes)") && svg.contains("heavy_tailed_accel (16 scenes)"));
+        assert!(!svg.contains("none-points") && svg.contains("goal (90%)"));
         std::fs::remove_dir_all(&out).unwrap();
     }
 

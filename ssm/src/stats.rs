@@ -1,6 +1,7 @@
 //! Small statistical helpers shared by the filter, tests and diagnostics: the
 //! sample mean and sd, a stable log-sum-exp, the standard normal CDF and the
-//! Kolmogorov–Smirnov distance of a sample from N(0, 1).
+//! Kolmogorov–Smirnov distance of a sample from N(0, 1), and the Wilson interval
+//! of a binomial share.
 
 /// Mean; NaN when empty.
 pub fn mean(xs: impl IntoIterator<Item = f64>) -> f64 {
@@ -76,6 +77,32 @@ pub fn bisect_increasing(f: impl Fn(f64) -> f64, target: f64, (mut lo, mut hi): 
         }
     }
     0.5 * (lo + hi)
+}
+
+/// The Wilson score interval of a binomial share: `successes` of `trials` at the
+/// two-sided `level` (0.95 for 95%). Unlike the normal approximation it stays in
+/// [0, 1] and is not empty at 0 or `trials` successes, which is where a study of
+/// five seeds lives: 5 of 5 has a 95% lower bound of 0.57. `(NaN, NaN)` for no
+/// trials.
+///
+/// ```
+/// let (low, high) = ssm::stats::wilson_interval(5, 5, 0.95);
+/// assert!((low - 0.5655).abs() < 1e-3 && (high - 1.0).abs() < 1e-12);
+/// let (low, high) = ssm::stats::wilson_interval(4, 5, 0.95);
+/// assert!((low - 0.3755).abs() < 1e-3 && (high - 0.9638).abs() < 1e-3);
+/// assert_eq!(ssm::stats::wilson_interval(0, 5, 0.95).0, 0.0);
+/// ```
+pub fn wilson_interval(successes: usize, trials: usize, level: f64) -> (f64, f64) {
+    if trials == 0 {
+        return (f64::NAN, f64::NAN);
+    }
+    let n = trials as f64;
+    let share = successes.min(trials) as f64 / n;
+    let z2 = normal_quantile(0.5 + 0.5 * level).powi(2);
+    let scale = 1.0 + z2 / n;
+    let centre = (share + z2 / (2.0 * n)) / scale;
+    let half = (z2 * (share * (1.0 - share) / n + z2 / (4.0 * n * n))).sqrt() / scale;
+    ((centre - half).max(0.0), (centre + half).min(1.0))
 }
 
 /// The Kolmogorov–Smirnov distance `sup |F_n - Phi|` of a sample from N(0, 1).
