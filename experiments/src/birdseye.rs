@@ -10,7 +10,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use ssm::data::{BoxDetection, Dataset, State};
 use ssm::metrics::Tracks;
 
-use crate::output::write_with;
+use crate::plot::write_svg;
 
 /// Assumed AV footprint (m): the dataset gives its pose only.
 const AV_LENGTH: f64 = 4.5;
@@ -54,11 +54,7 @@ fn rectangle(x: f64, y: f64, yaw: f64, length: f64, width: f64) -> Vec<(f64, f64
 
 /// Draws scene `scene` (an index into `data.scenes()`) with the estimates of
 /// `tracks` into an SVG at `path`.
-pub fn draw(path: &Path, data: &Dataset, scene: usize, tracks: &Tracks, lag: usize) -> Result<(), String> {
-    write_with(path, |tmp| draw_to(tmp, data, scene, tracks, lag))
-}
-
-fn draw_to(path: &Path, data: &Dataset, scene_index: usize, tracks: &Tracks, lag: usize) -> Result<(), String> {
+pub fn draw(path: &Path, data: &Dataset, scene_index: usize, tracks: &Tracks, lag: usize) -> Result<(), String> {
     let scene = &data.scenes()[scene_index];
     let objects: Vec<usize> = scene.objects.clone().collect();
     let steps = data.steps();
@@ -108,161 +104,160 @@ fn draw_to(path: &Path, data: &Dataset, scene_index: usize, tracks: &Tracks, lag
     (y0, y1) = (cy - scale * plot_h / 2.0, cy + scale * plot_h / 2.0);
     let height = plot_h as u32 + FRAME_PX.1;
 
-    let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
-    let root = SVGBackend::new(path, (WIDTH_PX, height)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(&e))?;
-    let kind = if data.points().is_some() { "points" } else { "box detections" };
-    let title =
-        format!("Scene {}: {} objects, {} steps, {kind} — smoothed with lag {lag}", scene.id, objects.len(), steps);
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(12)
-        .x_label_area_size(36)
-        .y_label_area_size(48)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(|e| err(&e))?;
-    chart
-        .configure_mesh()
-        .x_desc("x (m)")
-        .y_desc("y (m)")
-        .light_line_style(TRANSPARENT)
-        .bold_line_style(RGBColor(225, 225, 225))
-        .x_label_formatter(&|v| format!("{v:.0}"))
-        .y_label_formatter(&|v| format!("{v:.0}"))
-        .draw()
-        .map_err(|e| err(&e))?;
+    write_svg(path, (WIDTH_PX, height), |root, err| {
+        let kind = if data.points().is_some() { "points" } else { "box detections" };
+        let title =
+            format!("Scene {}: {} objects, {} steps, {kind} — smoothed with lag {lag}", scene.id, objects.len(), steps);
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(48)
+            .build_cartesian_2d(x0..x1, y0..y1)
+            .map_err(|e| err(&e))?;
+        chart
+            .configure_mesh()
+            .x_desc("x (m)")
+            .y_desc("y (m)")
+            .light_line_style(TRANSPARENT)
+            .bold_line_style(RGBColor(225, 225, 225))
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| format!("{v:.0}"))
+            .draw()
+            .map_err(|e| err(&e))?;
 
-    // 1. True boxes (faint, every few steps; the last one stronger) and true paths.
-    if truth.is_some() {
-        let faint = TRUE_COLOUR.mix(0.35).stroke_width(1);
-        let boxes = objects.iter().flat_map(|&o| {
-            let obj = data.objects()[o];
-            (0..steps)
-                .filter(move |t| t % BOX_EVERY == 0 || t + 1 == steps)
-                .filter_map(move |t| true_state(o, t).map(|s| (s, obj, t)))
-                .map(move |(s, obj, t)| {
-                    let style = if t + 1 == steps { TRUE_COLOUR.stroke_width(2) } else { faint };
-                    PathElement::new(rectangle(s.x, s.y, s.yaw, obj.length, obj.width), style)
+        // 1. True boxes (faint, every few steps; the last one stronger) and true paths.
+        if truth.is_some() {
+            let faint = TRUE_COLOUR.mix(0.35).stroke_width(1);
+            let boxes = objects.iter().flat_map(|&o| {
+                let obj = data.objects()[o];
+                (0..steps)
+                    .filter(move |t| t % BOX_EVERY == 0 || t + 1 == steps)
+                    .filter_map(move |t| true_state(o, t).map(|s| (s, obj, t)))
+                    .map(move |(s, obj, t)| {
+                        let style = if t + 1 == steps { TRUE_COLOUR.stroke_width(2) } else { faint };
+                        PathElement::new(rectangle(s.x, s.y, s.yaw, obj.length, obj.width), style)
+                    })
+            });
+            chart
+                .draw_series(boxes)
+                .map_err(|e| err(&e))?
+                .label("true box (every 3rd step; last step bold)")
+                .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], TRUE_COLOUR.stroke_width(2)));
+            let paths = objects.iter().map(|&o| {
+                let pts: Vec<(f64, f64)> = (0..steps).filter_map(|t| true_state(o, t)).map(|s| (s.x, s.y)).collect();
+                PathElement::new(pts, TRUE_COLOUR.mix(0.8).stroke_width(1))
+            });
+            chart
+                .draw_series(paths)
+                .map_err(|e| err(&e))?
+                .label("true path")
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], TRUE_COLOUR.stroke_width(1)));
+        }
+
+        // 2. Observations.
+        if data.points().is_some() {
+            let dots = objects.iter().flat_map(|&o| {
+                (0..steps).flat_map(move |t| {
+                    points(o, t).iter().map(|p| Circle::new((p[0], p[1]), 2, OBS_COLOUR.mix(0.55).filled()))
                 })
+            });
+            chart
+                .draw_series(dots)
+                .map_err(|e| err(&e))?
+                .label("observed points")
+                .legend(|(x, y)| Circle::new((x + 9, y), 3, OBS_COLOUR.filled()));
+        } else {
+            let dets = objects.iter().flat_map(|&o| {
+                (0..steps).filter_map(move |t| detection(o, t)).map(|d| {
+                    PathElement::new(outline(d.x, d.y, d.yaw, d.length, d.width), OBS_COLOUR.mix(0.7).stroke_width(1))
+                })
+            });
+            chart
+                .draw_series(dets)
+                .map_err(|e| err(&e))?
+                .label("detected box (tick: heading)")
+                .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], OBS_COLOUR.stroke_width(1)));
+        }
+
+        // 3. Estimates: filtering means (light), smoothed means (bold) with the last box.
+        let path_of = |rows: Option<&Vec<State>>| -> Vec<(f64, f64)> {
+            rows.map(|r| r.iter().map(|s| (s.x, s.y)).collect()).unwrap_or_default()
+        };
+        let filtered =
+            objects.iter().map(|&o| PathElement::new(path_of(tracks.filtered.get(o)), FILTER_COLOUR.stroke_width(2)));
+        chart
+            .draw_series(filtered)
+            .map_err(|e| err(&e))?
+            .label("filtering mean")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], FILTER_COLOUR.stroke_width(2)));
+        let smoothed =
+            objects.iter().map(|&o| PathElement::new(path_of(tracks.smoothed.get(o)), SMOOTH_COLOUR.stroke_width(2)));
+        chart
+            .draw_series(smoothed)
+            .map_err(|e| err(&e))?
+            .label(format!("smoothed mean (lag {lag})"))
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], SMOOTH_COLOUR.stroke_width(2)));
+        let last_boxes = objects.iter().filter_map(|&o| {
+            let s = tracks.smoothed.get(o)?.last()?;
+            let obj = data.objects()[o];
+            Some(PathElement::new(outline(s.x, s.y, s.yaw, obj.length, obj.width), SMOOTH_COLOUR.stroke_width(2)))
         });
         chart
-            .draw_series(boxes)
+            .draw_series(last_boxes)
             .map_err(|e| err(&e))?
-            .label("true box (every 3rd step; last step bold)")
-            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], TRUE_COLOUR.stroke_width(2)));
-        let paths = objects.iter().map(|&o| {
-            let pts: Vec<(f64, f64)> = (0..steps).filter_map(|t| true_state(o, t)).map(|s| (s.x, s.y)).collect();
-            PathElement::new(pts, TRUE_COLOUR.mix(0.8).stroke_width(1))
+            .label("estimated box, last step (tick: heading)")
+            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], SMOOTH_COLOUR.stroke_width(2)));
+
+        // Object ids next to their last estimated position.
+        let label_style = TextStyle::from(("sans-serif", 11).into_font())
+            .color(&RGBColor(90, 90, 90))
+            .pos(Pos::new(HPos::Left, VPos::Bottom));
+        let labels = objects.iter().filter_map(|&o| {
+            let s = tracks.smoothed.get(o)?.last()?;
+            let obj = data.objects()[o];
+            let off = 0.5 * obj.length.max(obj.width);
+            Some(Text::new(format!("{}", obj.id), (s.x + off, s.y + off), label_style.clone()))
         });
+        chart.draw_series(labels).map_err(|e| err(&e))?;
+
+        // 4. The AV: its track, its pose at every step (faint) and at the last step.
+        let av_path: Vec<(f64, f64)> = scene.av.iter().map(|p| (p.x, p.y)).collect();
         chart
-            .draw_series(paths)
+            .draw_series(std::iter::once(PathElement::new(av_path, AV_COLOUR.stroke_width(2))))
             .map_err(|e| err(&e))?
-            .label("true path")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], TRUE_COLOUR.stroke_width(1)));
-    }
+            .label("AV track; AV at the last step")
+            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], AV_COLOUR.filled()));
+        let av_steps = scene
+            .av
+            .iter()
+            .enumerate()
+            .filter(|(t, _)| t % BOX_EVERY == 0)
+            .map(|(_, p)| PathElement::new(rectangle(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH), AV_COLOUR.mix(0.3)));
+        chart.draw_series(av_steps).map_err(|e| err(&e))?;
+        if let Some(p) = scene.av.last() {
+            chart
+                .draw_series(std::iter::once(Polygon::new(
+                    corners(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH),
+                    AV_COLOUR.filled(),
+                )))
+                .map_err(|e| err(&e))?;
+            chart
+                .draw_series(std::iter::once(PathElement::new(
+                    outline(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH)[..2].to_vec(),
+                    WHITE.stroke_width(2),
+                )))
+                .map_err(|e| err(&e))?;
+        }
 
-    // 2. Observations.
-    if data.points().is_some() {
-        let dots = objects.iter().flat_map(|&o| {
-            (0..steps).flat_map(move |t| {
-                points(o, t).iter().map(|p| Circle::new((p[0], p[1]), 2, OBS_COLOUR.mix(0.55).filled()))
-            })
-        });
         chart
-            .draw_series(dots)
-            .map_err(|e| err(&e))?
-            .label("observed points")
-            .legend(|(x, y)| Circle::new((x + 9, y), 3, OBS_COLOUR.filled()));
-    } else {
-        let dets = objects.iter().flat_map(|&o| {
-            (0..steps).filter_map(move |t| detection(o, t)).map(|d| {
-                PathElement::new(outline(d.x, d.y, d.yaw, d.length, d.width), OBS_COLOUR.mix(0.7).stroke_width(1))
-            })
-        });
-        chart
-            .draw_series(dets)
-            .map_err(|e| err(&e))?
-            .label("detected box (tick: heading)")
-            .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], OBS_COLOUR.stroke_width(1)));
-    }
-
-    // 3. Estimates: filtering means (light), smoothed means (bold) with the last box.
-    let path_of = |rows: Option<&Vec<State>>| -> Vec<(f64, f64)> {
-        rows.map(|r| r.iter().map(|s| (s.x, s.y)).collect()).unwrap_or_default()
-    };
-    let filtered =
-        objects.iter().map(|&o| PathElement::new(path_of(tracks.filtered.get(o)), FILTER_COLOUR.stroke_width(2)));
-    chart
-        .draw_series(filtered)
-        .map_err(|e| err(&e))?
-        .label("filtering mean")
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], FILTER_COLOUR.stroke_width(2)));
-    let smoothed =
-        objects.iter().map(|&o| PathElement::new(path_of(tracks.smoothed.get(o)), SMOOTH_COLOUR.stroke_width(2)));
-    chart
-        .draw_series(smoothed)
-        .map_err(|e| err(&e))?
-        .label(format!("smoothed mean (lag {lag})"))
-        .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], SMOOTH_COLOUR.stroke_width(2)));
-    let last_boxes = objects.iter().filter_map(|&o| {
-        let s = tracks.smoothed.get(o)?.last()?;
-        let obj = data.objects()[o];
-        Some(PathElement::new(outline(s.x, s.y, s.yaw, obj.length, obj.width), SMOOTH_COLOUR.stroke_width(2)))
-    });
-    chart
-        .draw_series(last_boxes)
-        .map_err(|e| err(&e))?
-        .label("estimated box, last step (tick: heading)")
-        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], SMOOTH_COLOUR.stroke_width(2)));
-
-    // Object ids next to their last estimated position.
-    let label_style = TextStyle::from(("sans-serif", 11).into_font())
-        .color(&RGBColor(90, 90, 90))
-        .pos(Pos::new(HPos::Left, VPos::Bottom));
-    let labels = objects.iter().filter_map(|&o| {
-        let s = tracks.smoothed.get(o)?.last()?;
-        let obj = data.objects()[o];
-        let off = 0.5 * obj.length.max(obj.width);
-        Some(Text::new(format!("{}", obj.id), (s.x + off, s.y + off), label_style.clone()))
-    });
-    chart.draw_series(labels).map_err(|e| err(&e))?;
-
-    // 4. The AV: its track, its pose at every step (faint) and at the last step.
-    let av_path: Vec<(f64, f64)> = scene.av.iter().map(|p| (p.x, p.y)).collect();
-    chart
-        .draw_series(std::iter::once(PathElement::new(av_path, AV_COLOUR.stroke_width(2))))
-        .map_err(|e| err(&e))?
-        .label("AV track; AV at the last step")
-        .legend(|(x, y)| Rectangle::new([(x, y - 5), (x + 18, y + 5)], AV_COLOUR.filled()));
-    let av_steps = scene
-        .av
-        .iter()
-        .enumerate()
-        .filter(|(t, _)| t % BOX_EVERY == 0)
-        .map(|(_, p)| PathElement::new(rectangle(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH), AV_COLOUR.mix(0.3)));
-    chart.draw_series(av_steps).map_err(|e| err(&e))?;
-    if let Some(p) = scene.av.last() {
-        chart
-            .draw_series(std::iter::once(Polygon::new(
-                corners(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH),
-                AV_COLOUR.filled(),
-            )))
+            .configure_series_labels()
+            .position(SeriesLabelPosition::UpperRight)
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(160, 160, 160))
+            .label_font(("sans-serif", 13))
+            .draw()
             .map_err(|e| err(&e))?;
-        chart
-            .draw_series(std::iter::once(PathElement::new(
-                outline(p.x, p.y, p.yaw, AV_LENGTH, AV_WIDTH)[..2].to_vec(),
-                WHITE.stroke_width(2),
-            )))
-            .map_err(|e| err(&e))?;
-    }
-
-    chart
-        .configure_series_labels()
-        .position(SeriesLabelPosition::UpperRight)
-        .background_style(WHITE.mix(0.85))
-        .border_style(RGBColor(160, 160, 160))
-        .label_font(("sans-serif", 13))
-        .draw()
-        .map_err(|e| err(&e))?;
-    root.present().map_err(|e| err(&e))
+        Ok(())
+    })
 }

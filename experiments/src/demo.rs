@@ -40,7 +40,7 @@ use crate::birdseye;
 use crate::calibrate::{FilterArgs, FilterKind};
 use crate::cluster::Cluster;
 use crate::evaluate::metric_runs;
-use crate::output::{ensure_dir, write_csv, write_json, write_with};
+use crate::output::{ensure_dir, write_csv, write_json};
 use crate::plot::{line_chart, Series};
 use crate::train::{read_eval_curve, train_run, TrainArgs};
 
@@ -127,9 +127,7 @@ pub fn run(out: &Path, seed: u64, quick: bool) -> Result<(), String> {
 
     write_csv(&out.join("demo_loss.csv"), &["step", "nll"], &curve)?;
     let series = [Series { name: "training NLL".into(), points: curve.iter().map(|r| (r[0], r[1])).collect() }];
-    write_with(&out.join("demo_loss.svg"), |p| {
-        line_chart(p, "Mixture density network fit", "step", "NLL (nats/point)", &series)
-    })?;
+    line_chart(&out.join("demo_loss.svg"), "Mixture density network fit", "step", "NLL (nats/point)", &series)?;
     let (model, experiment) = model_stage(out, seed, quick)?;
     let learning = learning_stage(out, &experiment, seed, quick)?;
     let criticism = criticism_stage(out, seed, quick)?;
@@ -225,7 +223,7 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
     write_csv(&out.join("demo_metrics.csv"), &header, &rows)?;
     let (tracks, metrics, lag) = last.expect("at least one particle count");
     let plot = out.join("demo_birdseye.svg");
-    write_with(&plot, |p| birdseye::draw(p, data, 0, &tracks, lag))?;
+    birdseye::draw(&plot, data, 0, &tracks, lag)?;
     println!(
         "at the true parameters: AOTLL {:.3} nats/point, APTLL {:.3} nats/step; bird's-eye view in {}",
         metrics.aotll.mean.unwrap_or(f64::NAN),

@@ -16,7 +16,8 @@ use ssm::criticism::diagnose::{
 use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
 
 use crate::cluster::Cluster;
-use crate::output::{claim_or_refuse, write_atomic, write_json, write_with};
+use crate::output::{claim_or_refuse, write_atomic, write_json};
+use crate::plot::write_svg;
 use crate::train::bar;
 
 /// Checks plotted in the report (the largest |z| first).
@@ -227,7 +228,7 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
     let mut plots = Vec::new();
     for c in &worst {
         let name = format!("check_{}.svg", c.name);
-        write_with(&out.join(&name), |p| check_plot(p, c))?;
+        check_plot(&out.join(&name), c)?;
         plots.push((c.name.clone(), name));
     }
     write_atomic(&out.join("report.md"), markdown(report, data, &plots).as_bytes())
@@ -533,48 +534,47 @@ fn check_plot(path: &Path, c: &CheckReport) -> Result<(), String> {
         return Err(format!("{}: nothing finite to plot", path.display()));
     }
     let pad = ((hi - lo) * 0.08).max(1e-6);
-    let err = |e: &dyn std::fmt::Display| format!("{}: {e}", path.display());
-    let root = SVGBackend::new(path, (820, 130 + 60 * rows.len() as u32)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| err(&e))?;
     let title = format!(
         "{} (z = {} before{})",
         c.name,
         format_z(c.before.z, 2),
         c.after.as_ref().map_or(String::new(), |a| format!(", {} after", format_z(a.z, 2)))
     );
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 20))
-        .margin(12)
-        .x_label_area_size(36)
-        .y_label_area_size(170)
-        .build_cartesian_2d((lo - pad)..(hi + pad), -0.5..(rows.len() as f64 - 0.5))
-        .map_err(|e| err(&e))?;
-    let labels: Vec<String> = rows.iter().map(|r| r.0.to_string()).collect();
-    chart
-        .configure_mesh()
-        .y_labels(rows.len())
-        .y_label_formatter(&|y| {
-            let i = y.round();
-            if (y - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < labels.len() {
-                labels[i as usize].clone()
-            } else {
-                String::new()
-            }
-        })
-        .x_desc(c.description.as_str())
-        .disable_y_mesh()
-        .draw()
-        .map_err(|e| err(&e))?;
-    for (row, (_, values, color)) in rows.iter().enumerate() {
-        let n = values.len().max(1) as f64;
-        let dots = values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(|(k, &v)| {
-            // Spread the draws vertically within their row so they do not hide each other.
-            let y = row as f64 + 0.6 * (k as f64 / n - 0.5);
-            Circle::new((v, y), 3, color.mix(0.7).filled())
-        });
-        chart.draw_series(dots).map_err(|e| err(&e))?;
-    }
-    root.present().map_err(|e| err(&e))
+    write_svg(path, (820, 130 + 60 * rows.len() as u32), |root, err| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(170)
+            .build_cartesian_2d((lo - pad)..(hi + pad), -0.5..(rows.len() as f64 - 0.5))
+            .map_err(|e| err(&e))?;
+        let labels: Vec<String> = rows.iter().map(|r| r.0.to_string()).collect();
+        chart
+            .configure_mesh()
+            .y_labels(rows.len())
+            .y_label_formatter(&|y| {
+                let i = y.round();
+                if (y - i).abs() < 1e-6 && i >= 0.0 && (i as usize) < labels.len() {
+                    labels[i as usize].clone()
+                } else {
+                    String::new()
+                }
+            })
+            .x_desc(c.description.as_str())
+            .disable_y_mesh()
+            .draw()
+            .map_err(|e| err(&e))?;
+        for (row, (_, values, color)) in rows.iter().enumerate() {
+            let n = values.len().max(1) as f64;
+            let dots = values.iter().enumerate().filter(|(_, v)| v.is_finite()).map(|(k, &v)| {
+                // Spread the draws vertically within their row so they do not hide each other.
+                let y = row as f64 + 0.6 * (k as f64 / n - 0.5);
+                Circle::new((v, y), 3, color.mix(0.7).filled())
+            });
+            chart.draw_series(dots).map_err(|e| err(&e))?;
+        }
+        Ok(())
+    })
 }
 
 #[cfg(test)]

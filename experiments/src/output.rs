@@ -20,13 +20,6 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), String> {
     std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
 }
 
-/// Runs `draw` against a temporary file and renames it to `path` when it succeeds.
-pub fn write_with(path: &Path, draw: impl FnOnce(&Path) -> Result<(), String>) -> Result<(), String> {
-    let tmp = temp_path(path);
-    draw(&tmp)?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("{}: {e}", path.display()))
-}
-
 /// Writes a CSV with a header row and rows of numbers, atomically.
 pub fn write_csv(path: &Path, header: &[&str], rows: &[Vec<f64>]) -> Result<(), String> {
     let mut s = header.join(",");

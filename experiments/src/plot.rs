@@ -24,27 +24,31 @@ const CHART_SIZE: (u32, u32) = (800, 500);
 const LEGEND_WIDTH: u32 = 230;
 
 /// A chart's drawing area, in memory.
-type Canvas<'a> = DrawingArea<SVGBackend<'a>, Shift>;
+pub type Canvas<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 
-/// Renders a chart in memory — `draw` is given the white canvas below the
-/// caption `title` and an error formatter naming `path` — and writes it to
-/// `path` through a temporary file, so an existing chart is replaced whole or
-/// not at all.
-fn write_svg(
+/// Renders an SVG of `size` pixels in memory — `draw` is given the white canvas
+/// and an error formatter naming `path` — and writes it to `path` through a
+/// temporary file, so an existing picture is replaced whole or not at all. Every
+/// picture the program draws goes through here.
+pub fn write_svg(
     path: &Path,
-    title: &str,
+    size: (u32, u32),
     draw: impl FnOnce(&Canvas, &dyn Fn(&dyn Display) -> String) -> Result<(), String>,
 ) -> Result<(), String> {
     let err = |e: &dyn Display| format!("{}: {e}", path.display());
     let mut svg = String::new();
     {
-        let root: Canvas = SVGBackend::with_string(&mut svg, CHART_SIZE).into_drawing_area();
+        let root: Canvas = SVGBackend::with_string(&mut svg, size).into_drawing_area();
         root.fill(&WHITE).map_err(|e| err(&e))?;
-        let below = root.titled(title, ("sans-serif", 22)).map_err(|e| err(&e))?;
-        draw(&below, &err)?;
+        draw(&root, &err)?;
         root.present().map_err(|e| err(&e))?;
     }
     write_atomic(path, svg.as_bytes())
+}
+
+/// The canvas below a chart's caption `title`.
+fn titled<'a>(root: &Canvas<'a>, title: &str, err: &dyn Fn(&dyn Display) -> String) -> Result<Canvas<'a>, String> {
+    root.titled(title, ("sans-serif", 22)).map_err(|e| err(&e))
 }
 
 /// A chart's frame on `area`: its margin and label areas.
@@ -71,8 +75,9 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
     let pad = ((y1 - y0) * 0.05).max(1e-9);
     let (y0, y1) = (y0 - pad, y1 + pad);
     let x1 = if x1 > x0 { x1 } else { x0 + 1.0 };
-    write_svg(path, title, |area, err| {
-        let mut chart = frame(area).build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(&e))?;
+    write_svg(path, CHART_SIZE, |root, err| {
+        let area = titled(root, title, err)?;
+        let mut chart = frame(&area).build_cartesian_2d(x0..x1, y0..y1).map_err(|e| err(&e))?;
         chart.configure_mesh().x_desc(x_label).y_desc(y_label).draw().map_err(|e| err(&e))?;
         for (i, s) in series.iter().enumerate() {
             let color = Palette99::pick(i).to_rgba();
@@ -124,10 +129,10 @@ pub fn share_chart(
     let octave = |p: &Share, i: usize| p.x.log2() + 0.3 * ((i as f64 + 0.5) / series.len() as f64 - 0.5);
     let (lo, hi) = (x0.log2().floor() - 0.5, x1.log2().ceil() + 0.5);
     let black = BLACK.stroke_width(1);
-    write_svg(path, title, |area, err| {
+    write_svg(path, CHART_SIZE, |root, err| {
         // (name, style, dashed) of each entry, drawn beside the chart.
         let mut legend: Vec<(String, ShapeStyle, bool)> = Vec::new();
-        let (plot, side) = area.split_horizontally(CHART_SIZE.0 - LEGEND_WIDTH);
+        let (plot, side) = titled(root, title, err)?.split_horizontally(CHART_SIZE.0 - LEGEND_WIDTH);
         let mut chart = frame(&plot).build_cartesian_2d(lo..hi, -0.02..1.02).map_err(|e| err(&e))?;
         chart
             .configure_mesh()
