@@ -434,11 +434,7 @@ fn candidate_table(s: &mut String, r: &Report) {
     let reference_checks = r.reference_checks();
     let verdicts = r.verdicts(true);
     for (cand, verdict) in r.candidates.iter().zip(verdicts) {
-        let flagged = if cand.flagged_by.is_empty() {
-            "(fit all)".to_string()
-        } else {
-            flagged_check_moves(&cand.flagged_by, &reference_checks, &cand.checks_after)
-        };
+        let flagged = flagged_check_moves(&cand.flagged_by, &reference_checks, &cand.checks_after);
         let _ = writeln!(
             s,
             "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",

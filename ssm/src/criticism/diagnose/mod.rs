@@ -672,8 +672,12 @@ pub fn improves_flagged_checks(
 /// How each check that flagged a candidate (`flagged_by`) moved from the
 /// reference to the extended model, as rule (d) judges it: `name z 1.27 → -1.46`
 /// per check (`-` where a model lacks it), `, failed` where the extended model
-/// fails it at the family-wise level; joined by `; `.
+/// fails it at the family-wise level; joined by `; `. A candidate no check
+/// flagged (fitted by `fit_all`) says so: it has no check for rule (d) to judge.
 pub fn flagged_check_moves(flagged_by: &[String], reference: &[CheckResult], extended: &[CheckResult]) -> String {
+    if flagged_by.is_empty() {
+        return NO_FLAGGING_CHECK.to_string();
+    }
     let z = |c: Option<&CheckResult>| c.map_or("-".to_string(), |c| format_z(c.z, 2));
     let each = flagged_by.iter().map(|name| {
         let after = check_named(extended, name);
@@ -682,6 +686,9 @@ pub fn flagged_check_moves(flagged_by: &[String], reference: &[CheckResult], ext
     });
     each.collect::<Vec<_>>().join("; ")
 }
+
+/// What [`flagged_check_moves`] says of a candidate no check flagged.
+pub const NO_FLAGGING_CHECK: &str = "no check flagged it (fitted by --fit-all)";
 
 /// The check called `name` among `results`.
 fn check_named<'a>(results: &'a [CheckResult], name: &str) -> Option<&'a CheckResult> {
@@ -1728,6 +1735,7 @@ mod tests {
         assert_eq!(flagged_check_moves(&far, &reference, &overshoot), "far_point_fraction z 1.27 → -1.46");
         assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
         assert_eq!(flagged_check_moves(&far, &reference, &[]), "far_point_fraction z 1.27 → -");
+        assert_eq!(flagged_check_moves(&[], &reference, &failing), NO_FLAGGING_CHECK, "a candidate of --fit-all");
     }
 
     /// Three disjoint, covering parts with the requested sizes.
