@@ -161,14 +161,9 @@ pub fn share_chart(
         }
         for (k, (name, style, dashed)) in legend.iter().enumerate() {
             let y = 30 + 22 * k as i32;
-            let sample = if *dashed { vec![(4, y), (10, y), (16, y), (22, y)] } else { vec![(4, y), (22, y)] };
-            let segments: Vec<PathElement<(i32, i32)>> = if *dashed {
-                sample.chunks(2).map(|c| PathElement::new(c.to_vec(), *style)).collect()
-            } else {
-                vec![PathElement::new(sample, *style)]
-            };
-            for segment in segments {
-                side.draw(&segment).map_err(|e| err(&e))?;
+            let segments = if *dashed { vec![(4, 10), (16, 22)] } else { vec![(4, 22)] };
+            for (from, to) in segments {
+                side.draw(&PathElement::new(vec![(from, y), (to, y)], *style)).map_err(|e| err(&e))?;
             }
             side.draw(&Text::new(name.clone(), (28, y - 7), ("sans-serif", 13))).map_err(|e| err(&e))?;
         }
@@ -194,7 +189,14 @@ mod tests {
         let path = dir.join("shares.svg");
         share_chart(&path, "shares", "x", "share", &series, Some(0.9)).unwrap();
         let svg = std::fs::read_to_string(&path).unwrap();
-        assert!(["weak", "strong", "goal (90%)", "0.5", "100%"].iter().all(|t| svg.contains(t)), "{svg}");
+        // The legend's entries and the axes' labels, each as a text element.
+        let texts = ["weak", "strong", "goal (90%)", "0.5", "2", "100%", "0%"];
+        let drawn: Vec<&str> = svg
+            .split("</text>")
+            .filter_map(|part| part.rsplit_once("<text").and_then(|(_, element)| element.split_once('>')))
+            .map(|(_, content)| content.trim())
+            .collect();
+        assert!(texts.iter().all(|t| drawn.contains(t)), "{drawn:?}");
         let bad = [ShareSeries { name: "zero".into(), shares: vec![share(0.0, 0.5)] }];
         let err = share_chart(&dir.join("bad.svg"), "bad", "x", "share", &bad, None).unwrap_err();
         assert!(err.contains("bad.svg") && err.contains("positive"), "{err}");

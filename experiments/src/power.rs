@@ -306,8 +306,7 @@ fn write_study_tables(
     for (e, strength, seed) in plan(&effects, &strengths, seeds) {
         cells.extend(run_cell(out, e, strength, seed, rates, true)?);
     }
-    write_tables(out, &effects, &strengths, &cells)?;
-    Ok(summarise(&effects, &strengths, &cells))
+    write_tables(out, &effects, &strengths, &cells)
 }
 
 /// `(effect id, strength, seed)` of every finished cell under `out`
@@ -339,8 +338,9 @@ fn finished_cells(out: &Path) -> Result<Vec<(String, f64, u64)>, String> {
     Ok(found)
 }
 
-/// Writes `power.csv` (one row per finished diagnosis) and `power.md` into `out`.
-fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<(), String> {
+/// Writes `power.csv` (one row per finished diagnosis), `power.md` and
+/// `power.svg` into `out`, and returns `power.md`'s text.
+fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Result<String, String> {
     let mut csv = csv::Writer::from_writer(Vec::new());
     let header = [
         "effect",
@@ -378,8 +378,10 @@ fn write_tables(out: &Path, effects: &[StudyEffect], strengths: &[f64], cells: &
     }
     let csv = csv.into_inner().map_err(|e| format!("power.csv: {e}"))?;
     write_atomic(&out.join("power.csv"), &csv)?;
-    write_atomic(&out.join("power.md"), summarise(effects, strengths, cells).as_bytes())?;
-    write_power_chart(out, effects, strengths, cells)
+    let table = summarise(effects, strengths, cells);
+    write_atomic(&out.join("power.md"), table.as_bytes())?;
+    write_power_chart(out, effects, strengths, cells)?;
+    Ok(table)
 }
 
 /// The directory of one cell of the study under `out`.
@@ -521,10 +523,12 @@ fn strength_groups<'a>(e: &StudyEffect, strengths: &[f64], cells: &'a [Cell]) ->
         .collect()
 }
 
-/// The 95% Wilson interval of the share of `group`'s seeds that reached the
-/// expected outcome.
-fn named_interval(group: &[&Cell]) -> (f64, f64) {
-    wilson_interval(group.iter().filter(|c| c.named).count(), group.len(), 0.95)
+/// The share of `group`'s seeds (the cells at strength `x`) that reached the
+/// expected outcome, with its 95% Wilson interval.
+fn named_share(x: f64, group: &[&Cell]) -> Share {
+    let named = group.iter().filter(|c| c.named).count();
+    let (low, high) = wilson_interval(named, group.len(), 0.95);
+    Share { x, share: named as f64 / group.len() as f64, low, high }
 }
 
 /// Draws `power.svg` into `out`: for every hidden effect (not the controls),
@@ -535,14 +539,8 @@ fn write_power_chart(out: &Path, effects: &[StudyEffect], strengths: &[f64], cel
         .iter()
         .filter(|e| !e.is_control())
         .map(|e| {
-            let shares = strength_groups(e, strengths, cells)
-                .into_iter()
-                .map(|(x, group)| {
-                    let (low, high) = named_interval(&group);
-                    let share = group.iter().filter(|c| c.named).count() as f64 / group.len() as f64;
-                    Share { x, share, low, high }
-                })
-                .collect();
+            let shares =
+                strength_groups(e, strengths, cells).into_iter().map(|(x, group)| named_share(x, &group)).collect();
             ShareSeries { name: format!("{} ({} scenes)", e.id, e.scenes), shares }
         })
         .filter(|s| !s.shares.is_empty())
@@ -570,8 +568,7 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
     for e in effects {
         for (st, group) in strength_groups(e, strengths, cells) {
             let n = group.len() as f64;
-            let (low, high) = named_interval(&group);
-            let named = group.iter().filter(|c| c.named).count() as f64 / n;
+            let Share { share: named, low, high, .. } = named_share(st, &group);
             let catalogue = |c: &&Cell| c.cause != NO_CAUSE && c.cause != UNEXPLAINED;
             let false_cause = group.iter().filter(|c| catalogue(c) && !c.named).count() as f64 / n;
             let unexplained = group.iter().filter(|c| c.cause == UNEXPLAINED).count() as f64 / n;
