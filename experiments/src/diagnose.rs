@@ -10,8 +10,7 @@ use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, flagged_check_moves, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage,
-    NO_CAUSE, UNEXPLAINED,
+    diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
 use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
 
@@ -45,6 +44,11 @@ pub struct DiagnoseArgs {
     /// Fit every extension that applies to the data, not only those the checks make plausible.
     #[arg(long)]
     fit_all: bool,
+    /// Fit also the extensions no check flagged whose start raises the check objects' likelihood over the base's
+    /// (one-sided sign-flip p below 0.2); such an extension must raise it again after its fit, over the
+    /// reference's, to be named.
+    #[arg(long)]
+    likelihood_screen: bool,
     /// PF-SEFI steps of the base fit.
     #[arg(long)]
     base_steps: Option<usize>,
@@ -108,6 +112,7 @@ impl DiagnoseArgs {
         let mut c = if self.quick { DiagnoseConfig::quick() } else { DiagnoseConfig::default() };
         c.seed = self.seed;
         c.fit_all = self.fit_all;
+        c.likelihood_screen = self.likelihood_screen;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;
@@ -375,18 +380,21 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     }
     let _ = writeln!(s, "\n## Candidate extensions\n");
     if r.candidates.is_empty() {
+        let screen = if c.likelihood_screen { ", nor did the likelihood screen admit one" } else { "" };
         let _ = writeln!(
             s,
             "None was fitted: no check that suggests an extension had an uncorrected p below {} in the direction \
-             the extension moves it.",
+             the extension moves it{screen}.",
             c.plausible_p
         );
     } else {
         candidate_table(&mut s, r);
     }
     if !r.not_fitted.is_empty() {
-        let _ = writeln!(s, "\nNot fitted (no check made them plausible): {}.", r.not_fitted.join(", "));
+        let why = if c.likelihood_screen { "no check nor the likelihood screen" } else { "no check" };
+        let _ = writeln!(s, "\nNot fitted ({why} made them plausible): {}.", r.not_fitted.join(", "));
     }
+    screen_table(&mut s, r);
     s.push_str(&fits_kept(r));
     let _ = writeln!(s, "\n## The worst checks\n");
     let _ = writeln!(
@@ -398,6 +406,28 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         let _ = writeln!(s, "![{name}]({file})\n");
     }
     s
+}
+
+/// `report.md`'s table of the likelihood screen (`--likelihood-screen`): each
+/// extension no check flagged, at its start against the base on the check part.
+fn screen_table(s: &mut String, r: &Report) {
+    if r.likelihood_screen.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        s,
+        "\nThe likelihood screen (`--likelihood-screen`): each extension no check flagged, at its start on the \
+         base's parameters against the base, filtered on the check objects with the same seeds; admitted (fitted) \
+         when the one-sided sign-flip p over those objects is below {}. Rule (d) for an admitted extension: after \
+         its fit it must raise the check objects' likelihood over the reference's.\n",
+        r.config.plausible_p
+    );
+    let _ = writeln!(s, "| extension | start's gain on the check part (nats/unit) | p | admitted |");
+    let _ = writeln!(s, "|---|---|---|---|");
+    for screen in &r.likelihood_screen {
+        let admitted = if screen.admitted { "yes" } else { "no" };
+        let _ = writeln!(s, "| {} | {:+.4} | {} | {admitted} |", screen.cause, screen.gain, fmt(screen.p));
+    }
 }
 
 /// `report.md`'s table of the fitted candidates, under the rules that decide
@@ -434,7 +464,7 @@ fn candidate_table(s: &mut String, r: &Report) {
     let reference_checks = r.reference_checks();
     let verdicts = r.verdicts(true);
     for (cand, verdict) in r.candidates.iter().zip(verdicts) {
-        let flagged = flagged_check_moves(&cand.flagged_by, &reference_checks, &cand.checks_after);
+        let flagged = cand.flagging_moves(&reference_checks);
         let _ = writeln!(
             s,
             "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",
@@ -579,8 +609,39 @@ mod tests {
 
     /// A committed report of the power study.
     fn committed(cell: &str) -> Report {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-eval-crn").join(cell);
+        committed_in("power-study-eval-crn", cell)
+    }
+
+    /// A committed report under `results/STUDY/CELL`.
+    fn committed_in(study: &str, cell: &str) -> Report {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results").join(study).join(cell);
         serde_json::from_str(&std::fs::read_to_string(path.join("report.json")).unwrap()).unwrap()
+    }
+
+    /// The likelihood screen on a committed diagnosis (clutter at twice its
+    /// default, seed 3, which no check flagged): the report lists every
+    /// extension the checks left to the screen with its start's gain and p,
+    /// the admitted one is fitted and judged by rule (d) on its check-part
+    /// gain, and the decision read again from the report names it.
+    #[test]
+    fn the_likelihood_screen_is_reported_and_decides_rule_d() {
+        let report = committed_in("likelihood-screen", "clutter-x2-seed3");
+        assert!(report.config.likelihood_screen);
+        let screened: Vec<(&str, bool)> =
+            report.likelihood_screen.iter().map(|l| (l.cause.as_str(), l.admitted)).collect();
+        assert_eq!(screened, [("latency", false), ("clutter", true)]);
+        let clutter = report.candidates.iter().find(|c| c.cause == "clutter").unwrap();
+        assert!(clutter.flagged_by.is_empty() && clutter.check_part_gain.is_some_and(|g| g > 0.0));
+        assert_eq!(report.decided(true).0, "clutter");
+        // Without rule (d)'s check-part gain it would be a candidate of --fit-all: turned away.
+        let mut unscreened = report.clone();
+        unscreened.candidates.iter_mut().for_each(|c| c.check_part_gain = None);
+        assert_ne!(unscreened.decided(true).0, "clutter");
+        let md = markdown(&report, Path::new("data"), &[]);
+        let row = md.lines().find(|l| l.starts_with("| clutter | +0.1448 |")).expect("the screen's row");
+        assert!(row.ends_with("| yes |"), "{row}");
+        assert!(md.contains("admitted by the likelihood screen; check-part gain over the reference +1.2164"), "{md}");
+        assert!(md.contains("Not fitted (no check nor the likelihood screen made them plausible): latency"), "{md}");
     }
 
     /// `report.md`'s candidate table says, per candidate, whether it qualifies

@@ -200,6 +200,13 @@ pub struct DiagnoseConfig {
     /// Fit every extension that applies to the data, plausible or not (only a
     /// flagged one can be the cause).
     pub fit_all: bool,
+    /// Screen the extensions no check flagged by the likelihood as well
+    /// ([`LikelihoodScreen`]): one that at its start raises the check part's
+    /// likelihood over the base's, with a one-sided sign-flip p over the check
+    /// objects below [`DiagnoseConfig::plausible_p`], is fitted too. Off by
+    /// default (measured on a few cells only; README, "A likelihood screen").
+    #[serde(default)]
+    pub likelihood_screen: bool,
     /// Family-wise level of the candidates' gain tests (Holm-corrected sign-flip
     /// p-values).
     pub cause_level: f64,
@@ -240,6 +247,7 @@ impl Default for DiagnoseConfig {
             alpha: 0.05,
             plausible_p: 0.2,
             fit_all: false,
+            likelihood_screen: false,
             cause_level: 0.05,
             min_gain: MIN_GAIN,
             permutations: 9999,
@@ -433,8 +441,15 @@ pub struct CandidateReport {
     pub params: Vec<(String, f64, String)>,
     /// The learned parameters in a sentence.
     pub description: String,
-    /// The checks whose p made it plausible (empty when fitted because of `fit_all`).
+    /// The checks whose p made it plausible (empty when fitted because of
+    /// `fit_all` or the likelihood screen).
     pub flagged_by: Vec<String>,
+    /// For a candidate no check flagged that the likelihood screen admitted
+    /// ([`LikelihoodScreen`]): the fitted model's log-likelihood on the check
+    /// part over the reference's (nats per observed unit, the same filter
+    /// seeds), rule (d)'s measure for it. `None` otherwise.
+    #[serde(default)]
+    pub check_part_gain: Option<f64>,
     /// Rule (d): whether the extension improves a check that flagged it
     /// ([`improves_flagged_checks`]; only such an extension can be the cause).
     pub checks_improved: bool,
@@ -455,6 +470,32 @@ pub struct CandidateReport {
     /// ([`DiagnoseConfig::keep_best_every`]; `None` when it kept its last).
     #[serde(default)]
     pub kept: Option<KeptBest>,
+}
+
+/// The likelihood screen's look at one extension no check flagged
+/// ([`DiagnoseConfig::likelihood_screen`]): the extension at its start
+/// ([`Extension::initial_from_checks`], on the base's parameters) against the
+/// base, both filtered on the check part with the same seeds. A check is a
+/// summary statistic that a flexible base can match while its likelihood
+/// still falls short (measured: the base's observation network replicates
+/// clutter's far points at twice the default clutter, where the clutter
+/// extension gains over a nat per point); the likelihood is the screen that
+/// such a base cannot match. An extension that starts at the identity (size
+/// bias) gains nothing at its start and is never admitted by it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LikelihoodScreen {
+    /// The extension's id.
+    pub cause: String,
+    /// The start's log-likelihood over the base's on the check part (nats
+    /// per observed unit).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub gain: f64,
+    /// The gain's one-sided sign-flip p over the check objects.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub p: f64,
+    /// Whether `p` fell below [`DiagnoseConfig::plausible_p`], so the
+    /// extension was fitted.
+    pub admitted: bool,
 }
 
 /// A candidate against the catalogue entry it nests, both fitted: rule (e).
@@ -499,6 +540,33 @@ pub fn nested_comparisons(
 }
 
 impl CandidateReport {
+    /// Rule (d) against the reference's checks: a candidate that checks
+    /// flagged improves one of them ([`improves_flagged_checks`]); one the
+    /// likelihood screen admitted instead raises the check part's likelihood
+    /// over the reference's ([`CandidateReport::check_part_gain`] positive):
+    /// what made it plausible, judged again after the fit on the same
+    /// objects. A report without the candidates' checks keeps its recorded
+    /// verdict.
+    pub fn improves_what_flagged_it(&self, reference: &[CheckResult], plausible_p: f64) -> bool {
+        match self.check_part_gain {
+            Some(gain) if self.flagged_by.is_empty() => gain > 0.0,
+            _ if self.checks_after.is_empty() => self.checks_improved,
+            _ => improves_flagged_checks(&self.flagged_by, reference, &self.checks_after, plausible_p),
+        }
+    }
+
+    /// How what flagged this candidate moved, as rule (d) judges it: the
+    /// check-part gain of a candidate the likelihood screen admitted, else
+    /// [`flagged_check_moves`].
+    pub fn flagging_moves(&self, reference: &[CheckResult]) -> String {
+        match self.check_part_gain {
+            Some(gain) if self.flagged_by.is_empty() => {
+                format!("admitted by the likelihood screen; check-part gain over the reference {gain:+.4}")
+            }
+            _ => flagged_check_moves(&self.flagged_by, reference, &self.checks_after),
+        }
+    }
+
     /// Whether the candidate passes the decision's rules on its learned
     /// parameters and its gain — every rule of step 5 but (d), that it lowers a
     /// flagging check's |z| ([`CandidateReport::failed_gain_rule`] finds none
@@ -641,6 +709,8 @@ const REFERENCE_PERMUTATIONS: u64 = 0x5f1b;
 const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
 /// Seeds those of [`nested_comparisons`].
 const NESTED_PERMUTATIONS: u64 = 0x5f1d;
+/// Seeds those of the likelihood screen ([`LikelihoodScreen`]).
+const SCREEN_PERMUTATIONS: u64 = 0x5f1e;
 
 /// Rule (d) of the decision: the extension improves at least one check that
 /// flagged it (`flagged_by`), both calibrated on the check part. A check
@@ -828,13 +898,7 @@ impl Report {
     fn judged(&self, check_rule: bool) -> (Vec<Option<FailedRule>>, Vec<OverReseeded>) {
         let reference = self.reference_checks();
         let bar = self.gain_bar();
-        let improved = |c: &CandidateReport| {
-            if c.checks_after.is_empty() {
-                c.checks_improved
-            } else {
-                improves_flagged_checks(&c.flagged_by, &reference, &c.checks_after, self.config.plausible_p)
-            }
-        };
+        let improved = |c: &CandidateReport| c.improves_what_flagged_it(&reference, self.config.plausible_p);
         let over = self.over_reseeded();
         let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
         let verdicts = self
@@ -901,7 +965,7 @@ impl Report {
                 over_reseeded.map_or(String::new(), |(gain, p)| format!("over it {gain:+.4}, p adj. {p:.4}"))
             }
             FailedRule::NotMaterial => c.description.clone(),
-            FailedRule::Checks => flagged_check_moves(&c.flagged_by, &self.reference_checks(), &c.checks_after),
+            FailedRule::Checks => c.flagging_moves(&self.reference_checks()),
             FailedRule::Nested => c
                 .over_nested
                 .as_ref()
@@ -955,8 +1019,13 @@ pub struct Report {
     pub checks: Vec<CheckReport>,
     /// Every fitted extension.
     pub candidates: Vec<CandidateReport>,
-    /// Extensions that apply to the data but no check made plausible.
+    /// Extensions that apply to the data but no check made plausible (nor the
+    /// likelihood screen, where it ran).
     pub not_fitted: Vec<String>,
+    /// The likelihood screen of every extension no check flagged (empty
+    /// without [`DiagnoseConfig::likelihood_screen`]).
+    #[serde(default)]
+    pub likelihood_screen: Vec<LikelihoodScreen>,
     /// The data's kind.
     pub kind: ObservationKind,
     /// Objects that fitted the models.
@@ -1099,6 +1168,7 @@ struct Parts<'a> {
 struct Fit {
     extension: Extension,
     flagged_by: Vec<String>,
+    check_part_gain: Option<f64>,
     run: Fitted,
     checks: ModelChecks,
     eval: EvalLikelihoods,
@@ -1147,8 +1217,16 @@ fn run(
     let before = calibrate(&defs, &base_checks.measured, &base_checks.replicated, config.alpha);
 
     // 4. The plausible extensions, started from the check part.
+    let discrepancies: Vec<(&str, f64)> = before.iter().map(|c| (c.name.as_str(), c.measured - c.replicated)).collect();
+    let start_of = |extension: Extension| {
+        let mut start = base.params.clone();
+        start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
+        start
+    };
     let mut not_fitted = Vec::new();
     let mut plausible = Vec::new();
+    let mut screens = Vec::new();
+    let mut base_on_check: Option<EvalLikelihoods> = None;
     for extension in Extension::for_kind(kind) {
         let flagged_by: Vec<String> = before
             .iter()
@@ -1157,10 +1235,31 @@ fn run(
             })
             .map(|c| c.name.clone())
             .collect();
-        if flagged_by.is_empty() && !config.fit_all {
+        let screened_in = if flagged_by.is_empty() && config.likelihood_screen {
+            progress(&Stage::Evaluating { model: format!("{} at its start (check part)", extension.id()) });
+            let base_ll = match &base_on_check {
+                Some(l) => l,
+                None => base_on_check.insert(eval_likelihoods(parts.check, &base.params, None, config)?),
+            };
+            let start_ll = eval_likelihoods(parts.check, &start_of(extension), Some(extension), config)?;
+            let d = differences(&start_ll.object_ll, &base_ll.object_ll);
+            let stream = stream_seed(config.seed ^ SCREEN_PERMUTATIONS, screens.len() as u64);
+            let p = sign_flip_p(&d, config.permutations, stream);
+            let admitted = p < config.plausible_p;
+            screens.push(LikelihoodScreen {
+                cause: extension.id().into(),
+                gain: gain_of(&d, base_ll.units).0,
+                p,
+                admitted,
+            });
+            admitted
+        } else {
+            false
+        };
+        if flagged_by.is_empty() && !config.fit_all && !screened_in {
             not_fitted.push(extension.id().to_string());
         } else {
-            plausible.push((extension, flagged_by));
+            plausible.push((extension, flagged_by, screened_in));
         }
     }
     // The reference every candidate is compared with: the base refitted alone
@@ -1210,18 +1309,31 @@ fn run(
         _ => None,
     };
     let gain_bar = gain_bar(config.min_gain, reseeded.as_ref());
-    let discrepancies: Vec<(&str, f64)> = before.iter().map(|c| (c.name.as_str(), c.measured - c.replicated)).collect();
+    // Rule (d) of a candidate the likelihood screen admitted compares it with
+    // the reference on the check part.
+    let mut reference_on_check: Option<EvalLikelihoods> = None;
     let mut fits = Vec::new();
-    for (extension, flagged_by) in plausible {
-        let mut start = base.params.clone();
-        start.add(&extension.param_name(), extension.initial_from_checks(&discrepancies));
+    for (extension, flagged_by, screened_in) in plausible {
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
-        let run = fit(parts, Some(extension), start, refit_schedule, config, &dir, comm, progress)?;
+        let run = fit(parts, Some(extension), start_of(extension), refit_schedule, config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
         let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
-        fits.push(Fit { extension, flagged_by, run, checks, eval });
+        let check_part_gain = if screened_in {
+            let reference_ll = match (&reference_on_check, &refitted) {
+                (Some(l), _) => l,
+                (None, Some(_)) => {
+                    reference_on_check.insert(eval_likelihoods(parts.check, reference_params, None, config)?)
+                }
+                (None, None) => base_on_check.as_ref().expect("the screen filtered the base on the check part"),
+            };
+            let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
+            Some(gain_of(&differences(&on_check.object_ll, &reference_ll.object_ll), reference_ll.units).0)
+        } else {
+            None
+        };
+        fits.push(Fit { extension, flagged_by, check_part_gain, run, checks, eval });
     }
 
     // 5. The decision on the evaluation part.
@@ -1244,7 +1356,6 @@ fn run(
         let (gain, gain_se) = gain_of(&d, reference_eval.units);
         let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
-        let checks_improved = improves_flagged_checks(&f.flagged_by, reference_checks, &after, config.plausible_p);
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
         let material = ext.is_material(&raw)?;
@@ -1263,7 +1374,8 @@ fn run(
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
-            checks_improved,
+            check_part_gain: f.check_part_gain,
+            checks_improved: false,
             checks_after: after,
             material,
             qualifies: false,
@@ -1271,7 +1383,8 @@ fn run(
             train_seconds: f.run.seconds,
             kept: f.run.kept.clone(),
         };
-        candidate.qualifies = checks_improved
+        candidate.checks_improved = candidate.improves_what_flagged_it(reference_checks, config.plausible_p);
+        candidate.qualifies = candidate.checks_improved
             && candidate.passes_gain_rules(gain_bar, candidate.over_reseeded, config.min_gain, config.cause_level);
         candidates.push(candidate);
     }
@@ -1309,6 +1422,7 @@ fn run(
         checks,
         candidates,
         not_fitted,
+        likelihood_screen: screens,
         kind,
         train_objects: parts.fit.objects().len(),
         check_objects: parts.check.objects().len(),
@@ -1612,6 +1726,7 @@ mod tests {
             params: vec![],
             description: String::new(),
             flagged_by: vec![],
+            check_part_gain: None,
             checks_improved: true,
             checks_after: vec![],
             material: true,
@@ -1736,6 +1851,36 @@ mod tests {
         assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
         assert_eq!(flagged_check_moves(&far, &reference, &[]), "far_point_fraction z 1.27 → -");
         assert_eq!(flagged_check_moves(&[], &reference, &failing), NO_FLAGGING_CHECK, "a candidate of --fit-all");
+    }
+
+    /// Rule (d) of a candidate the likelihood screen admitted (no check
+    /// flagged it) asks what admitted it: the fitted model's likelihood on the
+    /// check part over the reference's. A flagged candidate is judged by its
+    /// checks whatever its check-part gain, and one fitted by --fit-all alone
+    /// still has nothing to improve.
+    #[test]
+    fn rule_d_of_a_screened_candidate_is_its_check_part_gain() {
+        let reference = [CheckResult { screen_p: Some(0.1), ..check_with_z("far_point_fraction", 1.27) }];
+        let after = vec![check_with_z("far_point_fraction", 2.0)];
+        let screened = |gain: f64| CandidateReport {
+            check_part_gain: Some(gain),
+            checks_after: after.clone(),
+            ..qualifying_candidate()
+        };
+        assert!(screened(0.12).improves_what_flagged_it(&reference, 0.2));
+        assert!(!screened(-0.01).improves_what_flagged_it(&reference, 0.2));
+        assert!(!screened(0.0).improves_what_flagged_it(&reference, 0.2), "no better than the reference");
+        assert_eq!(
+            screened(0.1234).flagging_moves(&reference),
+            "admitted by the likelihood screen; check-part gain over the reference +0.1234"
+        );
+        // Flagged by a check it moves further the same way: its checks decide.
+        let flagged = CandidateReport { flagged_by: vec!["far_point_fraction".into()], ..screened(0.12) };
+        assert!(!flagged.improves_what_flagged_it(&reference, 0.2));
+        assert_eq!(flagged.flagging_moves(&reference), "far_point_fraction z 1.27 → 2.00");
+        let fit_all = CandidateReport { check_part_gain: None, ..screened(0.12) };
+        assert!(!fit_all.improves_what_flagged_it(&reference, 0.2));
+        assert_eq!(fit_all.flagging_moves(&reference), NO_FLAGGING_CHECK);
     }
 
     /// Three disjoint, covering parts with the requested sizes.
