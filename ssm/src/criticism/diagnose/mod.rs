@@ -22,7 +22,11 @@
 //!    [`DiagnoseConfig::plausible_p`] in the direction the extension moves that
 //!    check ([`CheckResult::screen_p`]: a lag lowers the offset-speed slope, heavy
 //!    tails raise the kurtosis; a discrepancy the other way is no sign of it), or
-//!    always, with [`DiagnoseConfig::fit_all`].
+//!    always, with [`DiagnoseConfig::fit_all`]. With
+//!    [`DiagnoseConfig::likelihood_screen`] an extension no check flagged is
+//!    plausible too when its start raises the check part's likelihood over the
+//!    base's ([`LikelihoodScreen`]); rule (d) below then asks the same of the
+//!    fitted extension against the reference.
 //!    With [`DiagnoseConfig::refit`] (the default) every parameter is refitted
 //!    with the extension's — the base network gives back what it absorbed of the
 //!    effect — and the base alone is refitted the same way, from the same start,
