@@ -48,7 +48,8 @@
 //!    materially, (d) improve a check that flagged them (its |z| on the check
 //!    part falls below the reference's, or the extension carries it past the
 //!    measured value without failing it where the reference still flagged it:
-//!    [`improves_flagged_checks`]) and (e),
+//!    [`improves_flagged_checks`]; one the likelihood screen admitted must
+//!    raise the check part's likelihood over the reference's) and (e),
 //!    for an extension that contains another fitted candidate as a special case
 //!    ([`Extension::nests`]: persistent flips at persistence 0 are independent
 //!    ones), beat that candidate by object with the same test and minimum
@@ -454,8 +455,10 @@ pub struct CandidateReport {
     /// seeds), rule (d)'s measure for it. `None` otherwise.
     #[serde(default)]
     pub check_part_gain: Option<f64>,
-    /// Rule (d): whether the extension improves a check that flagged it
-    /// ([`improves_flagged_checks`]; only such an extension can be the cause).
+    /// Rule (d): whether the extension improves a check that flagged it, or
+    /// for one the likelihood screen admitted the check part's likelihood
+    /// ([`CandidateReport::improves_what_flagged_it`]; only such an extension
+    /// can be the cause).
     pub checks_improved: bool,
     /// Every check calibrated on this extended model (the check part; empty in
     /// reports written before it was recorded).
