@@ -505,6 +505,18 @@ pub struct LikelihoodScreen {
     pub admitted: bool,
 }
 
+impl LikelihoodScreen {
+    /// The screen's verdict on extension `cause` from `d`, per check object
+    /// the start's log-likelihood minus the base's (`units` observed units):
+    /// the gain per unit, the one-sided sign-flip p (seeded by the diagnosis
+    /// seed and `index`, the extension's place among those screened), and
+    /// whether p is below [`DiagnoseConfig::plausible_p`].
+    fn judge(cause: &str, d: &[f64], units: usize, config: &DiagnoseConfig, index: usize) -> LikelihoodScreen {
+        let p = sign_flip_p(d, config.permutations, stream_seed(config.seed ^ SCREEN_PERMUTATIONS, index as u64));
+        LikelihoodScreen { cause: cause.into(), gain: gain_of(d, units).0, p, admitted: p < config.plausible_p }
+    }
+}
+
 /// A candidate against the catalogue entry it nests, both fitted: rule (e).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct NestedComparison {
@@ -555,22 +567,27 @@ impl CandidateReport {
     /// objects. A report without the candidates' checks keeps its recorded
     /// verdict.
     pub fn improves_what_flagged_it(&self, reference: &[CheckResult], plausible_p: f64) -> bool {
-        match self.check_part_gain {
-            Some(gain) if self.flagged_by.is_empty() => gain > 0.0,
-            _ if self.checks_after.is_empty() => self.checks_improved,
-            _ => improves_flagged_checks(&self.flagged_by, reference, &self.checks_after, plausible_p),
+        match self.screened_gain() {
+            Some(gain) => gain > 0.0,
+            None if self.checks_after.is_empty() => self.checks_improved,
+            None => improves_flagged_checks(&self.flagged_by, reference, &self.checks_after, plausible_p),
         }
+    }
+
+    /// The check-part gain of a candidate the likelihood screen admitted and
+    /// no check flagged: the one whose rule (d) it decides. `None` for every
+    /// other candidate.
+    fn screened_gain(&self) -> Option<f64> {
+        self.check_part_gain.filter(|_| self.flagged_by.is_empty())
     }
 
     /// How what flagged this candidate moved, as rule (d) judges it: the
     /// check-part gain of a candidate the likelihood screen admitted, else
     /// [`flagged_check_moves`].
     pub fn flagging_moves(&self, reference: &[CheckResult]) -> String {
-        match self.check_part_gain {
-            Some(gain) if self.flagged_by.is_empty() => {
-                format!("admitted by the likelihood screen; check-part gain over the reference {gain:+.4}")
-            }
-            _ => flagged_check_moves(&self.flagged_by, reference, &self.checks_after),
+        match self.screened_gain() {
+            Some(gain) => format!("admitted by the likelihood screen; check-part gain over the reference {gain:+.4}"),
+            None => flagged_check_moves(&self.flagged_by, reference, &self.checks_after),
         }
     }
 
@@ -1250,15 +1267,9 @@ fn run(
             };
             let start_ll = eval_likelihoods(parts.check, &start_of(extension), Some(extension), config)?;
             let d = differences(&start_ll.object_ll, &base_ll.object_ll);
-            let stream = stream_seed(config.seed ^ SCREEN_PERMUTATIONS, screens.len() as u64);
-            let p = sign_flip_p(&d, config.permutations, stream);
-            let admitted = p < config.plausible_p;
-            screens.push(LikelihoodScreen {
-                cause: extension.id().into(),
-                gain: gain_of(&d, base_ll.units).0,
-                p,
-                admitted,
-            });
+            let screen = LikelihoodScreen::judge(extension.id(), &d, base_ll.units, config, screens.len());
+            let admitted = screen.admitted;
+            screens.push(screen);
             admitted
         } else {
             false
@@ -1317,8 +1328,13 @@ fn run(
     };
     let gain_bar = gain_bar(config.min_gain, reseeded.as_ref());
     // Rule (d) of a candidate the likelihood screen admitted compares it with
-    // the reference on the check part.
-    let mut reference_on_check: Option<EvalLikelihoods> = None;
+    // the reference on the check part (the base, filtered there already, when
+    // nothing was refitted).
+    let reference_on_check = match &refitted {
+        _ if !plausible.iter().any(|&(_, _, screened_in)| screened_in) => None,
+        Some(_) => Some(eval_likelihoods(parts.check, reference_params, None, config)?),
+        None => base_on_check,
+    };
     let mut fits = Vec::new();
     for (extension, flagged_by, screened_in) in plausible {
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
@@ -1327,18 +1343,12 @@ fn run(
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
         let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
-        let check_part_gain = if screened_in {
-            let reference_ll = match (&reference_on_check, &refitted) {
-                (Some(l), _) => l,
-                (None, Some(_)) => {
-                    reference_on_check.insert(eval_likelihoods(parts.check, reference_params, None, config)?)
-                }
-                (None, None) => base_on_check.as_ref().expect("the screen filtered the base on the check part"),
-            };
-            let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
-            Some(gain_of(&differences(&on_check.object_ll, &reference_ll.object_ll), reference_ll.units).0)
-        } else {
-            None
+        let check_part_gain = match &reference_on_check {
+            Some(reference_ll) if screened_in => {
+                let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
+                Some(gain_of(&differences(&on_check.object_ll, &reference_ll.object_ll), reference_ll.units).0)
+            }
+            _ => None,
         };
         fits.push(Fit { extension, flagged_by, check_part_gain, run, checks, eval });
     }
@@ -1623,6 +1633,7 @@ impl ModelVisitor for OnModel<'_> {
 #[cfg(test)]
 mod tests {
     use rand::rngs::SmallRng;
+    use rand_distr::StandardNormal;
 
     use super::*;
     use crate::filter::paths::PathRecorder;
@@ -1686,7 +1697,6 @@ mod tests {
     fn a_cause_must_beat_the_reseeded_refit_by_object() {
         let config = DiagnoseConfig { seed: 5, ..DiagnoseConfig::quick() };
         let n = 30;
-        let wobble = |i: usize| ((i * 37 % 11) as f64 - 5.0) * 0.2;
         let reseeded: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i)).collect();
         let like_the_refit: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
         let beyond_it: Vec<f64> = (0..n).map(|i| 1.6 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
@@ -1714,6 +1724,12 @@ mod tests {
             !cand.passes_gain_rules(0.003, Some((0.001, 0.001)), 0.003, 0.05),
             "beyond it by less than the minimum"
         );
+    }
+
+    /// A deterministic spread of per-object gains: `i`'s value in [-1, 1]
+    /// (steps of 0.2), every value about as often.
+    fn wobble(i: usize) -> f64 {
+        ((i * 37 % 11) as f64 - 5.0) * 0.2
     }
 
     /// A candidate that passes every rule on its own numbers.
@@ -1753,7 +1769,6 @@ mod tests {
         let config = DiagnoseConfig { seed: 5, ..DiagnoseConfig::quick() };
         let n = 30;
         let units = 3 * n;
-        let wobble = |i: usize| ((i * 37 % 11) as f64 - 5.0) * 0.2;
         let flips: Vec<f64> = (0..n).map(|i| 1.0 + wobble(i)).collect();
         let like_flips: Vec<f64> = flips.iter().enumerate().map(|(i, g)| g + 0.05 * wobble(i * 7 + 3)).collect();
         let beyond: Vec<f64> = like_flips.iter().map(|g| g + 0.5).collect();
@@ -1858,6 +1873,38 @@ mod tests {
         assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
         assert_eq!(flagged_check_moves(&far, &reference, &[]), "far_point_fraction z 1.27 → -");
         assert_eq!(flagged_check_moves(&[], &reference, &failing), NO_FLAGGING_CHECK, "a candidate of --fit-all");
+    }
+
+    /// The screen admits a start that raises the check objects' likelihood
+    /// with p below `plausible_p`, gives its gain per unit, and never admits a
+    /// start equal to the base (size bias at the identity: every difference 0)
+    /// nor one that loses.
+    #[test]
+    fn the_likelihood_screen_admits_what_raises_the_check_part() {
+        let config = DiagnoseConfig { seed: 3, ..DiagnoseConfig::quick() };
+        let n = 20;
+        let raises: Vec<f64> = (0..n).map(|i| 0.5 + 0.05 * wobble(i)).collect();
+        let screen = LikelihoodScreen::judge("clutter", &raises, 4 * n, &config, 0);
+        assert_eq!(screen.cause, "clutter");
+        assert!(screen.admitted && screen.p < 1e-3, "{screen:?}");
+        let total: f64 = raises.iter().sum();
+        assert!((screen.gain - total / (4 * n) as f64).abs() < 1e-12, "{screen:?}");
+        let identity = LikelihoodScreen::judge("size_bias", &vec![0.0; n], 4 * n, &config, 1);
+        assert!(!identity.admitted && identity.p == 1.0 && identity.gain == 0.0, "{identity:?}");
+        let loses: Vec<f64> = raises.iter().map(|d| -d).collect();
+        assert!(!LikelihoodScreen::judge("latency", &loses, 4 * n, &config, 2).admitted);
+        // Starts that change nothing but the filter's noise pass at about the
+        // screen's level: a fifth of them.
+        let mut rng = StdRng::seed_from_u64(11);
+        let looks = 400;
+        let admitted = (0..looks)
+            .filter(|&k| {
+                let d: Vec<f64> = (0..n).map(|_| rng.sample::<f64, _>(StandardNormal) * 0.05).collect();
+                LikelihoodScreen::judge("heavy_tailed_accel", &d, 4 * n, &config, k).admitted
+            })
+            .count();
+        let share = admitted as f64 / looks as f64;
+        assert!((share - config.plausible_p).abs() < 0.06, "{admitted} of {looks}");
     }
 
     /// Rule (d) of a candidate the likelihood screen admitted (no check
