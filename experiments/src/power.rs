@@ -54,6 +54,11 @@ pub struct PowerArgs {
     /// the study with the base refitted at its own rate. Use a fresh `--out` for it.
     #[arg(long)]
     refit_base_lr: Option<f64>,
+    /// Every diagnosis runs the likelihood screen (`sefi diagnose
+    /// --likelihood-screen`): the study with extensions no check flagged screened
+    /// in by their start's likelihood. Use a fresh `--out` for it.
+    #[arg(long)]
+    likelihood_screen: bool,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -125,47 +130,75 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
     }
 }
 
-/// The refit rates every diagnosis of a study shares (`--candidate-lr`,
-/// `--refit-base-lr`): a study's directory holds one setting.
+/// The diagnosis settings every cell of a study shares (`--candidate-lr`,
+/// `--refit-base-lr`, `--likelihood-screen`): a study's directory holds one setting.
 #[derive(Clone, Copy, Debug, PartialEq)]
-struct RefitRates {
+struct StudySetting {
     /// Adam's rate of every refit (an extension's parameters).
     candidate_lr: f64,
     /// The base's parameters' rate in the refits; `None`: `candidate_lr`.
     refit_base_lr: Option<f64>,
+    /// Whether each diagnosis runs the likelihood screen (`sefi diagnose
+    /// --likelihood-screen`).
+    likelihood_screen: bool,
 }
 
-impl RefitRates {
-    /// The quick diagnosis's rates with the given ones in their place, checked
-    /// by the diagnosis's own [`DiagnoseConfig::validate`] (an error names the
-    /// flag: `--refit-base-lr = 0: expected positive and finite`).
-    fn new(candidate_lr: Option<f64>, refit_base_lr: Option<f64>) -> Result<RefitRates, String> {
+impl StudySetting {
+    /// The quick diagnosis with the given rates and screen in place of its own,
+    /// checked by the diagnosis's own [`DiagnoseConfig::validate`] (an error names
+    /// the flag: `--refit-base-lr = 0: expected positive and finite`).
+    fn new(
+        candidate_lr: Option<f64>,
+        refit_base_lr: Option<f64>,
+        likelihood_screen: bool,
+    ) -> Result<StudySetting, String> {
         let quick = DiagnoseConfig::quick();
         let config = DiagnoseConfig {
             candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
             refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
+            likelihood_screen,
             ..quick
         };
         config.validate().map_err(|e| {
             format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
         })?;
-        Ok(RefitRates::of(&config))
+        Ok(StudySetting::of(&config))
     }
 
-    /// The rates a diagnosis ran with.
-    fn of(config: &DiagnoseConfig) -> RefitRates {
-        RefitRates { candidate_lr: config.candidate_lr, refit_base_lr: config.refit_base_lr }
+    /// The setting a diagnosis ran with.
+    fn of(config: &DiagnoseConfig) -> StudySetting {
+        StudySetting {
+            candidate_lr: config.candidate_lr,
+            refit_base_lr: config.refit_base_lr,
+            likelihood_screen: config.likelihood_screen,
+        }
+    }
+
+    /// The quick diagnosis of one cell under this setting.
+    fn diagnose_config(self, seed: u64) -> DiagnoseConfig {
+        DiagnoseConfig {
+            seed,
+            candidate_lr: self.candidate_lr,
+            refit_base_lr: self.refit_base_lr,
+            likelihood_screen: self.likelihood_screen,
+            ..DiagnoseConfig::quick()
+        }
     }
 }
 
-impl std::fmt::Display for RefitRates {
-    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`.
+impl std::fmt::Display for StudySetting {
+    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`, and
+    /// `, likelihood screen on` where it ran.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "learning rate {} (base's rate ", self.candidate_lr)?;
         match self.refit_base_lr {
             Some(base) => write!(f, "{base})"),
             None => write!(f, "off)"),
+        }?;
+        if self.likelihood_screen {
+            write!(f, ", likelihood screen on")?;
         }
+        Ok(())
     }
 }
 
@@ -199,7 +232,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
-    let rates = RefitRates::new(args.candidate_lr, args.refit_base_lr)?;
+    let setting = StudySetting::new(args.candidate_lr, args.refit_base_lr, args.likelihood_screen)?;
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -216,17 +249,17 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
                 bar.inc(1);
                 continue;
             }
-            if run_cell(&args.out, e, strength, seed, rates, false)?.is_none() {
+            if run_cell(&args.out, e, strength, seed, setting, false)?.is_none() {
                 continue;
             }
             // The tables so far after every diagnosis: an interrupted study
             // shows what it has.
-            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, rates)?;
+            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, setting)?;
             bar.inc(1);
         }
         bar.finish_and_clear();
     }
-    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, rates)?);
+    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, setting)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
 }
@@ -285,7 +318,7 @@ fn write_study_tables(
     strengths: &[f64],
     seeds: u64,
     scenes: Option<usize>,
-    rates: RefitRates,
+    setting: StudySetting,
 ) -> Result<String, String> {
     let mut ids: Vec<String> = effects.iter().map(|e| e.id.clone()).collect();
     let (mut strengths, mut seeds) = (strengths.to_vec(), seeds);
@@ -304,7 +337,7 @@ fn write_study_tables(
     let effects = study_effects(ids.iter().map(String::as_str), scenes)?;
     let mut cells = Vec::new();
     for (e, strength, seed) in plan(&effects, &strengths, seeds) {
-        cells.extend(run_cell(out, e, strength, seed, rates, true)?);
+        cells.extend(run_cell(out, e, strength, seed, setting, true)?);
     }
     write_tables(out, &effects, &strengths, &cells)
 }
@@ -396,7 +429,7 @@ fn run_cell(
     e: &StudyEffect,
     strength: f64,
     seed: u64,
-    rates: RefitRates,
+    setting: StudySetting,
     table_only: bool,
 ) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
@@ -418,15 +451,10 @@ fn run_cell(
             };
             if report_path.is_file() {
                 // Finished by another process between the read and the claim.
-                return run_cell(out, e, strength, seed, rates, table_only);
+                return run_cell(out, e, strength, seed, setting, table_only);
             }
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
-            let diagnose_config = DiagnoseConfig {
-                seed,
-                candidate_lr: rates.candidate_lr,
-                refit_base_lr: rates.refit_base_lr,
-                ..DiagnoseConfig::quick()
-            };
+            let diagnose_config = setting.diagnose_config(seed);
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
@@ -450,13 +478,13 @@ fn run_cell(
             config.objects_per_scene
         ));
     }
-    // Nor is a report of other refit rates (an `--out` reused with another
-    // `--candidate-lr` or `--refit-base-lr`).
-    let found = RefitRates::of(&report.config);
-    if found != rates {
+    // Nor is a report of another setting (an `--out` reused with another
+    // `--candidate-lr`, `--refit-base-lr` or `--likelihood-screen`).
+    let found = StudySetting::of(&report.config);
+    if found != setting {
         return Err(format!(
-            "{}: a diagnosis refitted at {found}, where this study's refit at {rates} (another --candidate-lr or \
-             --refit-base-lr? use another --out)",
+            "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
+             --refit-base-lr or --likelihood-screen? use another --out)",
             report_path.display(),
         ));
     }
@@ -625,8 +653,9 @@ mod tests {
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// A finished cell is read back and decided again; a report of another data
-    /// size or refit rates in the same study directory (an `--out` reused with
-    /// another `--scenes`, `--candidate-lr` or `--refit-base-lr`) is refused
+    /// size or setting in the same study directory (an `--out` reused with
+    /// another `--scenes`, `--candidate-lr`, `--refit-base-lr` or
+    /// `--likelihood-screen`) is refused
     /// with its path, not mixed into the table; a rate that is not positive and
     /// finite is refused by its flag.
     #[test]
@@ -639,20 +668,25 @@ mod tests {
             .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
         std::fs::copy(&committed, cell.join("report.json")).unwrap();
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
-        let rates = RefitRates::new(None, None).unwrap();
-        let lr = rates.candidate_lr;
-        let read = run_cell(&out, &effect, 1.0, 0, rates, true).unwrap().expect("the finished cell is read back");
+        let setting = StudySetting::new(None, None, false).unwrap();
+        let lr = setting.candidate_lr;
+        let read = run_cell(&out, &effect, 1.0, 0, setting, true).unwrap().expect("the finished cell is read back");
         assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
-        let other_rate = RefitRates { candidate_lr: lr / 5.0, ..rates };
+        let other_rate = StudySetting { candidate_lr: lr / 5.0, ..setting };
         let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
         assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
-        let base_rate = RefitRates::new(None, Some(lr / 10.0)).unwrap();
+        let base_rate = StudySetting::new(None, Some(lr / 10.0), false).unwrap();
         let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
         assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
-        assert!(RefitRates::new(None, Some(0.0)).unwrap_err().contains("--refit-base-lr"));
-        assert!(RefitRates::new(Some(f64::NAN), None).unwrap_err().contains("--candidate-lr"));
+        let screened = StudySetting::new(None, None, true).unwrap();
+        let err =
+            run_cell(&out, &effect, 1.0, 0, screened, true).err().expect("an unscreened report in a screened study");
+        assert!(err.contains("likelihood screen on") && err.contains("--likelihood-screen"), "{err}");
+        assert!(screened.diagnose_config(3).likelihood_screen && screened.diagnose_config(3).seed == 3);
+        assert!(StudySetting::new(None, Some(0.0), false).unwrap_err().contains("--refit-base-lr"));
+        assert!(StudySetting::new(Some(f64::NAN), None, false).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;
-        let err = run_cell(&out, &effect, 1.0, 0, rates, true).err().expect("a 16-scene report in a 32-scene study");
+        let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
         std::fs::remove_dir_all(&out).unwrap();
     }
@@ -674,7 +708,8 @@ mod tests {
         // Every id of the study's order is a known effect.
         assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
-        let table = write_study_tables(&out, &latency, &[1.0], 1, None, RefitRates::new(None, None).unwrap()).unwrap();
+        let table =
+            write_study_tables(&out, &latency, &[1.0], 1, None, StudySetting::new(None, None, false).unwrap()).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
         let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
         assert_eq!(
@@ -716,7 +751,8 @@ mod tests {
             std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
         }
         let effects = study_effects(["heavy_tailed_accel", "latency", "none-points"], None).unwrap();
-        let table = write_study_tables(&out, &effects, &[1.0], 5, None, RefitRates::new(None, None).unwrap()).unwrap();
+        let table =
+            write_study_tables(&out, &effects, &[1.0], 5, None, StudySetting::new(None, None, false).unwrap()).unwrap();
         let mut reader = csv::Reader::from_path(out.join("power.csv")).unwrap();
         let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         let why = |effect: &str, seed: &str| {
@@ -812,7 +848,8 @@ mod tests {
         std::fs::create_dir_all(out.join(cell)).unwrap();
         std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
         let effect = StudyEffect::of("persistent_flip").unwrap();
-        let read = run_cell(&out, &effect, 1.0, 0, RefitRates::new(None, None).unwrap(), true).unwrap().unwrap();
+        let read =
+            run_cell(&out, &effect, 1.0, 0, StudySetting::new(None, None, false).unwrap(), true).unwrap().unwrap();
         assert!(read.named);
         let names: Vec<&str> = read.relative_errors.iter().map(|e| e.0).collect();
         assert_eq!(names, ["fraction", "persistence"]);
@@ -823,7 +860,8 @@ mod tests {
         let learned = |name: &str| chain.params.iter().find(|p| p.0 == name).unwrap().1;
         assert!((read.relative_errors[0].1 - (learned("fraction") / 0.2 - 1.0)).abs() < 1e-12);
         assert!((read.relative_errors[1].1 - (learned("persistence") / HIDDEN_FLIP_PERSISTENCE - 1.0)).abs() < 1e-12);
-        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, RefitRates::new(None, None).unwrap()).unwrap();
+        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, StudySetting::new(None, None, false).unwrap())
+            .unwrap();
         let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
         assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
         // One cell: each median is that cell's |error|.
