@@ -622,7 +622,9 @@ mod tests {
     /// default, seed 3, which no check flagged): the report lists every
     /// extension the checks left to the screen with its start's gain and p,
     /// the admitted one is fitted and judged by rule (d) on its check-part
-    /// gain, and the decision read again from the report names it.
+    /// gain, and the decision read again from the report names it; on another
+    /// (heavy tails, 16 scenes, seed 2) the expected cause the screen turned away
+    /// is said to be so.
     #[test]
     fn the_likelihood_screen_is_reported_and_decides_rule_d() {
         let report = committed_in("likelihood-screen", "clutter-x2-seed3");
@@ -642,6 +644,15 @@ mod tests {
         assert!(row.ends_with("| yes |"), "{row}");
         assert!(md.contains("admitted by the likelihood screen; check-part gain over the reference +1.2164"), "{md}");
         assert!(md.contains("Not fitted (no check nor the likelihood screen made them plausible): latency"), "{md}");
+        // A cause the screen turned away is said to be so, with its start's numbers.
+        let tails = committed_in("likelihood-screen", "heavy-x1-16-scenes-seed2");
+        assert_eq!(
+            tails.why_not("heavy_tailed_accel").as_deref(),
+            Some(
+                "`unexplained`: `heavy_tailed_accel` not fitted: no check flagged it, nor did the likelihood screen \
+                 admit it (start gain -0.0007, p 0.787)"
+            )
+        );
     }
 
     /// `report.md`'s candidate table says, per candidate, whether it qualifies

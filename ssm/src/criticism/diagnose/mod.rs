@@ -965,7 +965,16 @@ impl Report {
                     ),
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
                 },
-                (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => format!("`{expected}` not fitted"),
+                (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => {
+                    match self.likelihood_screen.iter().find(|s| s.cause == expected) {
+                        Some(s) => format!(
+                            "`{expected}` not fitted: no check flagged it, nor did the likelihood screen admit it \
+                             (start gain {:+.4}, p {:.3})",
+                            s.gain, s.p
+                        ),
+                        None => format!("`{expected}` not fitted"),
+                    }
+                }
                 (None, Some(c)) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
                 (None, None) => match outcome_without_cause(&self.reference_checks()).1 {
                     failing if failing.is_empty() => {
