@@ -49,6 +49,10 @@ pub struct DiagnoseArgs {
     /// reference's, to be named.
     #[arg(long)]
     likelihood_screen: bool,
+    /// Start a nesting extension's fit (persistent_flip) where its nested extension's fit (heading_flip) ended:
+    /// the base's parameters and the fraction from that fit, the persistence from the checks.
+    #[arg(long)]
+    nesting_from_nested: bool,
     /// PF-SEFI steps of the base fit.
     #[arg(long)]
     base_steps: Option<usize>,
@@ -113,6 +117,7 @@ impl DiagnoseArgs {
         c.seed = self.seed;
         c.fit_all = self.fit_all;
         c.likelihood_screen = self.likelihood_screen;
+        c.nesting_from_nested = self.nesting_from_nested;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;

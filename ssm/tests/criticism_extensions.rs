@@ -308,6 +308,25 @@ fn persistent_flip_starts_at_the_runs_the_check_part_measured() {
     assert_eq!(flip.initial_from_checks(&[]), flip.initial());
 }
 
+/// Started from its nested fit, a persistent flip takes the independent flips'
+/// fitted fraction and keeps its own persistence; nothing else nests, and values
+/// of another length are refused.
+#[test]
+fn persistent_flip_starts_from_the_independent_flips_fraction() {
+    let ext = Extension::PersistentFlip;
+    let own = ext.initial_from_checks(&[("yaw_reversal_fraction", 0.2), ("yaw_reversal_persistence", 0.7)]);
+    for fraction in [0.03, 0.4] {
+        let nested = Extension::HeadingFlip.stored(&[fraction]).unwrap();
+        let start = ext.start_from_nested(&nested, &own).expect("persistent flips nest independent ones");
+        let v: Vec<f64> = ext.natural(start.data()).unwrap().iter().map(|v| v.1).collect();
+        assert!((v[0] - fraction).abs() < 1e-9 && (v[1] - 0.7).abs() < 1e-9, "{v:?} from {fraction}");
+    }
+    assert!(ext.start_from_nested(&[0.1, 0.2], &own).is_none(), "not heading_flip's values");
+    for other in [Extension::HeadingFlip, Extension::Clutter, Extension::Latency] {
+        assert!(other.start_from_nested(&[0.1], &other.initial()).is_none(), "{other:?} nests nothing");
+    }
+}
+
 #[test]
 fn heavy_tail_start_has_the_peakedness_the_check_part_measured() {
     let ext = Extension::HeavyTailedAccel;

@@ -192,6 +192,24 @@ impl Extension {
         }
     }
 
+    /// Stored initial values of this extension from the fitted stored values
+    /// `nested` of the extension it nests ([`Extension::nests`]) and its own start
+    /// `own`: what the two share from the fit — the chain's fraction is the
+    /// independent flips' fraction, stored on the same scale — and the rest (the
+    /// persistence) from `own`. `None` where this extension nests none or
+    /// `nested` is not its nested extension's values.
+    pub fn start_from_nested(self, nested: &[f64], own: &Tensor<f64>) -> Option<Tensor<f64>> {
+        let nested_len = self.nests()?.initial().numel();
+        match self {
+            Extension::PersistentFlip if nested.len() == nested_len && own.numel() == self.initial().numel() => {
+                let mut raw = own.data().to_vec();
+                raw[0] = nested[0];
+                Some(Tensor::from_vec(raw))
+            }
+            _ => None,
+        }
+    }
+
     /// The extension with catalogue id `id`.
     pub fn from_id(id: &str) -> Result<Extension, SettingError> {
         Extension::ALL.into_iter().find(|e| e.id() == id).ok_or_else(|| {
