@@ -49,10 +49,11 @@ pub struct DiagnoseArgs {
     /// reference's, to be named.
     #[arg(long)]
     likelihood_screen: bool,
-    /// Start a nesting extension's fit (persistent_flip) where its nested extension's fit (heading_flip) ended:
-    /// the base's parameters and the fraction from that fit, the persistence from the checks.
+    /// Fit a nesting extension (persistent_flip) from the base, as every other, instead of where its nested
+    /// extension's fit (heading_flip) ended (the base's parameters and the fraction from that fit, the
+    /// persistence from the checks).
     #[arg(long)]
-    nesting_from_nested: bool,
+    no_nesting_from_nested: bool,
     /// PF-SEFI steps of the base fit.
     #[arg(long)]
     base_steps: Option<usize>,
@@ -117,7 +118,7 @@ impl DiagnoseArgs {
         c.seed = self.seed;
         c.fit_all = self.fit_all;
         c.likelihood_screen = self.likelihood_screen;
-        c.nesting_from_nested = self.nesting_from_nested;
+        c.nesting_from_nested = !self.no_nesting_from_nested;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;
@@ -435,6 +436,18 @@ fn screen_table(s: &mut String, r: &Report) {
     }
 }
 
+/// What `report.md` says of a nesting extension's start when one was compared
+/// with its nested extension and started from its fit
+/// ([`DiagnoseConfig::nesting_from_nested`]); empty otherwise.
+fn nesting_note(r: &Report) -> &'static str {
+    if r.config.nesting_from_nested && r.candidates.iter().any(|c| c.over_nested.is_some()) {
+        " A nesting extension's fit started where its nested extension's fit ended (the base's parameters and the \
+         values the two share from it, the rest from the checks), so (e) compares its extra parameter."
+    } else {
+        ""
+    }
+}
+
 /// `report.md`'s table of the fitted candidates, under the rules that decide
 /// among them, each row ending with the first rule it fails (or **yes**).
 fn candidate_table(s: &mut String, r: &Report) {
@@ -456,10 +469,11 @@ fn candidate_table(s: &mut String, r: &Report) {
          p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially, (d) lower the \
          |z| of a check that flagged it below the reference's (or carry it past the measured value without \
          failing it, where the reference still flagged it) and (e), if it contains another fitted extension as \
-         a special case, beat that one by object (same test and minimum).\n",
+         a special case, beat that one by object (same test and minimum).{}\n",
         c.cause_level,
         r.gain_bar(),
-        noise_note(r)
+        noise_note(r),
+        nesting_note(r)
     );
     let _ = writeln!(
         s,
@@ -658,6 +672,21 @@ mod tests {
                  admit it (start gain -0.0007, p 0.787)"
             )
         );
+    }
+
+    /// A nesting extension started from its nested fit is said to be so under
+    /// the rules (the flip chain at twice its default, seed 3, rediagnosed with
+    /// the nesting start); a report from before it says nothing of it.
+    #[test]
+    fn report_md_says_where_a_nesting_fit_started() {
+        let note = "A nesting extension's fit started where its nested extension's fit ended";
+        let nesting = committed_in("power-study-nesting", "persistent_flip/x2/seed3");
+        assert!(nesting.config.nesting_from_nested);
+        assert!(markdown(&nesting, Path::new("data"), &[]).contains(note));
+        assert_eq!(nesting.decided(true).0, "persistent_flip");
+        let before = committed("persistent_flip/x2/seed3");
+        assert!(!before.config.nesting_from_nested && before.decided(true).0 == "heading_flip");
+        assert!(!markdown(&before, Path::new("data"), &[]).contains(note));
     }
 
     /// `report.md`'s candidate table says, per candidate, whether it qualifies

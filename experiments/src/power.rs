@@ -59,6 +59,11 @@ pub struct PowerArgs {
     /// in by their start's likelihood. Use a fresh `--out` for it.
     #[arg(long)]
     likelihood_screen: bool,
+    /// Every diagnosis fits a nesting extension from the base (`sefi diagnose
+    /// --no-nesting-from-nested`), as the studies before 2026-11-30's
+    /// twenty-eighth session did: their directories' tables need it.
+    #[arg(long)]
+    no_nesting_from_nested: bool,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -141,22 +146,21 @@ struct StudySetting {
     /// Whether each diagnosis runs the likelihood screen (`sefi diagnose
     /// --likelihood-screen`).
     likelihood_screen: bool,
+    /// Whether a nesting extension's fit starts where its nested one's ended
+    /// (the default; `sefi diagnose --no-nesting-from-nested` turns it off).
+    nesting_from_nested: bool,
 }
 
 impl StudySetting {
-    /// The quick diagnosis with the given rates and screen in place of its own,
-    /// checked by the diagnosis's own [`DiagnoseConfig::validate`] (an error names
-    /// the flag: `--refit-base-lr = 0: expected positive and finite`).
-    fn new(
-        candidate_lr: Option<f64>,
-        refit_base_lr: Option<f64>,
-        likelihood_screen: bool,
-    ) -> Result<StudySetting, String> {
+    /// The quick diagnosis with the given rates in place of its own (its
+    /// screen and nesting start as they are), checked by the diagnosis's own
+    /// [`DiagnoseConfig::validate`] (an error names the flag: `--refit-base-lr =
+    /// 0: expected positive and finite`).
+    fn new(candidate_lr: Option<f64>, refit_base_lr: Option<f64>) -> Result<StudySetting, String> {
         let quick = DiagnoseConfig::quick();
         let config = DiagnoseConfig {
             candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
             refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
-            likelihood_screen,
             ..quick
         };
         config.validate().map_err(|e| {
@@ -171,6 +175,7 @@ impl StudySetting {
             candidate_lr: config.candidate_lr,
             refit_base_lr: config.refit_base_lr,
             likelihood_screen: config.likelihood_screen,
+            nesting_from_nested: config.nesting_from_nested,
         }
     }
 
@@ -181,14 +186,16 @@ impl StudySetting {
             candidate_lr: self.candidate_lr,
             refit_base_lr: self.refit_base_lr,
             likelihood_screen: self.likelihood_screen,
+            nesting_from_nested: self.nesting_from_nested,
             ..DiagnoseConfig::quick()
         }
     }
 }
 
 impl std::fmt::Display for StudySetting {
-    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`, and
-    /// `, likelihood screen on` where it ran.
+    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`, then
+    /// `, likelihood screen on` where it ran and `, nesting fits from the base`
+    /// where a nesting extension was not started from its nested fit.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "learning rate {} (base's rate ", self.candidate_lr)?;
         match self.refit_base_lr {
@@ -197,6 +204,9 @@ impl std::fmt::Display for StudySetting {
         }?;
         if self.likelihood_screen {
             write!(f, ", likelihood screen on")?;
+        }
+        if !self.nesting_from_nested {
+            write!(f, ", nesting fits from the base")?;
         }
         Ok(())
     }
@@ -232,7 +242,11 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
-    let setting = StudySetting::new(args.candidate_lr, args.refit_base_lr, args.likelihood_screen)?;
+    let setting = StudySetting {
+        likelihood_screen: args.likelihood_screen,
+        nesting_from_nested: !args.no_nesting_from_nested,
+        ..StudySetting::new(args.candidate_lr, args.refit_base_lr)?
+    };
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -479,12 +493,12 @@ fn run_cell(
         ));
     }
     // Nor is a report of another setting (an `--out` reused with another
-    // `--candidate-lr`, `--refit-base-lr` or `--likelihood-screen`).
+    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen` or `--no-nesting-from-nested`).
     let found = StudySetting::of(&report.config);
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr or --likelihood-screen? use another --out)",
+             --refit-base-lr, --likelihood-screen or --no-nesting-from-nested? use another --out)",
             report_path.display(),
         ));
     }
@@ -652,6 +666,12 @@ mod tests {
     use super::*;
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
+    /// The setting of the committed studies, run before a nesting extension's
+    /// fit started from its nested one's.
+    fn before_nesting() -> StudySetting {
+        StudySetting { nesting_from_nested: false, ..StudySetting::new(None, None).unwrap() }
+    }
+
     /// A finished cell is read back and decided again; a report of another data
     /// size or setting in the same study directory (an `--out` reused with
     /// another `--scenes`, `--candidate-lr`, `--refit-base-lr` or
@@ -668,23 +688,30 @@ mod tests {
             .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
         std::fs::copy(&committed, cell.join("report.json")).unwrap();
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
-        let setting = StudySetting::new(None, None, false).unwrap();
+        let setting = before_nesting();
         let lr = setting.candidate_lr;
         let read = run_cell(&out, &effect, 1.0, 0, setting, true).unwrap().expect("the finished cell is read back");
         assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
         let other_rate = StudySetting { candidate_lr: lr / 5.0, ..setting };
         let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
         assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
-        let base_rate = StudySetting::new(None, Some(lr / 10.0), false).unwrap();
+        let base_rate =
+            StudySetting { nesting_from_nested: false, ..StudySetting::new(None, Some(lr / 10.0)).unwrap() };
         let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
         assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
-        let screened = StudySetting::new(None, None, true).unwrap();
+        let screened = StudySetting { likelihood_screen: true, ..setting };
         let err =
             run_cell(&out, &effect, 1.0, 0, screened, true).err().expect("an unscreened report in a screened study");
         assert!(err.contains("likelihood screen on") && err.contains("--likelihood-screen"), "{err}");
         assert!(screened.diagnose_config(3).likelihood_screen && screened.diagnose_config(3).seed == 3);
-        assert!(StudySetting::new(None, Some(0.0), false).unwrap_err().contains("--refit-base-lr"));
-        assert!(StudySetting::new(Some(f64::NAN), None, false).unwrap_err().contains("--candidate-lr"));
+        // The committed report fitted the nesting extension from the base, as
+        // every study before the nesting start did; today's default is refused.
+        let today = StudySetting::new(None, None).unwrap();
+        assert!(today.nesting_from_nested && today.diagnose_config(0).nesting_from_nested);
+        let err = run_cell(&out, &effect, 1.0, 0, today, true).err().expect("a report from before the nesting start");
+        assert!(err.contains("nesting fits from the base") && err.contains("--no-nesting-from-nested"), "{err}");
+        assert!(StudySetting::new(None, Some(0.0)).unwrap_err().contains("--refit-base-lr"));
+        assert!(StudySetting::new(Some(f64::NAN), None).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;
         let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
@@ -708,8 +735,7 @@ mod tests {
         // Every id of the study's order is a known effect.
         assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
-        let table =
-            write_study_tables(&out, &latency, &[1.0], 1, None, StudySetting::new(None, None, false).unwrap()).unwrap();
+        let table = write_study_tables(&out, &latency, &[1.0], 1, None, before_nesting()).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
         let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
         assert_eq!(
@@ -751,8 +777,7 @@ mod tests {
             std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
         }
         let effects = study_effects(["heavy_tailed_accel", "latency", "none-points"], None).unwrap();
-        let table =
-            write_study_tables(&out, &effects, &[1.0], 5, None, StudySetting::new(None, None, false).unwrap()).unwrap();
+        let table = write_study_tables(&out, &effects, &[1.0], 5, None, before_nesting()).unwrap();
         let mut reader = csv::Reader::from_path(out.join("power.csv")).unwrap();
         let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         let why = |effect: &str, seed: &str| {
@@ -848,8 +873,7 @@ mod tests {
         std::fs::create_dir_all(out.join(cell)).unwrap();
         std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
         let effect = StudyEffect::of("persistent_flip").unwrap();
-        let read =
-            run_cell(&out, &effect, 1.0, 0, StudySetting::new(None, None, false).unwrap(), true).unwrap().unwrap();
+        let read = run_cell(&out, &effect, 1.0, 0, before_nesting(), true).unwrap().unwrap();
         assert!(read.named);
         let names: Vec<&str> = read.relative_errors.iter().map(|e| e.0).collect();
         assert_eq!(names, ["fraction", "persistence"]);
@@ -860,8 +884,7 @@ mod tests {
         let learned = |name: &str| chain.params.iter().find(|p| p.0 == name).unwrap().1;
         assert!((read.relative_errors[0].1 - (learned("fraction") / 0.2 - 1.0)).abs() < 1e-12);
         assert!((read.relative_errors[1].1 - (learned("persistence") / HIDDEN_FLIP_PERSISTENCE - 1.0)).abs() < 1e-12);
-        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, StudySetting::new(None, None, false).unwrap())
-            .unwrap();
+        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, before_nesting()).unwrap();
         let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
         assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
         // One cell: each median is that cell's |error|.

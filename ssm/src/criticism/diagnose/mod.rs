@@ -27,8 +27,9 @@
 //!    plausible too when its start raises the check part's likelihood over the
 //!    base's ([`LikelihoodScreen`]); rule (d) below then asks the same of the
 //!    fitted extension against the reference.
-//!    With [`DiagnoseConfig::nesting_from_nested`] a nesting extension's fit
-//!    starts where its nested extension's fit ended.
+//!    A nesting extension's fit starts where its nested extension's fit ended
+//!    ([`DiagnoseConfig::nesting_from_nested`]), so that rule (e) below
+//!    compares its extra parameter, not two optimisations.
 //!    With [`DiagnoseConfig::refit`] (the default) every parameter is refitted
 //!    with the extension's — the base network gives back what it absorbed of the
 //!    effect — and the base alone is refitted the same way, from the same start,
@@ -220,8 +221,8 @@ pub struct DiagnoseConfig {
     /// fraction) from it, the rest (the persistence) from the checks
     /// ([`Extension::start_from_nested`]). Rule (e) then compares the extra
     /// parameter rather than two optimisations from one start, of which the
-    /// larger may stop short (README, "Why the chain's seed 3 names its nested
-    /// model"). Off by default (measured on a few cells only).
+    /// larger may stop short (README, "A nesting fit starts where its nested fit
+    /// ended"). On by default; a report written before it reads `false`.
     #[serde(default)]
     pub nesting_from_nested: bool,
     /// Family-wise level of the candidates' gain tests (Holm-corrected sign-flip
@@ -265,7 +266,7 @@ impl Default for DiagnoseConfig {
             plausible_p: 0.2,
             fit_all: false,
             likelihood_screen: false,
-            nesting_from_nested: false,
+            nesting_from_nested: true,
             cause_level: 0.05,
             min_gain: MIN_GAIN,
             permutations: 9999,
