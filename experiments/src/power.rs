@@ -136,7 +136,8 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
 }
 
 /// The diagnosis settings every cell of a study shares (`--candidate-lr`,
-/// `--refit-base-lr`, `--likelihood-screen`): a study's directory holds one setting.
+/// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`): a
+/// study's directory holds one setting.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct StudySetting {
     /// Adam's rate of every refit (an extension's parameters).
@@ -674,8 +675,8 @@ mod tests {
 
     /// A finished cell is read back and decided again; a report of another data
     /// size or setting in the same study directory (an `--out` reused with
-    /// another `--scenes`, `--candidate-lr`, `--refit-base-lr` or
-    /// `--likelihood-screen`) is refused
+    /// another `--scenes`, `--candidate-lr`, `--refit-base-lr`,
+    /// `--likelihood-screen` or `--no-nesting-from-nested`) is refused
     /// with its path, not mixed into the table; a rate that is not positive and
     /// finite is refused by its flag.
     #[test]
@@ -699,6 +700,10 @@ mod tests {
             StudySetting { nesting_from_nested: false, ..StudySetting::new(None, Some(lr / 10.0)).unwrap() };
         let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
         assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
+        // Each cell is diagnosed with the study's setting, not the quick default's.
+        let cell_config = base_rate.diagnose_config(4);
+        assert_eq!((cell_config.seed, cell_config.refit_base_lr), (4, Some(lr / 10.0)));
+        assert!(!cell_config.nesting_from_nested && !cell_config.likelihood_screen);
         let screened = StudySetting { likelihood_screen: true, ..setting };
         let err =
             run_cell(&out, &effect, 1.0, 0, screened, true).err().expect("an unscreened report in a screened study");

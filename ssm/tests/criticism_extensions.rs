@@ -322,6 +322,14 @@ fn persistent_flip_starts_from_the_independent_flips_fraction() {
         assert!((v[0] - fraction).abs() < 1e-9 && (v[1] - 0.7).abs() < 1e-9, "{v:?} from {fraction}");
     }
     assert!(ext.start_from_nested(&[0.1, 0.2], &own).is_none(), "not heading_flip's values");
+    // What that rests on: every nested extension's values are the first of its
+    // nesting one's, in the same units.
+    for nesting in Extension::ALL {
+        let Some(nested) = nesting.nests() else { continue };
+        let names =
+            |e: Extension| -> Vec<&str> { e.natural(e.initial().data()).unwrap().iter().map(|v| v.0).collect() };
+        assert!(names(nesting).starts_with(&names(nested)), "{nesting:?} over {nested:?}");
+    }
     for other in [Extension::HeadingFlip, Extension::Clutter, Extension::Latency] {
         assert!(other.start_from_nested(&[0.1], &other.initial()).is_none(), "{other:?} nests nothing");
     }

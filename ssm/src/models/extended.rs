@@ -184,7 +184,8 @@ impl Extension {
     /// The catalogue entry this one contains as a special case, if any:
     /// `persistent_flip` at persistence 0 is `heading_flip`. A diagnosis names
     /// the larger only where it beats the smaller by object (its extra
-    /// parameter must earn its place).
+    /// parameter must earn its place). The nested entry's values come first
+    /// among this one's, stored alike ([`Extension::start_from_nested`]).
     pub fn nests(self) -> Option<Extension> {
         match self {
             Extension::PersistentFlip => Some(Extension::HeadingFlip),
@@ -194,20 +195,18 @@ impl Extension {
 
     /// Stored initial values of this extension from the fitted stored values
     /// `nested` of the extension it nests ([`Extension::nests`]) and its own start
-    /// `own`: what the two share from the fit — the chain's fraction is the
-    /// independent flips' fraction, stored on the same scale — and the rest (the
-    /// persistence) from `own`. `None` where this extension nests none or
-    /// `nested` is not its nested extension's values.
+    /// `own`: the values the two share from the fit (the nested extension's
+    /// stored values are the first of this one's, on the same scale: the chain's
+    /// fraction is the independent flips' fraction), the rest (the persistence)
+    /// from `own`. `None` where this extension nests none or `nested` is not its
+    /// nested extension's values.
     pub fn start_from_nested(self, nested: &[f64], own: &Tensor<f64>) -> Option<Tensor<f64>> {
-        let nested_len = self.nests()?.initial().numel();
-        match self {
-            Extension::PersistentFlip if nested.len() == nested_len && own.numel() == self.initial().numel() => {
-                let mut raw = own.data().to_vec();
-                raw[0] = nested[0];
-                Some(Tensor::from_vec(raw))
-            }
-            _ => None,
-        }
+        let shared = self.nests()?.initial().numel();
+        (nested.len() == shared && own.numel() == self.initial().numel()).then(|| {
+            let mut raw = own.data().to_vec();
+            raw[..shared].copy_from_slice(nested);
+            Tensor::from_vec(raw)
+        })
     }
 
     /// The extension with catalogue id `id`.

@@ -1365,7 +1365,7 @@ fn run(
         let nested_fit = extension.nests().and_then(|nested| fits.iter().find(|f| f.extension == nested));
         let start = match nested_fit {
             Some(nested) if config.nesting_from_nested => {
-                start_from_nested(extension, start_of(extension), nested.extension, &nested.run.params)?
+                start_from_nested(extension, start_of(extension), &nested.run.params)?
             }
             _ => start_of(extension),
         };
@@ -1530,22 +1530,22 @@ impl FitSchedule {
 
 /// The start of nesting `extension`'s fit from its nested extension's fit
 /// ([`DiagnoseConfig::nesting_from_nested`]): `own_start` (the base and the
-/// extension's start from the checks) with every base parameter as the fit of
-/// `nested` left it (`nested_params`), and the extension's own values from
+/// extension's start from the checks) with every base parameter as that fit left
+/// it (`nested_params`), and the extension's own values from
 /// [`Extension::start_from_nested`].
 fn start_from_nested(
     extension: Extension,
     own_start: ParamStore<f64>,
-    nested: Extension,
     nested_params: &ParamStore<f64>,
 ) -> Result<ParamStore<f64>, String> {
+    let nested = extension.nests().ok_or_else(|| format!("{} does not nest another extension", extension.id()))?;
     let (own_name, nested_name) = (extension.param_name(), nested.param_name());
     let missing = |name: &str| format!("{}: no parameter `{name}` to start from", extension.id());
     let own = own_start.id(&own_name).ok_or_else(|| missing(&own_name))?;
     let nested_values = nested_params.id(&nested_name).ok_or_else(|| missing(&nested_name))?;
     let values = extension
         .start_from_nested(nested_params.get(nested_values).data(), own_start.get(own))
-        .ok_or_else(|| format!("{} does not nest {}", extension.id(), nested.id()))?;
+        .ok_or_else(|| format!("{}: `{nested_name}` is not {}'s values", extension.id(), nested.id()))?;
     let mut start = own_start;
     start.copy_matching(nested_params);
     *start.get_mut(own) = values;
@@ -1943,12 +1943,12 @@ mod tests {
         let mut nested = ParamStore::new();
         nested.add("policy.0.w", Tensor::from_vec(vec![3.0, 4.0]));
         nested.add(&flips.param_name(), flips.stored(&[0.4]).map(Tensor::from_vec).unwrap());
-        let start = start_from_nested(chain, own.clone(), flips, &nested).unwrap();
+        let start = start_from_nested(chain, own.clone(), &nested).unwrap();
         assert_eq!(start.get(start.id("policy.0.w").unwrap()).data(), [3.0, 4.0]);
         assert!(start.id(&flips.param_name()).is_none(), "only the nesting extension's own values");
         let values = chain.natural(start.get(start.id(&chain.param_name()).unwrap()).data()).unwrap();
         assert!((values[0].1 - 0.4).abs() < 1e-9 && (values[1].1 - 0.7).abs() < 1e-9, "{values:?}");
-        assert!(start_from_nested(flips, nested.clone(), chain, &own).unwrap_err().contains("does not nest"));
+        assert!(start_from_nested(flips, nested.clone(), &own).unwrap_err().contains("does not nest"));
     }
 
     /// The screen admits a start that raises the check objects' likelihood
