@@ -102,6 +102,10 @@ pub struct DiagnoseArgs {
     /// last) [default: 25].
     #[arg(long)]
     keep_best_every: Option<usize>,
+    /// Average the iterates of every fit's last this share of steps and keep their mean (Polyak–Ruppert tail
+    /// averaging; 0: keep the iterate) [default: 0].
+    #[arg(long)]
+    average_tail: Option<f64>,
     /// Learn only the extensions' parameters on top of the fixed base (the base is the reference), instead of
     /// refitting every parameter with them beside the base refitted alone.
     #[arg(long)]
@@ -139,6 +143,7 @@ impl DiagnoseArgs {
         set(&mut c.candidate_lr, self.candidate_lr);
         c.refit_base_lr = self.refit_base_lr.or(c.refit_base_lr);
         set(&mut c.keep_best_every, self.keep_best_every);
+        set(&mut c.average_tail, self.average_tail);
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;
         c

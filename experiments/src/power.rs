@@ -64,6 +64,11 @@ pub struct PowerArgs {
     /// twenty-eighth session did: their directories' tables need it.
     #[arg(long)]
     no_nesting_from_nested: bool,
+    /// Every fit of every diagnosis returns the mean of its last this share of
+    /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
+    /// fits. Use a fresh `--out` for it.
+    #[arg(long)]
+    average_tail: Option<f64>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -150,6 +155,9 @@ struct StudySetting {
     /// Whether a nesting extension's fit starts where its nested one's ended
     /// (the default; `sefi diagnose --no-nesting-from-nested` turns it off).
     nesting_from_nested: bool,
+    /// The share of every fit's last iterates averaged (`sefi diagnose
+    /// --average-tail`; 0: none).
+    average_tail: f64,
 }
 
 impl StudySetting {
@@ -157,11 +165,16 @@ impl StudySetting {
     /// screen and nesting start as they are), checked by the diagnosis's own
     /// [`DiagnoseConfig::validate`] (an error names the flag: `--refit-base-lr =
     /// 0: expected positive and finite`).
-    fn new(candidate_lr: Option<f64>, refit_base_lr: Option<f64>) -> Result<StudySetting, String> {
+    fn new(
+        candidate_lr: Option<f64>,
+        refit_base_lr: Option<f64>,
+        average_tail: Option<f64>,
+    ) -> Result<StudySetting, String> {
         let quick = DiagnoseConfig::quick();
         let config = DiagnoseConfig {
             candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
             refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
+            average_tail: average_tail.unwrap_or(quick.average_tail),
             ..quick
         };
         config.validate().map_err(|e| {
@@ -177,6 +190,7 @@ impl StudySetting {
             refit_base_lr: config.refit_base_lr,
             likelihood_screen: config.likelihood_screen,
             nesting_from_nested: config.nesting_from_nested,
+            average_tail: config.average_tail,
         }
     }
 
@@ -188,6 +202,7 @@ impl StudySetting {
             refit_base_lr: self.refit_base_lr,
             likelihood_screen: self.likelihood_screen,
             nesting_from_nested: self.nesting_from_nested,
+            average_tail: self.average_tail,
             ..DiagnoseConfig::quick()
         }
     }
@@ -208,6 +223,9 @@ impl std::fmt::Display for StudySetting {
         }
         if !self.nesting_from_nested {
             write!(f, ", nesting fits from the base")?;
+        }
+        if self.average_tail > 0.0 {
+            write!(f, ", each fit's last {} of iterates averaged", self.average_tail)?;
         }
         Ok(())
     }
@@ -246,7 +264,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     let setting = StudySetting {
         likelihood_screen: args.likelihood_screen,
         nesting_from_nested: !args.no_nesting_from_nested,
-        ..StudySetting::new(args.candidate_lr, args.refit_base_lr)?
+        ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
     };
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
@@ -670,7 +688,7 @@ mod tests {
     /// The setting of the committed studies, run before a nesting extension's
     /// fit started from its nested one's.
     fn before_nesting() -> StudySetting {
-        StudySetting { nesting_from_nested: false, ..StudySetting::new(None, None).unwrap() }
+        StudySetting { nesting_from_nested: false, ..StudySetting::new(None, None, None).unwrap() }
     }
 
     /// A finished cell is read back and decided again; a report of another data
@@ -697,7 +715,7 @@ mod tests {
         let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
         assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
         let base_rate =
-            StudySetting { nesting_from_nested: false, ..StudySetting::new(None, Some(lr / 10.0)).unwrap() };
+            StudySetting { nesting_from_nested: false, ..StudySetting::new(None, Some(lr / 10.0), None).unwrap() };
         let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
         assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
         // Each cell is diagnosed with the study's setting, not the quick default's.
@@ -711,12 +729,12 @@ mod tests {
         assert!(screened.diagnose_config(3).likelihood_screen && screened.diagnose_config(3).seed == 3);
         // The committed report fitted the nesting extension from the base, as
         // every study before the nesting start did; today's default is refused.
-        let today = StudySetting::new(None, None).unwrap();
+        let today = StudySetting::new(None, None, None).unwrap();
         assert!(today.nesting_from_nested && today.diagnose_config(0).nesting_from_nested);
         let err = run_cell(&out, &effect, 1.0, 0, today, true).err().expect("a report from before the nesting start");
         assert!(err.contains("nesting fits from the base") && err.contains("--no-nesting-from-nested"), "{err}");
-        assert!(StudySetting::new(None, Some(0.0)).unwrap_err().contains("--refit-base-lr"));
-        assert!(StudySetting::new(Some(f64::NAN), None).unwrap_err().contains("--candidate-lr"));
+        assert!(StudySetting::new(None, Some(0.0), None).unwrap_err().contains("--refit-base-lr"));
+        assert!(StudySetting::new(Some(f64::NAN), None, None).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;
         let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");

@@ -122,6 +122,12 @@ pub struct TrainArgs {
     #[arg(long)]
     #[serde(default)]
     pub keep_best: bool,
+    /// Return the mean of the iterates of the run's last this share of steps
+    /// (Polyak–Ruppert tail averaging; 0: the last iterate). Evaluations from
+    /// the tail's first step on evaluate that mean.
+    #[arg(long, default_value_t = 0.0)]
+    #[serde(default)]
+    pub average_tail: f64,
     /// Write a checkpoint every this many steps.
     #[arg(long, default_value_t = 10)]
     pub checkpoint_every: usize,
@@ -423,6 +429,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         seed: args.seed,
         shuffle: true,
         keep_best: args.keep_best.then(|| ssm::objective::TEST_MLL.to_string()),
+        average_tail: args.average_tail,
     };
     let description = serde_json::to_value(args).map_err(|e| e.to_string())?;
     if !args.resume && root {

@@ -36,6 +36,70 @@ pub struct Checkpoint {
     /// With [`TrainConfig::keep_best`], the best evaluation so far: its step, its
     /// value and the parameters it evaluated.
     pub best: Option<(usize, f64, ParamStore<f64>)>,
+    /// With [`TrainConfig::average_tail`], once the tail has begun: how many
+    /// iterates the running mean holds, and the mean.
+    pub average: Option<(usize, ParamStore<f64>)>,
+}
+
+/// A checkpoint of format version 3, written before
+/// [`TrainConfig::average_tail`] and [`Checkpoint::average`] existed; read and
+/// carried over as a run without them.
+#[derive(Deserialize)]
+struct CheckpointV3 {
+    step: usize,
+    params: ParamStore<f64>,
+    adam: Adam,
+    skipped_steps: usize,
+    config: TrainConfigV3,
+    batches: usize,
+    eval_names: Vec<String>,
+    last_eval: (usize, Vec<f64>),
+    seconds: f64,
+    best: Option<(usize, f64, ParamStore<f64>)>,
+}
+
+/// [`TrainConfig`] as version-3 checkpoints hold it.
+#[derive(Deserialize)]
+struct TrainConfigV3 {
+    lr: f64,
+    final_lr: Option<f64>,
+    clip: Option<f64>,
+    epochs: usize,
+    eval_every: usize,
+    checkpoint_every: usize,
+    seed: u64,
+    shuffle: bool,
+    keep_best: Option<String>,
+}
+
+impl From<CheckpointV3> for Checkpoint {
+    fn from(v3: CheckpointV3) -> Self {
+        let c = v3.config;
+        Checkpoint {
+            step: v3.step,
+            params: v3.params,
+            adam: v3.adam,
+            skipped_steps: v3.skipped_steps,
+            config: TrainConfig {
+                lr: c.lr,
+                final_lr: c.final_lr,
+                clip: c.clip,
+                epochs: c.epochs,
+                eval_every: c.eval_every,
+                checkpoint_every: c.checkpoint_every,
+                seed: c.seed,
+                shuffle: c.shuffle,
+                keep_best: c.keep_best,
+                average_tail: 0.0,
+            },
+            batches: v3.batches,
+            eval_names: v3.eval_names,
+            last_eval: v3.last_eval,
+            seconds: v3.seconds,
+            best: v3.best,
+            average: None,
+        }
+    }
 }
 
 /// A checkpoint of format version 2, written before [`TrainConfig::keep_best`]
@@ -84,23 +148,26 @@ impl From<CheckpointV2> for Checkpoint {
                 seed: c.seed,
                 shuffle: c.shuffle,
                 keep_best: None,
+                average_tail: 0.0,
             },
             batches: v2.batches,
             eval_names: v2.eval_names,
             last_eval: v2.last_eval,
             seconds: v2.seconds,
             best: None,
+            average: None,
         }
     }
 }
 
 impl Checkpoint {
-    /// Reads a checkpoint (of this format version, or of version 2, carried
+    /// Reads a checkpoint (of this format version, or of version 2 or 3, carried
     /// over); a missing file is [`TrainError::NoCheckpoint`], an unreadable or
     /// damaged one [`TrainError::Checkpoint`].
     pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
         let read = match read_versioned(path, CHECKPOINT_VERSION) {
             Err(ParamError::Version { found: 2, .. }) => read_versioned::<CheckpointV2>(path, 2).map(Checkpoint::from),
+            Err(ParamError::Version { found: 3, .. }) => read_versioned::<CheckpointV3>(path, 3).map(Checkpoint::from),
             read => read,
         };
         read.map_err(|source| match source {

@@ -38,6 +38,16 @@ pub struct TrainConfig {
     /// returns where it was best on the evaluation data, and the outcome says
     /// how far the last evaluation fell below it ([`super::KeptBest`]).
     pub keep_best: Option<String>,
+    /// The share of the run's last steps whose iterates are averaged
+    /// (Polyak–Ruppert tail averaging; default 0: none). From
+    /// [`TrainConfig::average_start`] on, the run keeps the running mean of the
+    /// parameters after each step; evaluations from then on evaluate that mean,
+    /// and the run returns it (or, with [`TrainConfig::keep_best`], whichever
+    /// evaluation was best). A stochastic-gradient run whose rate has not reached
+    /// zero ends at one noisy draw around where it settled; the mean of its last
+    /// iterates has a fraction of that spread, so two runs that differ only in
+    /// their seeds end closer together.
+    pub average_tail: f64,
 }
 
 impl Default for TrainConfig {
@@ -52,6 +62,7 @@ impl Default for TrainConfig {
             seed: 0,
             shuffle: true,
             keep_best: None,
+            average_tail: 0.0,
         }
     }
 }
@@ -76,6 +87,7 @@ impl TrainConfig {
         cmp("seed", self.seed.to_string(), other.seed.to_string());
         cmp("shuffle", self.shuffle.to_string(), other.shuffle.to_string());
         cmp("keep_best", format!("{:?}", self.keep_best), format!("{:?}", other.keep_best));
+        cmp("average_tail", format!("{:?}", self.average_tail), format!("{:?}", other.average_tail));
         out
     }
 
@@ -87,6 +99,9 @@ impl TrainConfig {
             if !(end.is_finite() && end > 0.0) {
                 return Err(TrainError::Config(format!("final learning rate must be positive and finite, got {end}")));
             }
+        }
+        if !(self.average_tail.is_finite() && (0.0..=1.0).contains(&self.average_tail)) {
+            return Err(TrainError::Config(format!("average_tail must be in [0, 1], got {}", self.average_tail)));
         }
         if let Some(c) = self.clip {
             if !(c.is_finite() && c > 0.0) {
@@ -105,6 +120,17 @@ impl TrainConfig {
             }
             _ => self.lr,
         }
+    }
+
+    /// The first step (from 1) of `total` whose iterate enters the tail average
+    /// ([`TrainConfig::average_tail`]): the last `round(average_tail * total)`
+    /// steps, at least one; `None` without averaging or steps.
+    pub fn average_start(&self, total: usize) -> Option<usize> {
+        if self.average_tail <= 0.0 || total == 0 {
+            return None;
+        }
+        let averaged = ((self.average_tail * total as f64).round() as usize).clamp(1, total);
+        Some(total - averaged + 1)
     }
 
     pub(super) fn eval_due(&self, step: usize, total: usize) -> bool {

@@ -20,6 +20,9 @@
 //! * **Keeping the best.** With [`TrainConfig::keep_best`] naming an evaluation
 //!   metric, the run returns the parameters of its best evaluation rather than its
 //!   last ([`TrainOutcome::kept`] says where and how far the run fell after it).
+//! * **Averaging the tail.** With [`TrainConfig::average_tail`] the run keeps the
+//!   running mean of its last iterates (Polyak–Ruppert averaging), evaluates that
+//!   mean from the tail's first step on and returns it (or keep-best's choice).
 //! * **Files in `out_dir`.** [`TRAIN_LOG`] (one row per step, header
 //!   [`TRAIN_LOG_HEADER`]) and [`EVAL_LOG`] (`step` then the objective's metric
 //!   names; a row at step 0, every `eval_every` steps and at the end) are appended
@@ -27,8 +30,9 @@
 //!   [`CHECKPOINT_FILE`] (a [`Checkpoint`], versioned, checksummed, written
 //!   atomically) and [`PARAMS_FILE`] (the store alone, for `sefi eval --params`) are
 //!   written at step 0, every `checkpoint_every` steps and at the end; with
-//!   [`TrainConfig::keep_best`], [`PARAMS_FILE`] finally holds the kept parameters
-//!   (the checkpoint holds the last, to resume from).
+//!   [`TrainConfig::keep_best`], [`PARAMS_FILE`] finally holds the kept parameters,
+//!   with [`TrainConfig::average_tail`] alone the tail's mean (the checkpoint holds
+//!   the last iterate and the running mean, to resume from).
 //! * **Resuming** reads the checkpoint, refuses a different config, drops the log
 //!   rows written after it and carries on. Starting afresh in a directory that holds
 //!   a run is refused rather than overwriting it.
@@ -102,7 +106,7 @@ pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
 /// The parameter store alone, as [`ParamStore::save`] writes it.
 pub const PARAMS_FILE: &str = "params.bin";
 /// Format version of [`CHECKPOINT_FILE`] (checked by [`autodiff::nn::read_versioned`]).
-pub const CHECKPOINT_VERSION: u32 = 3;
+pub const CHECKPOINT_VERSION: u32 = 4;
 /// Why each skipped step was skipped: one row per skip (header
 /// [`SKIP_LOG_HEADER`]), created with the train log, cut back on resume as it is.
 pub const SKIP_LOG: &str = "skipped.csv";
@@ -217,7 +221,8 @@ pub enum TrainEvent {
 /// What a finished training run produced.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainOutcome {
-    /// The trained parameters: the last ones, or with [`TrainConfig::keep_best`]
+    /// The trained parameters: the last ones (the mean of the tail's iterates
+    /// with [`TrainConfig::average_tail`]), or with [`TrainConfig::keep_best`]
     /// those of the best evaluation ([`TrainOutcome::kept`]).
     pub params: ParamStore<f64>,
     /// Steps of the whole run, skipped ones included (`epochs * batches`).
@@ -279,6 +284,11 @@ struct Run<'a, O: Objective + ?Sized> {
     last_eval: (usize, Vec<f64>),
     /// With [`TrainConfig::keep_best`]: the best evaluation so far (step, value, parameters).
     best: Option<(usize, f64, ParamStore<f64>)>,
+    /// With [`TrainConfig::average_tail`], once the tail has begun: the iterates
+    /// averaged so far and their mean.
+    average: Option<(usize, ParamStore<f64>)>,
+    /// The first step of the tail average ([`TrainConfig::average_start`]).
+    average_start: Option<usize>,
     prior_seconds: f64,
     started: Instant,
     /// Created after the initial evaluation of a fresh run (never on a process
@@ -296,6 +306,31 @@ struct Run<'a, O: Objective + ?Sized> {
 impl<O: Objective + ?Sized> Run<'_, O> {
     fn seconds(&self) -> f64 {
         self.prior_seconds + self.started.elapsed().as_secs_f64()
+    }
+
+    /// The parameters the run would return now: the tail's mean once it has
+    /// begun ([`TrainConfig::average_tail`]), else the current iterate.
+    fn current(&self) -> &ParamStore<f64> {
+        self.average.as_ref().map_or(&self.params, |(_, mean)| mean)
+    }
+
+    /// Adds the iterate after `step` to the tail's running mean, if the tail has begun.
+    fn accumulate(&mut self, step: usize) {
+        if self.average_start.is_none_or(|start| step < start) {
+            return;
+        }
+        match self.average.as_mut() {
+            None => self.average = Some((1, self.params.clone())),
+            Some((count, mean)) => {
+                *count += 1;
+                let w = 1.0 / *count as f64;
+                for (m, p) in mean.values_mut().iter_mut().zip(self.params.values()) {
+                    for (a, &b) in m.data_mut().iter_mut().zip(p.data()) {
+                        *a += w * (b - *a);
+                    }
+                }
+            }
+        }
     }
 
     /// One step: estimate, guard, clip, update, log.
@@ -389,9 +424,10 @@ impl<O: Objective + ?Sized> Run<'_, O> {
     /// Evaluates after `step` steps and logs the row (creating the log at the first
     /// evaluation of a fresh run).
     fn evaluate(&mut self, step: usize) -> Result<TrainEvent, TrainError> {
+        let evaluated = self.average.as_ref().map_or(&self.params, |(_, mean)| mean);
         let metrics = self
             .objective
-            .evaluate(&self.params, eval_seed(self.config.seed))
+            .evaluate(evaluated, eval_seed(self.config.seed))
             .map_err(|message| TrainError::Evaluate { step, message })?;
         let names: Vec<String> = metrics.iter().map(|(n, _)| n.clone()).collect();
         match &self.eval_names {
@@ -412,7 +448,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
             // A non-finite evaluation is never the best; the first finite one is.
             let better = value.is_finite() && self.best.as_ref().is_none_or(|(_, b, _)| value > *b);
             if better {
-                self.best = Some((step, value, self.params.clone()));
+                self.best = Some((step, value, self.current().clone()));
             }
         }
         if !self.writes {
@@ -443,6 +479,7 @@ impl<O: Objective + ?Sized> Run<'_, O> {
             last_eval: self.last_eval.clone(),
             seconds: self.seconds(),
             best: self.best.clone(),
+            average: self.average.clone(),
         };
         ckpt.save(&self.dir.join(CHECKPOINT_FILE))?;
         let path = self.dir.join(PARAMS_FILE);
@@ -532,6 +569,8 @@ pub fn train(
             eval_names: Some(ckpt.eval_names),
             last_eval: ckpt.last_eval,
             best: ckpt.best,
+            average: ckpt.average,
+            average_start: config.average_start(total),
             prior_seconds: ckpt.seconds,
             started,
             train_log,
@@ -559,6 +598,8 @@ pub fn train(
             eval_names: None,
             last_eval: (0, Vec::new()),
             best: None,
+            average: None,
+            average_start: config.average_start(total),
             prior_seconds: 0.0,
             started,
             train_log: None,
@@ -592,6 +633,7 @@ pub fn train(
         }
         let batch = order[(step - 1) % batches];
         on_event(&run.step(step, batch, epoch)?);
+        run.accumulate(step);
         if config.eval_due(step, total) {
             on_event(&run.evaluate(step)?);
         }
@@ -610,8 +652,21 @@ pub fn train(
             }
             (params, Some(KeptBest { metric: metric.clone(), step, value, last }))
         }
-        // No finite evaluation at all: the last parameters, as without the setting.
-        _ => (run.params, None),
+        // No finite evaluation at all: the last parameters (or the tail's mean),
+        // as without the setting.
+        _ => {
+            let params = match run.average {
+                Some((_, mean)) => {
+                    if writes {
+                        let path = out_dir.join(PARAMS_FILE);
+                        mean.save(&path).map_err(|source| TrainError::Checkpoint { path, source })?;
+                    }
+                    mean
+                }
+                None => run.params,
+            };
+            (params, None)
+        }
     };
     Ok(TrainOutcome { final_eval, seconds, steps: total, skipped_steps, steps_run: total - done, params, kept })
 }

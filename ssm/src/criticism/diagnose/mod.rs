@@ -179,6 +179,12 @@ pub struct DiagnoseConfig {
     /// part chooses, so the gain stays out of sample on the evaluation part.
     #[serde(default)]
     pub keep_best_every: usize,
+    /// The share of every fit's last steps whose iterates are averaged
+    /// ([`TrainConfig::average_tail`]; 0: none, as reports written before this
+    /// setting existed did). The fit then returns (and keep-best evaluates from
+    /// the tail's start on) the mean of those iterates rather than the last one.
+    #[serde(default)]
+    pub average_tail: f64,
     /// Scenes per training step.
     pub scenes_per_step: usize,
     /// Paths drawn from the smoother per checked object (the checks' replicates).
@@ -256,6 +262,7 @@ impl Default for DiagnoseConfig {
             refit_base_lr: None,
             clip: Some(0.5),
             keep_best_every: 25,
+            average_tail: 0.0,
             scenes_per_step: 16,
             draws: 50,
             eval_runs: 2,
@@ -331,6 +338,8 @@ impl DiagnoseConfig {
         SettingError::check(self.permutations >= 99, "permutations", self.permutations, "at least 99")?;
         let g = self.min_gain;
         SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
+        let t = self.average_tail;
+        SettingError::check((0.0..=1.0).contains(&t), "average_tail", t, "in [0, 1]")?;
         for tempering in self.tempering.iter().chain(&self.train_tempering) {
             tempering.validate()?;
         }
@@ -1596,6 +1605,7 @@ fn fit(
         seed: config.seed,
         shuffle: true,
         keep_best: (config.keep_best_every > 0).then(|| crate::objective::TEST_MLL.to_string()),
+        average_tail: config.average_tail,
     };
     // `base`, `reference` or the extension's id: the run's directory names it.
     let model = dir.file_name().map_or_else(|| "base".to_string(), |n| n.to_string_lossy().into_owned());
