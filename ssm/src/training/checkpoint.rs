@@ -103,7 +103,7 @@ impl From<CheckpointV3> for Checkpoint {
 }
 
 /// A checkpoint of format version 2, written before [`TrainConfig::keep_best`]
-/// and [`Checkpoint::best`] existed; read and carried over as a run without them.
+/// and [`Checkpoint::best`] existed; read as a version-3 one without them.
 #[derive(Deserialize)]
 struct CheckpointV2 {
     step: usize,
@@ -130,32 +130,31 @@ struct TrainConfigV2 {
     shuffle: bool,
 }
 
-impl From<CheckpointV2> for Checkpoint {
+impl From<CheckpointV2> for CheckpointV3 {
     fn from(v2: CheckpointV2) -> Self {
         let c = v2.config;
-        Checkpoint {
+        let config = TrainConfigV3 {
+            lr: c.lr,
+            final_lr: c.final_lr,
+            clip: c.clip,
+            epochs: c.epochs,
+            eval_every: c.eval_every,
+            checkpoint_every: c.checkpoint_every,
+            seed: c.seed,
+            shuffle: c.shuffle,
+            keep_best: None,
+        };
+        CheckpointV3 {
             step: v2.step,
             params: v2.params,
             adam: v2.adam,
             skipped_steps: v2.skipped_steps,
-            config: TrainConfig {
-                lr: c.lr,
-                final_lr: c.final_lr,
-                clip: c.clip,
-                epochs: c.epochs,
-                eval_every: c.eval_every,
-                checkpoint_every: c.checkpoint_every,
-                seed: c.seed,
-                shuffle: c.shuffle,
-                keep_best: None,
-                average_tail: 0.0,
-            },
+            config,
             batches: v2.batches,
             eval_names: v2.eval_names,
             last_eval: v2.last_eval,
             seconds: v2.seconds,
             best: None,
-            average: None,
         }
     }
 }
@@ -166,7 +165,9 @@ impl Checkpoint {
     /// damaged one [`TrainError::Checkpoint`].
     pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
         let read = match read_versioned(path, CHECKPOINT_VERSION) {
-            Err(ParamError::Version { found: 2, .. }) => read_versioned::<CheckpointV2>(path, 2).map(Checkpoint::from),
+            Err(ParamError::Version { found: 2, .. }) => {
+                read_versioned::<CheckpointV2>(path, 2).map(|v2| Checkpoint::from(CheckpointV3::from(v2)))
+            }
             Err(ParamError::Version { found: 3, .. }) => read_versioned::<CheckpointV3>(path, 3).map(Checkpoint::from),
             read => read,
         };
