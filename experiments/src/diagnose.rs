@@ -13,6 +13,7 @@ use ssm::criticism::diagnose::{
     diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
 use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
+use ssm::models::extended::RefitScope;
 
 use crate::cluster::Cluster;
 use crate::output::{claim_or_refuse, write_atomic, write_json};
@@ -114,6 +115,11 @@ pub struct DiagnoseArgs {
     /// must then exceed only --min-gain).
     #[arg(long)]
     no_refit_noise: bool,
+    /// Refit every candidate (and its reference) in every parameter, the extensions of the dynamics (heavy tails)
+    /// included, instead of those in the policy alone with the observation network held, as diagnoses before
+    /// 2026-12-01 did.
+    #[arg(long)]
+    no_scoped_refits: bool,
 }
 
 impl DiagnoseArgs {
@@ -146,6 +152,7 @@ impl DiagnoseArgs {
         set(&mut c.average_tail, self.average_tail);
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;
+        c.scoped_refits = !self.no_scoped_refits;
         c
     }
 }
@@ -219,7 +226,7 @@ pub fn print_outcome(report: &Report, out: &Path) {
 /// How rule (b) met the refits' own noise: by a paired comparison with the
 /// reseeded refit, or (reports from before it) by the size of that refit's gain.
 fn noise_note(r: &Report) -> String {
-    match r.reference.as_ref().and_then(|reference| reference.reseeded.as_ref()) {
+    match r.first_reference().and_then(|reference| reference.reseeded.as_ref()) {
         Some(n) if n.object_gains.is_empty() => format!(
             " (the larger of {} and the refits' own noise: the base refitted alone with another seed gains {:+.4} \
              ± {:.4} over the reference)",
@@ -357,7 +364,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|");
     let mut order: Vec<&CheckReport> = r.checks.iter().collect();
     order.sort_by(|a, b| b.before.z.abs().total_cmp(&a.before.z.abs()));
-    let reference = |name: &str| r.reference.as_ref().and_then(|x| x.checks.iter().find(|c| c.name == name));
+    let reference = |name: &str| r.first_reference().and_then(|x| x.checks.iter().find(|c| c.name == name));
     for ch in order {
         let b = &ch.before;
         let (az, ap) = ch.after.as_ref().map_or(("-".into(), "-".into()), |a| (fmt_z(a.z), fmt(a.p_adjusted)));
@@ -453,15 +460,39 @@ fn nesting_note(r: &Report) -> &'static str {
     }
 }
 
+/// The sentence on refit scopes of `report.md`'s candidate section: which
+/// candidates were refitted in the policy alone against the base refitted so
+/// (`DiagnoseConfig::scoped_refits`); empty where every candidate was refitted
+/// in every parameter.
+fn scope_note(r: &Report) -> String {
+    let in_policy: Vec<&str> =
+        r.candidates.iter().filter(|c| c.refit_scope == RefitScope::Dynamics).map(|c| c.cause.as_str()).collect();
+    if in_policy.is_empty() {
+        return String::new();
+    }
+    let reference = r.dynamics_reference.as_ref().map_or(String::new(), |d| {
+        d.reseeded
+            .as_ref()
+            .map_or(String::new(), |n| format!("; its reseeded twin gains {:+.4} ± {:.4} over it", n.gain, n.gain_se))
+    });
+    format!(
+        ", except the extensions of the dynamics ({}): refitted in the policy alone, the observation network held at \
+         the base's, and compared with the base refitted in the policy alone{reference}",
+        in_policy.join(", ")
+    )
+}
+
 /// `report.md`'s table of the fitted candidates, under the rules that decide
 /// among them, each row ending with the first rule it fails (or **yes**).
 fn candidate_table(s: &mut String, r: &Report) {
     let c = &r.config;
-    let how = if r.reference.is_some() {
+    let how = if r.first_reference().is_some() {
         format!(
             "every parameter refitted with the extension's by PF-SEFI on the fit objects ({} steps from the base), \
-             and compared with the reference: the base refitted alone the same way (evaluation MLL {:.4})",
-            c.candidate_steps, r.base_mll
+             and compared with the reference: the base refitted alone the same way (evaluation MLL {:.4}){}",
+            c.candidate_steps,
+            r.base_mll,
+            scope_note(r)
         )
     } else {
         "its parameters learned by PF-SEFI on the fit objects on top of the fixed base, which is the reference"
@@ -485,10 +516,9 @@ fn candidate_table(s: &mut String, r: &Report) {
         "| extension | gain (nats/unit) | SE | MC sd | p adj. | over refit (p adj.) | over nested (p) | top-2 share | learned | material | flagged by: z reference → extended | qualifies |"
     );
     let _ = writeln!(s, "|---|---|---|---|---|---|---|---|---|---|---|---|");
-    let reference_checks = r.reference_checks();
     let verdicts = r.verdicts(true);
     for (cand, verdict) in r.candidates.iter().zip(verdicts) {
-        let flagged = cand.flagging_moves(&reference_checks);
+        let flagged = cand.flagging_moves(&r.reference_checks_of(cand));
         let _ = writeln!(
             s,
             "| {} | {:+.4} | {:.4} | {} | {} | {} | {} | {} | {} | {} | {flagged} | {} |",
@@ -526,10 +556,12 @@ fn candidate_table(s: &mut String, r: &Report) {
 /// that a fit that wandered off shows; empty for a report whose fits kept their last.
 fn fits_kept(r: &Report) -> String {
     let mut fits = vec![("base".to_string(), r.base_kept.as_ref())];
-    if let Some(reference) = &r.reference {
-        fits.push(("reference".into(), reference.kept.as_ref()));
-        if let Some(reseeded) = &reference.reseeded {
-            fits.push(("reference, reseeded".into(), reseeded.kept.as_ref()));
+    for (name, reference) in [("reference", &r.reference), ("reference in the policy", &r.dynamics_reference)] {
+        if let Some(reference) = reference {
+            fits.push((name.into(), reference.kept.as_ref()));
+            if let Some(reseeded) = &reference.reseeded {
+                fits.push((format!("{name}, reseeded"), reseeded.kept.as_ref()));
+            }
         }
     }
     fits.extend(r.candidates.iter().map(|c| (c.cause.clone(), c.kept.as_ref())));

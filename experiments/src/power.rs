@@ -64,6 +64,11 @@ pub struct PowerArgs {
     /// twenty-eighth session did: their directories' tables need it.
     #[arg(long)]
     no_nesting_from_nested: bool,
+    /// Every diagnosis refits its candidates in every parameter (`sefi diagnose
+    /// --no-scoped-refits`), as the studies before 2026-12-01's twenty-ninth
+    /// session did: their directories' tables need it.
+    #[arg(long)]
+    no_scoped_refits: bool,
     /// Every fit of every diagnosis returns the mean of its last this share of
     /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
     /// fits. Use a fresh `--out` for it.
@@ -141,8 +146,8 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
 }
 
 /// The diagnosis settings every cell of a study shares (`--candidate-lr`,
-/// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`): a
-/// study's directory holds one setting.
+/// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
+/// `--average-tail`, `--no-scoped-refits`): a study's directory holds one setting.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct StudySetting {
     /// Adam's rate of every refit (an extension's parameters).
@@ -158,6 +163,9 @@ struct StudySetting {
     /// The share of every fit's last iterates averaged (`sefi diagnose
     /// --average-tail`; 0: none).
     average_tail: f64,
+    /// Whether each candidate is refitted within its extension's refit scope
+    /// (the default; `sefi diagnose --no-scoped-refits` turns it off).
+    scoped_refits: bool,
 }
 
 impl StudySetting {
@@ -191,6 +199,7 @@ impl StudySetting {
             likelihood_screen: config.likelihood_screen,
             nesting_from_nested: config.nesting_from_nested,
             average_tail: config.average_tail,
+            scoped_refits: config.scoped_refits,
         }
     }
 
@@ -203,6 +212,7 @@ impl StudySetting {
             likelihood_screen: self.likelihood_screen,
             nesting_from_nested: self.nesting_from_nested,
             average_tail: self.average_tail,
+            scoped_refits: self.scoped_refits,
             ..DiagnoseConfig::quick()
         }
     }
@@ -223,6 +233,9 @@ impl std::fmt::Display for StudySetting {
         }
         if !self.nesting_from_nested {
             write!(f, ", nesting fits from the base")?;
+        }
+        if !self.scoped_refits {
+            write!(f, ", every refit in every parameter")?;
         }
         if self.average_tail > 0.0 {
             write!(f, ", each fit's last {} of iterates averaged", self.average_tail)?;
@@ -264,6 +277,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     let setting = StudySetting {
         likelihood_screen: args.likelihood_screen,
         nesting_from_nested: !args.no_nesting_from_nested,
+        scoped_refits: !args.no_scoped_refits,
         ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
     };
     ensure_dir(&args.out)?;
@@ -512,12 +526,14 @@ fn run_cell(
         ));
     }
     // Nor is a report of another setting (an `--out` reused with another
-    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen` or `--no-nesting-from-nested`).
+    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
+    // `--average-tail` or `--no-scoped-refits`).
     let found = StudySetting::of(&report.config);
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr, --likelihood-screen or --no-nesting-from-nested? use another --out)",
+             --refit-base-lr, --likelihood-screen, --no-nesting-from-nested, --average-tail or \
+             --no-scoped-refits? use another --out)",
             report_path.display(),
         ));
     }
@@ -686,9 +702,13 @@ mod tests {
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// The setting of the committed studies, run before a nesting extension's
-    /// fit started from its nested one's.
+    /// fit started from its nested one's and before refits had scopes.
     fn before_nesting() -> StudySetting {
-        StudySetting { nesting_from_nested: false, ..StudySetting::new(None, None, None).unwrap() }
+        StudySetting {
+            nesting_from_nested: false,
+            scoped_refits: false,
+            ..StudySetting::new(None, None, None).unwrap()
+        }
     }
 
     /// A finished cell is read back and decided again; a report of another data
@@ -714,8 +734,7 @@ mod tests {
         let other_rate = StudySetting { candidate_lr: lr / 5.0, ..setting };
         let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
         assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
-        let base_rate =
-            StudySetting { nesting_from_nested: false, ..StudySetting::new(None, Some(lr / 10.0), None).unwrap() };
+        let base_rate = StudySetting { refit_base_lr: Some(lr / 10.0), ..setting };
         let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
         assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
         // Each cell is diagnosed with the study's setting, not the quick default's.
@@ -733,6 +752,11 @@ mod tests {
         assert!(today.nesting_from_nested && today.diagnose_config(0).nesting_from_nested);
         let err = run_cell(&out, &effect, 1.0, 0, today, true).err().expect("a report from before the nesting start");
         assert!(err.contains("nesting fits from the base") && err.contains("--no-nesting-from-nested"), "{err}");
+        // Nor is a study of refits in every parameter mixed with one of scoped refits.
+        let scoped = StudySetting { scoped_refits: true, ..setting };
+        let err = run_cell(&out, &effect, 1.0, 0, scoped, true).err().expect("a report from before scoped refits");
+        assert!(err.contains("every refit in every parameter") && err.contains("--no-scoped-refits"), "{err}");
+        assert!(today.scoped_refits && today.diagnose_config(0).scoped_refits);
         assert!(StudySetting::new(None, Some(0.0), None).unwrap_err().contains("--refit-base-lr"));
         assert!(StudySetting::new(Some(f64::NAN), None, None).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;

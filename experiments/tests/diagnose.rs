@@ -10,8 +10,10 @@
 //! same at three strengths and five seeds each.
 
 use crate::common::{ok, s, sefi, temp};
+use autodiff::nn::ParamStore;
 use serde_json::Value;
 use ssm::criticism::diagnose::{beats_reseeded, Report};
+use ssm::training::{Checkpoint, CHECKPOINT_FILE};
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
 /// `generate` arguments such as `--boxes --scenes 32`), runs `diagnose --quick`
@@ -41,9 +43,14 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // A report whose candidates lack their comparison with the reseeded refit
     // (written before it) is compared again from the refit's per-object gains,
     // with the same seeds: the same outcome.
-    if let Some(reseeded) = typed.reference.as_ref().and_then(|r| r.reseeded.as_ref()) {
+    let reseeded: Option<Vec<&[f64]>> = typed
+        .candidates
+        .iter()
+        .map(|c| typed.reference_of(c).and_then(|r| r.reseeded.as_ref()).map(|r| r.object_gains.as_slice()))
+        .collect();
+    if let Some(reseeded) = reseeded.filter(|r| !r.is_empty()) {
         let gains: Vec<&[f64]> = typed.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
-        let again = beats_reseeded(&gains, &reseeded.object_gains, typed.eval_units, &typed.config);
+        let again = beats_reseeded(&gains, &reseeded, typed.eval_units, &typed.config);
         // The same p-values; the gains to rounding (the per-object gains went
         // through JSON's decimal text).
         for ((gain, p), c) in again.into_iter().zip(&typed.candidates) {
@@ -66,15 +73,40 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     assert_eq!(origin_steps, Some(if extra.contains(&"--boxes") { 8 } else { 0 }), "tempering by the data's kind");
     assert_eq!(report["config"]["train_tempering"]["origin_steps"].as_u64(), Some(0), "training without origin moves");
     // Candidates are compared with the base refitted alone as they were refitted:
-    // a reference with its own checks whenever any candidate was fitted.
+    // a reference with its own checks for each refit scope that has a candidate
+    // (every parameter; the policy alone for an extension of the dynamics).
     let candidates = report["candidates"].as_array().unwrap();
-    assert_eq!(report["config"]["refit"], true);
-    assert_eq!(report["reference"].is_object(), !candidates.is_empty(), "{}", summary(&report));
-    if let Some(reference) = report["reference"].as_object() {
+    assert_eq!((&report["config"]["refit"], &report["config"]["scoped_refits"]), (&true.into(), &true.into()));
+    for (scope, field, dir) in
+        [("all", "reference", "reference"), ("dynamics", "dynamics_reference", "reference-dynamics")]
+    {
+        let in_scope = candidates.iter().any(|c| c["refit_scope"] == scope);
+        assert_eq!(report[field].is_object(), in_scope, "{}", summary(&report));
+        assert_eq!(out.join(dir).join("train.csv").is_file(), in_scope, "{dir}'s training run");
+    }
+    for c in candidates {
+        let scope = if c["cause"] == "heavy_tailed_accel" { "dynamics" } else { "all" };
+        assert_eq!(c["refit_scope"], scope, "{}", c["cause"]);
+    }
+    // A refit in the policy alone holds the observation network at the base's
+    // (the parameters it kept, where the refit starts) to its last step, and
+    // moves the policy.
+    let base = ParamStore::<f64>::load(&out.join("base").join("params.bin")).expect("the base's params.bin");
+    let tensor = |p: &ParamStore<f64>, name: &str| p.get(p.id(name).unwrap()).data().to_vec();
+    let observation = |p: &ParamStore<f64>| -> Vec<Vec<f64>> {
+        p.iter().filter(|(n, _)| n.starts_with("obs.")).map(|(_, v)| v.data().to_vec()).collect()
+    };
+    let held = [out.join("reference-dynamics"), out.join("candidates").join("heavy_tailed_accel")];
+    for dir in held.into_iter().filter(|d| d.is_dir()) {
+        let last = Checkpoint::load(&dir.join(CHECKPOINT_FILE)).expect("the refit's checkpoint").params;
+        assert!(!observation(&last).is_empty());
+        assert_eq!(observation(&last), observation(&base), "{} moved the observation network", dir.display());
+        assert_ne!(tensor(&last, "policy.0.w"), tensor(&base, "policy.0.w"), "{} left the policy", dir.display());
+    }
+    for reference in [report["reference"].as_object(), report["dynamics_reference"].as_object()].into_iter().flatten() {
         let n = report["checks"].as_array().unwrap().len();
         assert_eq!(reference["checks"].as_array().unwrap().len(), n);
         assert!(candidates.iter().all(|c| c["checks_after"].as_array().unwrap().len() == n));
-        assert!(out.join("reference").join("train.csv").is_file(), "the reference's training run");
         // The reseeded refit keeps its per-object gains, which sum to its gain.
         let reseeded = &reference["reseeded"];
         let gains = reseeded["object_gains"].as_array().expect("the reseeded refit's object gains");
@@ -87,9 +119,11 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // the largest test MLL of its evaluation log, whose last row is the end.
     assert!(report["config"]["keep_best_every"].as_u64().unwrap() > 0);
     let mut fits = vec![(&report["base_kept"], out.join("base"))];
-    if let Some(reference) = report["reference"].as_object() {
-        fits.push((&reference["kept"], out.join("reference")));
-        fits.push((&reference["reseeded"]["kept"], out.join("reference-reseeded")));
+    for (field, dir) in [("reference", "reference"), ("dynamics_reference", "reference-dynamics")] {
+        if let Some(reference) = report[field].as_object() {
+            fits.push((&reference["kept"], out.join(dir)));
+            fits.push((&reference["reseeded"]["kept"], out.join(format!("{dir}-reseeded"))));
+        }
     }
     for c in candidates {
         fits.push((&c["kept"], out.join("candidates").join(c["cause"].as_str().unwrap())));

@@ -13,7 +13,8 @@ use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Action, Dataset, ObservationKind, State};
 use ssm::filter::{run_filter, FilterConfig, Sampling};
 use ssm::models::extended::{
-    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension, GAUSSIAN_GEARY_RATIO,
+    mixture_excess_kurtosis, DefensiveProposal, ExtendedSsm, ExtensibleObservation, Extension, RefitScope,
+    GAUSSIAN_GEARY_RATIO,
 };
 use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
 use ssm::models::road_user::VehicleSsm;
@@ -570,5 +571,30 @@ fn a_refit_moves_the_base_at_its_rate_and_the_extension_at_the_full_rate() {
         assert!(ext_moved > 0.5 * lr && ext_moved <= lr * (1.0 + 1e-6), "extension moved {ext_moved}");
         assert!(base_moved > 0.5 * base_rate && base_moved <= base_rate * (1.0 + 1e-6), "base moved {base_moved}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
+
+#[test]
+fn a_refit_holds_what_its_extension_could_not_have_bent() {
+    // Heavy tails act on the dynamics: their refit moves the policy and holds
+    // the observation model, every `obs.*` tensor of either kind, and nothing
+    // else; every other extension's refit moves every parameter.
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        let store = models(kind).to_store();
+        let held = RefitScope::Dynamics.held(&store);
+        let observation: Vec<String> =
+            store.iter().map(|(n, _)| n.to_string()).filter(|n| n.starts_with("obs.")).collect();
+        assert!(!held.is_empty() && held == observation, "{kind:?}: {held:?}");
+        assert!(store.iter().any(|(n, _)| n.starts_with("policy.") && !held.iter().any(|h| h == n)));
+        assert!(RefitScope::All.held(&store).is_empty());
+    }
+    for ext in Extension::ALL {
+        let expected = if ext == Extension::HeavyTailedAccel { RefitScope::Dynamics } else { RefitScope::All };
+        assert_eq!(ext.refit_scope(), expected, "{}", ext.id());
+        // A nesting pair is compared by object with gains over one reference:
+        // both are refitted in one scope.
+        if let Some(nested) = ext.nests() {
+            assert_eq!(ext.refit_scope(), nested.refit_scope(), "{} and {}", ext.id(), nested.id());
+        }
     }
 }

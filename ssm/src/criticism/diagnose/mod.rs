@@ -87,11 +87,11 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::checks::{calibrate, checks_for, format_z, holm, CheckResult};
+use super::checks::{calibrate, checks_for, format_z, holm, CheckDef, CheckResult};
 use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::{stream_seed, FilterConfig, FilterPurpose, Sampling, Tempering};
-use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
+use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension, RefitScope};
 use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::NeuralPolicy;
@@ -231,6 +231,15 @@ pub struct DiagnoseConfig {
     /// ended"). On by default; a report written before it reads `false`.
     #[serde(default)]
     pub nesting_from_nested: bool,
+    /// Refit each candidate within its extension's [`RefitScope`] and compare
+    /// it with the base refitted alone within the same scope: a dynamics
+    /// extension (heavy tails) and its reference move the policy and hold the
+    /// observation network at the base's fit; every other extension and its
+    /// reference move every parameter. Each scope that has a candidate has its
+    /// own reference and reseeded reference. On by default; a report written
+    /// before it reads `false` (every refit moved every parameter).
+    #[serde(default)]
+    pub scoped_refits: bool,
     /// Family-wise level of the candidates' gain tests (Holm-corrected sign-flip
     /// p-values).
     pub cause_level: f64,
@@ -274,6 +283,7 @@ impl Default for DiagnoseConfig {
             fit_all: false,
             likelihood_screen: false,
             nesting_from_nested: true,
+            scoped_refits: true,
             cause_level: 0.05,
             min_gain: MIN_GAIN,
             permutations: 9999,
@@ -288,9 +298,11 @@ pub const MIN_GAIN: f64 = 0.003;
 
 /// The sub-directories of a diagnosis's output that hold its training runs
 /// (checkpoints, parameters, logs): the base fit, the base refitted alone, and
-/// once more with another seed, and one run per candidate. They serve only to resume an interrupted diagnosis;
+/// once more with another seed, one run per candidate, and the two refits of
+/// the base within the dynamics scope ([`RefitScope::Dynamics`]). They serve only to resume an interrupted diagnosis;
 /// `report.json` and the plots are what a finished one keeps.
-pub const TRAINING_RUN_DIRS: [&str; 4] = ["base", "reference", "reference-reseeded", "candidates"];
+pub const TRAINING_RUN_DIRS: [&str; 6] =
+    ["base", "reference", "reference-reseeded", "candidates", "reference-dynamics", "reference-dynamics-reseeded"];
 
 /// The training seed of the reseeded reference ([`DiagnoseConfig::refit_noise`])
 /// is the diagnosis's seed with these bits flipped.
@@ -448,6 +460,16 @@ pub struct CandidateReport {
     pub p_adjusted: f64,
     /// Per evaluated object, its log-likelihood gain (nats).
     pub object_gains: Vec<f64>,
+    /// Its log-likelihood on the evaluation part (nats per observed unit; NaN
+    /// in reports written before it was recorded): which qualifying candidate
+    /// is the cause, where candidates of different refit scopes have gains
+    /// over different references.
+    #[serde(default = "crate::stats::nan", deserialize_with = "crate::stats::nan_from_null")]
+    pub mll: f64,
+    /// The refit scope it was fitted in and compared within
+    /// ([`DiagnoseConfig::scoped_refits`]; `all` in reports written before it).
+    #[serde(default)]
+    pub refit_scope: RefitScope,
     /// Its gain over the reseeded refit ([`DiagnoseConfig::refit_noise`]; nats
     /// per observed unit, paired over the evaluation objects) and that gain's
     /// one-sided sign-flip p, Holm-adjusted over the candidates: rule (b)'s
@@ -582,6 +604,17 @@ pub fn nested_comparisons(
 }
 
 impl CandidateReport {
+    /// What a qualifying candidate is ranked by to be the cause: its
+    /// evaluation log-likelihood, or in reports written before it was recorded
+    /// (where every candidate had one reference) its gain over the reference.
+    fn rank(&self) -> f64 {
+        if self.mll.is_finite() {
+            self.mll
+        } else {
+            self.gain
+        }
+    }
+
     /// Rule (d) against the reference's checks: a candidate that checks
     /// flagged improves one of them ([`improves_flagged_checks`]); one the
     /// likelihood screen admitted instead raises the check part's likelihood
@@ -730,9 +763,10 @@ fn sign_flip_ps(d: &[Vec<f64>], config: &DiagnoseConfig, stream: u64) -> Vec<f64
 }
 
 /// Rule (b)'s comparison with the reseeded refit: per candidate (its
-/// `object_gains` over the reference), its gain over the refit — per object,
-/// its gain minus the refit's, summed per observed unit — and that sum's
-/// one-sided sign-flip p, Holm-adjusted over the candidates. A cause must beat
+/// `object_gains` over the reference of its refit scope; `reseeded[i]`, that
+/// scope's reseeded refit's gains over the same reference), its gain over the
+/// refit — per object, its gain minus the refit's, summed per observed unit —
+/// and that sum's one-sided sign-flip p, Holm-adjusted over the candidates. A cause must beat
 /// both refits of the base: the reference and this one (an intersection–union
 /// test, so no further multiplicity control). Paired by object, it is robust to
 /// what undid the earlier bar (the size of the refit's mean gain), one refit
@@ -740,11 +774,12 @@ fn sign_flip_ps(d: &[Vec<f64>], config: &DiagnoseConfig, stream: u64) -> Vec<f64
 /// than another refit of the base does.
 pub fn beats_reseeded(
     object_gains: &[&[f64]],
-    reseeded: &[f64],
+    reseeded: &[&[f64]],
     units: usize,
     config: &DiagnoseConfig,
 ) -> Vec<(f64, f64)> {
-    let over: Vec<Vec<f64>> = object_gains.iter().map(|g| differences(g, reseeded)).collect();
+    assert_eq!(object_gains.len(), reseeded.len(), "one reseeded refit per candidate");
+    let over: Vec<Vec<f64>> = object_gains.iter().zip(reseeded).map(|(g, r)| differences(g, r)).collect();
     let adjusted = holm(&sign_flip_ps(&over, config, RESEEDED_PERMUTATIONS));
     over.iter().zip(adjusted).map(|(d, p)| (gain_of(d, units).0, p)).collect()
 }
@@ -822,13 +857,14 @@ fn carries_past_without_failing(reference: &CheckResult, extended: &CheckResult,
 }
 
 /// Step 5's choice: among `candidates`, the index of the one with the largest
-/// gain for which `qualifies` holds.
+/// evaluation log-likelihood (in reports without it, gain) for which
+/// `qualifies` holds.
 fn choose(candidates: &[CandidateReport], qualifies: impl Fn(usize, &CandidateReport) -> bool) -> Option<usize> {
     candidates
         .iter()
         .enumerate()
         .filter(|&(i, c)| qualifies(i, c))
-        .max_by(|a, b| a.1.gain.total_cmp(&b.1.gain))
+        .max_by(|a, b| a.1.rank().total_cmp(&b.1.rank()))
         .map(|(i, _)| i)
 }
 
@@ -897,14 +933,51 @@ impl Report {
     /// [`DiagnoseConfig::min_gain`], or the size of the refits' own noise when
     /// it was measured and is larger.
     pub fn gain_bar(&self) -> f64 {
-        gain_bar(self.config.min_gain, self.reference.as_ref().and_then(|r| r.reseeded.as_ref()))
+        gain_bar(self.config.min_gain, self.first_reference().and_then(|r| r.reseeded.as_ref()))
+    }
+
+    /// The least gain of candidate `c`, as [`Report::gain_bar`] with its own
+    /// scope's reseeded refit.
+    fn gain_bar_of(&self, c: &CandidateReport) -> f64 {
+        gain_bar(self.config.min_gain, self.reference_of(c).and_then(|r| r.reseeded.as_ref()))
+    }
+
+    /// The refit of the base in `scope` ([`Report::reference`] or
+    /// [`Report::dynamics_reference`]).
+    pub fn reference_in(&self, scope: RefitScope) -> Option<&ReferenceReport> {
+        match scope {
+            RefitScope::All => self.reference.as_ref(),
+            RefitScope::Dynamics => self.dynamics_reference.as_ref(),
+        }
+    }
+
+    /// What candidate `c` was compared with: the refit of its scope.
+    pub fn reference_of(&self, c: &CandidateReport) -> Option<&ReferenceReport> {
+        self.reference_in(c.refit_scope)
+    }
+
+    /// The first refit of the base: in every parameter where there is one, else in the policy.
+    pub fn first_reference(&self) -> Option<&ReferenceReport> {
+        self.reference.as_ref().or(self.dynamics_reference.as_ref())
     }
 
     /// Every check calibrated on what the candidates were compared with: the
-    /// reference's, or the base's when the base is the reference (`--no-refit`,
-    /// or nothing fitted).
+    /// reference's (refitted in every parameter where there is one, else in
+    /// the policy), or the base's when the base is the reference
+    /// (`--no-refit`, or nothing fitted). A check that fails on it, with no
+    /// qualifying cause, makes the outcome `unexplained`.
     pub fn reference_checks(&self) -> Cow<'_, [CheckResult]> {
-        match &self.reference {
+        self.checks_of(self.first_reference())
+    }
+
+    /// The reference checks of candidate `c`: those of its scope's refit (rule
+    /// (d)'s "before"), or [`Report::reference_checks`] without one.
+    pub fn reference_checks_of(&self, c: &CandidateReport) -> Cow<'_, [CheckResult]> {
+        self.checks_of(self.reference_of(c).or(self.first_reference()))
+    }
+
+    fn checks_of<'a>(&'a self, reference: Option<&'a ReferenceReport>) -> Cow<'a, [CheckResult]> {
+        match reference {
             Some(r) => Cow::Borrowed(&r.checks),
             None => Cow::Owned(self.checks.iter().map(|c| c.before.clone()).collect()),
         }
@@ -943,9 +1016,8 @@ impl Report {
     /// [`Report::verdicts`], with the comparisons with the reseeded refit
     /// they were judged on ([`Report::over_reseeded`]).
     fn judged(&self, check_rule: bool) -> (Vec<Option<FailedRule>>, Vec<OverReseeded>) {
-        let reference = self.reference_checks();
-        let bar = self.gain_bar();
-        let improved = |c: &CandidateReport| c.improves_what_flagged_it(&reference, self.config.plausible_p);
+        let improved =
+            |c: &CandidateReport| c.improves_what_flagged_it(&self.reference_checks_of(c), self.config.plausible_p);
         let over = self.over_reseeded();
         let (min_gain, level) = (self.config.min_gain, self.config.cause_level);
         let verdicts = self
@@ -953,7 +1025,7 @@ impl Report {
             .iter()
             .enumerate()
             .map(|(i, c)| {
-                c.failed_gain_rule(bar, over[i], min_gain, level)
+                c.failed_gain_rule(self.gain_bar_of(c), over[i], min_gain, level)
                     .or_else(|| (check_rule && !improved(c)).then_some(FailedRule::Checks))
             })
             .collect();
@@ -1016,12 +1088,12 @@ impl Report {
     fn failure_numbers(&self, c: &CandidateReport, over_reseeded: Option<(f64, f64)>, rule: FailedRule) -> String {
         match rule {
             FailedRule::Level => format!("gain {:+.4}, p adj. {:.4}", c.gain, c.p_adjusted),
-            FailedRule::LeastGain => format!("gain {:+.4} under {:.4}", c.gain, self.gain_bar()),
+            FailedRule::LeastGain => format!("gain {:+.4} under {:.4}", c.gain, self.gain_bar_of(c)),
             FailedRule::Reseeded => {
                 over_reseeded.map_or(String::new(), |(gain, p)| format!("over it {gain:+.4}, p adj. {p:.4}"))
             }
             FailedRule::NotMaterial => c.description.clone(),
-            FailedRule::Checks => c.flagging_moves(&self.reference_checks()),
+            FailedRule::Checks => c.flagging_moves(&self.reference_checks_of(c)),
             FailedRule::Nested => c
                 .over_nested
                 .as_ref()
@@ -1034,11 +1106,15 @@ impl Report {
     /// (written before that comparison) but that kept its per-object gains,
     /// compared now.
     fn over_reseeded(&self) -> Vec<OverReseeded> {
-        let reseeded = self.reference.as_ref().and_then(|r| r.reseeded.as_ref()).filter(|r| !r.object_gains.is_empty());
+        let reseeded_gains = |c: &CandidateReport| {
+            let reseeded = self.reference_of(c).and_then(|r| r.reseeded.as_ref());
+            reseeded.filter(|r| !r.object_gains.is_empty()).map(|r| r.object_gains.as_slice())
+        };
+        let reseeded: Option<Vec<&[f64]>> = self.candidates.iter().map(reseeded_gains).collect();
         match reseeded {
             Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
                 let gains: Vec<&[f64]> = self.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
-                beats_reseeded(&gains, &r.object_gains, self.eval_units, &self.config).into_iter().map(Some).collect()
+                beats_reseeded(&gains, &r, self.eval_units, &self.config).into_iter().map(Some).collect()
             }
             _ => self.candidates.iter().map(|c| c.over_reseeded).collect(),
         }
@@ -1102,12 +1178,20 @@ pub struct Report {
     pub eval_units: usize,
     /// Log-likelihood of the reference on the evaluation part (nats per
     /// observed unit): the refitted base with [`DiagnoseConfig::refit`] when a
-    /// candidate was fitted, else the base.
+    /// candidate was fitted (refitted in every parameter where a candidate of
+    /// that scope was fitted, else in the policy), else the base.
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub base_mll: f64,
-    /// The refitted base, when there is one (see [`DiagnoseConfig::refit`]).
+    /// The refitted base, when there is one (see [`DiagnoseConfig::refit`]):
+    /// refitted in every parameter, the reference of the candidates of
+    /// [`RefitScope::All`].
     #[serde(default)]
     pub reference: Option<ReferenceReport>,
+    /// The base refitted in the policy alone, the observation network held,
+    /// when a candidate of [`RefitScope::Dynamics`] was fitted
+    /// ([`DiagnoseConfig::scoped_refits`]): their reference.
+    #[serde(default)]
+    pub dynamics_reference: Option<ReferenceReport>,
     /// The same for the chosen model (the base's without a cause).
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub chosen_mll: f64,
@@ -1230,6 +1314,104 @@ struct Fit {
     eval: EvalLikelihoods,
 }
 
+/// What the candidates of one refit scope are compared with: the base
+/// refitted alone within that scope, or the base itself (nothing refitted).
+struct Reference {
+    scope: RefitScope,
+    /// The refit (`None` where the base is the reference).
+    run: Option<Fitted>,
+    /// Every check calibrated on it (the check part).
+    checks: Vec<CheckResult>,
+    /// Its likelihoods on the evaluation part.
+    eval: EvalLikelihoods,
+    /// The same refit with another training seed ([`DiagnoseConfig::refit_noise`]).
+    reseeded: Option<ReseededReport>,
+    /// Its likelihoods on the check part, where a candidate of its scope was
+    /// admitted by the likelihood screen (rule (d) for it).
+    on_check: Option<EvalLikelihoods>,
+}
+
+impl Reference {
+    /// Its part of the report (`None` for the base).
+    fn report(&self) -> Option<ReferenceReport> {
+        self.run.as_ref().map(|run| ReferenceReport {
+            checks: self.checks.clone(),
+            train_seconds: run.seconds,
+            skipped_steps: run.skipped,
+            kept: run.kept.clone(),
+            reseeded: self.reseeded.clone(),
+        })
+    }
+}
+
+/// Refits the base alone within a scope ([`ReferenceFit::fit`]).
+struct ReferenceFit<'a> {
+    parts: Parts<'a>,
+    base: &'a ParamStore<f64>,
+    schedule: FitSchedule,
+    defs: &'a [&'static CheckDef],
+    config: &'a DiagnoseConfig,
+}
+
+impl ReferenceFit<'_> {
+    /// The base refitted alone within `scope` (in the scope's directories
+    /// under `out_dir`, resuming a run found there), checked, evaluated, and
+    /// refitted once more with another seed for the refits' own noise; filtered
+    /// on the check part too where a `screened` candidate of the scope needs it.
+    fn fit(
+        &self,
+        scope: RefitScope,
+        screened: bool,
+        out_dir: &Path,
+        comm: &Arc<dyn Collective>,
+        progress: &mut dyn FnMut(&Stage),
+    ) -> Result<Reference, String> {
+        let (parts, config) = (self.parts, self.config);
+        let [dir, reseeded_dir] = reference_dirs(scope);
+        let held = scope.held(self.base);
+        let run =
+            fit(parts, None, self.base.clone(), self.schedule, &held, config, &out_dir.join(dir), comm, progress)?;
+        progress(&Stage::Checking { model: dir.into() });
+        let checks = check_model(parts.check, &run.params, None, config)?;
+        let checks = calibrate(self.defs, &checks.measured, &checks.replicated, config.alpha);
+        progress(&Stage::Evaluating { model: dir.into() });
+        let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
+        // The refits' own noise: the base refitted alone with another seed.
+        let reseeded = if config.refit_noise {
+            let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
+            let dir = out_dir.join(reseeded_dir);
+            let again =
+                fit(parts, None, self.base.clone(), self.schedule, &held, &reseeded_config, &dir, comm, progress)?;
+            progress(&Stage::Evaluating { model: reseeded_dir.into() });
+            let again_eval = eval_likelihoods(parts.eval, &again.params, None, config)?;
+            let object_gains = differences(&again_eval.object_ll, &eval.object_ll);
+            let (gain, gain_se) = gain_of(&object_gains, eval.units);
+            Some(ReseededReport {
+                gain,
+                gain_se,
+                object_gains,
+                train_seconds: again.seconds,
+                skipped_steps: again.skipped,
+                kept: again.kept.clone(),
+            })
+        } else {
+            None
+        };
+        let on_check = if screened { Some(eval_likelihoods(parts.check, &run.params, None, config)?) } else { None };
+        Ok(Reference { scope, run: Some(run), checks, eval, reseeded, on_check })
+    }
+}
+
+/// The directories of a scope's reference and reseeded reference: those of
+/// [`TRAINING_RUN_DIRS`] for [`RefitScope::All`], `reference-dynamics` and
+/// `reference-dynamics-reseeded` for [`RefitScope::Dynamics`].
+fn reference_dirs(scope: RefitScope) -> [&'static str; 2] {
+    match scope {
+        RefitScope::All => [TRAINING_RUN_DIRS[1], TRAINING_RUN_DIRS[2]],
+        RefitScope::Dynamics => [TRAINING_RUN_DIRS[4], TRAINING_RUN_DIRS[5]],
+    }
+}
+
 /// Steps 2–6 of the diagnosis on `parts`.
 fn run(
     parts: Parts<'_>,
@@ -1260,6 +1442,7 @@ fn run(
         None,
         initial,
         FitSchedule::base(config),
+        &[],
         config,
         &out_dir.join(TRAINING_RUN_DIRS[0]),
         comm,
@@ -1312,60 +1495,35 @@ fn run(
             plausible.push((extension, flagged_by, screened_in));
         }
     }
-    // The reference every candidate is compared with: the base refitted alone
-    // exactly as the candidates are refitted (when any is), else the base.
+    // The references the candidates are compared with: per refit scope that
+    // has a candidate, the base refitted alone within that scope exactly as
+    // its candidates are refitted (when any is), else the base.
+    let scope_of = |extension: Extension| if config.scoped_refits { extension.refit_scope() } else { RefitScope::All };
     let refit_schedule = FitSchedule::refit(config);
-    let refitted = if config.refit && !plausible.is_empty() {
-        let run = fit(
-            parts,
-            None,
-            base.params.clone(),
-            refit_schedule,
-            config,
-            &out_dir.join(TRAINING_RUN_DIRS[1]),
-            comm,
-            progress,
-        )?;
-        progress(&Stage::Checking { model: "reference".into() });
-        let checks = check_model(parts.check, &run.params, None, config)?;
-        let results = calibrate(&defs, &checks.measured, &checks.replicated, config.alpha);
-        Some((run, results))
-    } else {
-        None
-    };
-    let (reference_params, reference_checks) =
-        refitted.as_ref().map_or((&base.params, &before), |(run, results)| (&run.params, results));
-    progress(&Stage::Evaluating { model: if refitted.is_some() { "reference" } else { "base" }.into() });
-    let reference_eval = eval_likelihoods(parts.eval, reference_params, None, config)?;
-    // The refits' own noise: the base refitted alone with another seed.
-    let reseeded = match (&refitted, config.refit_noise) {
-        (Some(_), true) => {
-            let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
-            let dir = out_dir.join(TRAINING_RUN_DIRS[2]);
-            let run = fit(parts, None, base.params.clone(), refit_schedule, &reseeded_config, &dir, comm, progress)?;
-            progress(&Stage::Evaluating { model: TRAINING_RUN_DIRS[2].into() });
-            let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
-            let object_gains = differences(&eval.object_ll, &reference_eval.object_ll);
-            let (gain, gain_se) = gain_of(&object_gains, reference_eval.units);
-            Some(ReseededReport {
-                gain,
-                gain_se,
-                object_gains,
-                train_seconds: run.seconds,
-                skipped_steps: run.skipped,
-                kept: run.kept.clone(),
-            })
+    let screened_any = plausible.iter().any(|&(_, _, screened_in)| screened_in);
+    let mut references: Vec<Reference> = Vec::new();
+    if config.refit {
+        for scope in RefitScope::ALL.into_iter().filter(|&scope| plausible.iter().any(|p| scope_of(p.0) == scope)) {
+            let screened = plausible.iter().any(|&(e, _, screened_in)| screened_in && scope_of(e) == scope);
+            let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
+            references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
         }
-        _ => None,
-    };
-    let gain_bar = gain_bar(config.min_gain, reseeded.as_ref());
-    // Rule (d) of a candidate the likelihood screen admitted compares it with
-    // the reference on the check part (the base, filtered there already, when
-    // nothing was refitted).
-    let reference_on_check = match &refitted {
-        _ if !plausible.iter().any(|&(_, _, screened_in)| screened_in) => None,
-        Some(_) => Some(eval_likelihoods(parts.check, reference_params, None, config)?),
-        None => base_on_check,
+    }
+    if references.is_empty() {
+        progress(&Stage::Evaluating { model: "base".into() });
+        references.push(Reference {
+            scope: RefitScope::All,
+            run: None,
+            checks: before.clone(),
+            eval: eval_likelihoods(parts.eval, &base.params, None, config)?,
+            reseeded: None,
+            // Rule (d) of a screened candidate: the base, filtered on the check part already.
+            on_check: if screened_any { base_on_check } else { None },
+        });
+    }
+    let reference_of = |extension: Extension| {
+        let scope = scope_of(extension);
+        references.iter().find(|r| r.scope == scope).unwrap_or(&references[0])
     };
     let mut fits: Vec<Fit> = Vec::new();
     for (extension, flagged_by, screened_in) in plausible {
@@ -1378,12 +1536,13 @@ fn run(
             }
             _ => start_of(extension),
         };
-        let run = fit(parts, Some(extension), start, refit_schedule, config, &dir, comm, progress)?;
+        let held = if config.refit { scope_of(extension).held(&start) } else { Vec::new() };
+        let run = fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?;
         progress(&Stage::Checking { model: extension.id().into() });
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
         let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
-        let check_part_gain = match &reference_on_check {
+        let check_part_gain = match &reference_of(extension).on_check {
             Some(reference_ll) if screened_in => {
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
                 Some(gain_of(&differences(&on_check.object_ll, &reference_ll.object_ll), reference_ll.units).0)
@@ -1393,25 +1552,30 @@ fn run(
         fits.push(Fit { extension, flagged_by, check_part_gain, run, checks, eval });
     }
 
-    // 5. The decision on the evaluation part.
+    // 5. The decision on the evaluation part, each candidate against the
+    // reference of its scope.
+    let reference_eval = &references[0].eval;
     let object_gains: Vec<Vec<f64>> =
-        fits.iter().map(|f| differences(&f.eval.object_ll, &reference_eval.object_ll)).collect();
+        fits.iter().map(|f| differences(&f.eval.object_ll, &reference_of(f.extension).eval.object_ll)).collect();
     let p_values = sign_flip_ps(&object_gains, config, REFERENCE_PERMUTATIONS);
     let adjusted = holm(&p_values);
     let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
-    let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded {
-        Some(r) => {
-            beats_reseeded(&gains, &r.object_gains, reference_eval.units, config).into_iter().map(Some).collect()
+    let reseeded_gains: Option<Vec<&[f64]>> =
+        fits.iter().map(|f| reference_of(f.extension).reseeded.as_ref().map(|r| r.object_gains.as_slice())).collect();
+    let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded_gains {
+        Some(reseeded) if !fits.is_empty() => {
+            beats_reseeded(&gains, reseeded, reference_eval.units, config).into_iter().map(Some).collect()
         }
-        None => vec![None; fits.len()],
+        _ => vec![None; fits.len()],
     };
     let ids: Vec<Extension> = fits.iter().map(|f| f.extension).collect();
     let over_nested = nested_comparisons(&ids, &gains, reference_eval.units, config);
     let mut candidates = Vec::new();
     for (i, (f, d)) in fits.iter().zip(object_gains).enumerate() {
         let ext = f.extension;
+        let reference = reference_of(ext);
         let (gain, gain_se) = gain_of(&d, reference_eval.units);
-        let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference_eval);
+        let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference.eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
         let raw =
             f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
@@ -1426,6 +1590,8 @@ fn run(
             p_adjusted: adjusted[i],
             top_two_share: top_two_share(&d),
             object_gains: d,
+            mll: f.eval.object_ll.iter().sum::<f64>() / reference_eval.units.max(1) as f64,
+            refit_scope: reference.scope,
             over_reseeded: over_reseeded[i],
             over_nested: over_nested[i].clone(),
             params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
@@ -1440,7 +1606,8 @@ fn run(
             train_seconds: f.run.seconds,
             kept: f.run.kept.clone(),
         };
-        candidate.checks_improved = candidate.improves_what_flagged_it(reference_checks, config.plausible_p);
+        candidate.checks_improved = candidate.improves_what_flagged_it(&reference.checks, config.plausible_p);
+        let gain_bar = gain_bar(config.min_gain, reference.reseeded.as_ref());
         candidate.qualifies = candidate.checks_improved
             && candidate.passes_gain_rules(gain_bar, candidate.over_reseeded, config.min_gain, config.cause_level);
         candidates.push(candidate);
@@ -1465,7 +1632,7 @@ fn run(
         .collect();
     let (cause, finding) = match winner {
         Some(i) => (candidates[i].cause.clone(), candidates[i].description.clone()),
-        None => outcome_without_cause(reference_checks),
+        None => outcome_without_cause(&references[0].checks),
     };
     let units = reference_eval.units.max(1) as f64;
     let base_mll = reference_eval.object_ll.iter().sum::<f64>() / units;
@@ -1488,13 +1655,8 @@ fn run(
         eval_object_units: (0..parts.eval.objects().len()).map(|o| parts.eval.object_units(o)).collect(),
         eval_units: reference_eval.units,
         base_mll,
-        reference: refitted.as_ref().map(|(run, results)| ReferenceReport {
-            checks: results.clone(),
-            train_seconds: run.seconds,
-            skipped_steps: run.skipped,
-            kept: run.kept.clone(),
-            reseeded,
-        }),
+        reference: references.iter().find(|r| r.scope == RefitScope::All).and_then(Reference::report),
+        dynamics_reference: references.iter().find(|r| r.scope == RefitScope::Dynamics).and_then(Reference::report),
         base_skipped_steps: base.skipped,
         base_train_seconds: base.seconds,
         base_kept: base.kept.clone(),
@@ -1561,15 +1723,17 @@ fn start_from_nested(
     Ok(start)
 }
 
-/// Trains `initial` (with `extension`, if any) by PF-SEFI on `schedule`, in
-/// `dir`, resuming a run found there, as one process of `comm` holding its share
-/// of the fit part's objects.
+/// Trains `initial` (with `extension`, if any) by PF-SEFI on `schedule`, the
+/// parameters named in `held` kept at their values, in `dir`, resuming a run
+/// found there, as one process of `comm` holding its share of the fit part's
+/// objects.
 #[allow(clippy::too_many_arguments)]
 fn fit(
     parts: Parts<'_>,
     extension: Option<Extension>,
     initial: ParamStore<f64>,
     schedule: FitSchedule,
+    held: &[String],
     config: &DiagnoseConfig,
     dir: &Path,
     comm: &Arc<dyn Collective>,
@@ -1588,7 +1752,7 @@ fn fit(
         eval_particles: config.eval_particles,
         extension,
         extension_only: extension.is_some() && !config.refit,
-        frozen: Vec::new(),
+        frozen: held.to_vec(),
         base_rate_factor: schedule.base_rate_factor,
         proposal: None,
         eval_tempering: train_tempering,
@@ -1767,11 +1931,17 @@ mod tests {
         let like_the_refit: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
         let beyond_it: Vec<f64> = (0..n).map(|i| 1.6 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
         let units = 3 * n;
-        let over = beats_reseeded(&[&like_the_refit, &beyond_it], &reseeded, units, &config);
+        let over = beats_reseeded(&[&like_the_refit, &beyond_it], &[&reseeded, &reseeded], units, &config);
         assert!(over[0].1 > 0.05 && over[1].1 < 1e-3, "{over:?}");
         assert!((over[1].0 - 0.8 * n as f64 / units as f64).abs() < 0.02, "{over:?}");
-        let alone = beats_reseeded(&[&beyond_it], &reseeded, units, &config);
+        let alone = beats_reseeded(&[&beyond_it], &[&reseeded], units, &config);
         assert!(alone[0].1 <= over[1].1, "Holm over two candidates: {} against {}", alone[0].1, over[1].1);
+        // Candidates of two refit scopes: each against its own scope's reseeded
+        // refit. The second candidate's scope refits as noisily as it gains.
+        let noisy_scope: Vec<f64> = beyond_it.iter().map(|g| g - 0.001 * wobble(3)).collect();
+        let scoped = beats_reseeded(&[&beyond_it, &beyond_it], &[&reseeded, &noisy_scope], units, &config);
+        assert!(scoped[0].1 < 1e-3 && scoped[1].1 > 0.05, "{scoped:?}");
+        assert!(scoped[1].0.abs() < 1e-3, "{scoped:?}");
         // A refit that lost three objects by 50 nats: its mean gain (-5 per
         // object) would have set the old bar above the candidate's gain.
         let mut lost = vec![0.0; n];
@@ -1779,7 +1949,7 @@ mod tests {
         lost[11] = -50.0;
         lost[20] = -50.0;
         let candidate: Vec<f64> = (0..n).map(|i| 0.6 + 0.1 * wobble(i)).collect();
-        let over = beats_reseeded(&[&candidate], &lost, units, &config);
+        let over = beats_reseeded(&[&candidate], &[&lost], units, &config);
         assert!(over[0].1 < 0.05 && over[0].0 > 0.0, "{over:?}");
         // The rules with and without the comparison.
         let cand = qualifying_candidate();
@@ -1809,6 +1979,8 @@ mod tests {
             p: 0.001,
             p_adjusted: 0.001,
             object_gains: vec![],
+            mll: -1.0,
+            refit_scope: RefitScope::All,
             over_reseeded: None,
             over_nested: None,
             top_two_share: 0.1,
