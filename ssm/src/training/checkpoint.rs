@@ -58,23 +58,18 @@ struct CheckpointV3 {
     best: Option<(usize, f64, ParamStore<f64>)>,
 }
 
-/// [`TrainConfig`] as version-3 checkpoints hold it.
+/// [`TrainConfig`] as version-3 checkpoints hold it: version 2's fields, then
+/// `keep_best` (bincode writes a nested struct's fields in place, so this is
+/// the flat layout of the version-3 code).
 #[derive(Deserialize)]
 struct TrainConfigV3 {
-    lr: f64,
-    final_lr: Option<f64>,
-    clip: Option<f64>,
-    epochs: usize,
-    eval_every: usize,
-    checkpoint_every: usize,
-    seed: u64,
-    shuffle: bool,
+    v2: TrainConfigV2,
     keep_best: Option<String>,
 }
 
 impl From<CheckpointV3> for Checkpoint {
     fn from(v3: CheckpointV3) -> Self {
-        let c = v3.config;
+        let TrainConfigV3 { v2: c, keep_best } = v3.config;
         Checkpoint {
             step: v3.step,
             params: v3.params,
@@ -89,7 +84,7 @@ impl From<CheckpointV3> for Checkpoint {
                 checkpoint_every: c.checkpoint_every,
                 seed: c.seed,
                 shuffle: c.shuffle,
-                keep_best: c.keep_best,
+                keep_best,
                 average_tail: 0.0,
             },
             batches: v3.batches,
@@ -132,18 +127,7 @@ struct TrainConfigV2 {
 
 impl From<CheckpointV2> for CheckpointV3 {
     fn from(v2: CheckpointV2) -> Self {
-        let c = v2.config;
-        let config = TrainConfigV3 {
-            lr: c.lr,
-            final_lr: c.final_lr,
-            clip: c.clip,
-            epochs: c.epochs,
-            eval_every: c.eval_every,
-            checkpoint_every: c.checkpoint_every,
-            seed: c.seed,
-            shuffle: c.shuffle,
-            keep_best: None,
-        };
+        let config = TrainConfigV3 { v2: v2.config, keep_best: None };
         CheckpointV3 {
             step: v2.step,
             params: v2.params,

@@ -30,23 +30,27 @@
 //!    A nesting extension's fit starts where its nested extension's fit ended
 //!    ([`DiagnoseConfig::nesting_from_nested`]), so that rule (e) below
 //!    compares its extra parameter, not two optimisations.
-//!    With [`DiagnoseConfig::refit`] (the default) every parameter is refitted
-//!    with the extension's — the base network gives back what it absorbed of the
-//!    effect — and the base alone is refitted the same way, from the same start,
-//!    with the same seed and batches: this *reference* is what every candidate
-//!    is compared with. Without it, only the extension's parameters are learned
-//!    on top of the fixed base, which is the reference. Each fitted model is
-//!    checked again on the check part.
+//!    With [`DiagnoseConfig::refit`] (the default) the base's parameters are
+//!    refitted with the extension's — the base network gives back what it
+//!    absorbed of the effect — within the extension's refit scope
+//!    ([`Extension::refit_scope`], [`DiagnoseConfig::scoped_refits`]): every
+//!    parameter for an extension of the observations, the policy alone (the
+//!    observation network held) for one of the dynamics. The base alone is
+//!    refitted the same way, in the same scope, from the same start, with the
+//!    same seed and batches: this *reference* of the scope is what each of its
+//!    candidates is compared with. Without it, only the extension's parameters
+//!    are learned on top of the fixed base, which is the reference. Each fitted
+//!    model is checked again on the check part.
 //! 5. **Decide on the evaluation part**: per object, the tempered filter's
-//!    log-likelihood under the extended minus the reference model, both filtered
-//!    with the same seeds. The gain is their sum per observed unit. Its one-sided
+//!    log-likelihood under the extended minus its scope's reference model, both
+//!    filtered with the same seeds. The gain is their sum per observed unit. Its one-sided
 //!    p-value comes from a sign-flip permutation test over objects ([`sign_flip_p`]:
 //!    no normality, robust to a few objects carrying the sum), Holm-adjusted over
-//!    the fitted candidates. The cause is the extension with the largest gain
-//!    among those that (a) pass at [`DiagnoseConfig::cause_level`], (b) gain at
+//!    the fitted candidates. The cause is the extension with the largest
+//!    evaluation log-likelihood among those that (a) pass at [`DiagnoseConfig::cause_level`], (b) gain at
 //!    least [`DiagnoseConfig::min_gain`] nats per unit and beat the refits' own
-//!    noise ([`DiagnoseConfig::refit_noise`]: the base refitted alone with
-//!    another seed; the candidate's gain over that refit, paired by object,
+//!    noise ([`DiagnoseConfig::refit_noise`]: the base refitted alone in the
+//!    scope with another seed; the candidate's gain over that refit, paired by object,
 //!    passes the same test and the same minimum, [`beats_reseeded`]), (c) change the model
 //!    materially, (d) improve a check that flagged them (its |z| on the check
 //!    part falls below the reference's, or the extension carries it past the
