@@ -711,6 +711,44 @@ mod tests {
         );
     }
 
+    /// Refit scopes on a committed diagnosis of the study under them (heavy
+    /// tails × 1, 16 scenes): the heavy-tail candidate is judged against the
+    /// base refitted in the policy alone, its rule (d) against that
+    /// reference's checks, and report.md says so; the cause is the qualifying
+    /// candidate with the largest evaluation MLL, which with two references
+    /// need not be the largest gain (in reports without the MLLs, it is).
+    #[test]
+    fn candidates_are_judged_within_their_refit_scope() {
+        let seed3 = committed_in("power-study-scoped", "heavy_tailed_accel/x1/seed3");
+        let tails = seed3.candidates.iter().find(|c| c.cause == "heavy_tailed_accel").unwrap();
+        assert_eq!(tails.refit_scope, RefitScope::Dynamics);
+        assert!(seed3.reference.is_some() && seed3.dynamics_reference.is_some());
+        let why = seed3.why_not("heavy_tailed_accel").unwrap();
+        assert!(why.contains("(d)") && why.contains("accel_kurtosis z 0.64 → 1.00"), "{why}");
+        // Against the reference refitted in every parameter the numbers differ.
+        let mut unscoped = seed3.clone();
+        unscoped.candidates.iter_mut().for_each(|c| c.refit_scope = RefitScope::All);
+        let why = unscoped.why_not("heavy_tailed_accel").unwrap();
+        assert!(why.contains("accel_kurtosis z 0.55 → 1.00"), "{why}");
+        let md = markdown(&seed3, Path::new("data"), &[]);
+        assert!(md.contains("except the extensions of the dynamics (heavy_tailed_accel): refitted in the policy alone"));
+        assert!(md.contains("| reference in the policy | "), "{md}");
+
+        // Seed 0 names heavy tails. Were size bias to qualify with a larger gain
+        // over its own reference but a lower evaluation MLL, heavy tails stay the cause.
+        let seed0 = committed_in("power-study-scoped", "heavy_tailed_accel/x1/seed0");
+        assert_eq!(seed0.decided(true).0, "heavy_tailed_accel");
+        let mut rival = seed0.clone();
+        let tails_mll = rival.candidates.iter().find(|c| c.cause == "heavy_tailed_accel").unwrap().mll;
+        let size = rival.candidates.iter_mut().find(|c| c.cause == "size_bias").unwrap();
+        (size.gain, size.p_adjusted, size.over_reseeded, size.material) = (0.02, 0.001, Some((0.02, 0.001)), true);
+        size.mll = tails_mll - 0.001;
+        assert_eq!(rival.decided(false).0, "heavy_tailed_accel");
+        // A report without the MLLs ranks by gain.
+        rival.candidates.iter_mut().for_each(|c| c.mll = f64::NAN);
+        assert_eq!(rival.decided(false).0, "size_bias");
+    }
+
     /// A nesting extension started from its nested fit is said to be so under
     /// the rules (the flip chain at twice its default, seed 3, rediagnosed with
     /// the nesting start); a report from before it says nothing of it.
