@@ -303,7 +303,8 @@ fn gains_by_part(r: &Report) -> String {
     s
 }
 
-/// `refined / imprecise (max particles)` of one model's held-out evaluation.
+/// `report.md`: the finding, the fits, the checks before and after each candidate, and the
+/// held-out comparison, with links to the check plots (`plots`: a check's name and its SVG file).
 fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     let c = &r.config;
     let mut s = String::new();
