@@ -120,6 +120,14 @@ pub struct DiagnoseArgs {
     /// 2026-12-01 did.
     #[arg(long)]
     no_scoped_refits: bool,
+    /// Set aside the evaluation objects on which the models cannot be compared: whose held-out log-likelihood has
+    /// a Monte Carlo sd above --min-gain times the evaluation part's units under any model (listed in the report).
+    #[arg(long)]
+    set_aside_unmeasured: bool,
+    /// With --set-aside-unmeasured: every model filters those objects again with this many times the evaluation
+    /// particles first, and an object brought under the bar stays (1: no refinement) [default: 8].
+    #[arg(long)]
+    refine_factor: Option<usize>,
 }
 
 impl DiagnoseArgs {
@@ -153,6 +161,8 @@ impl DiagnoseArgs {
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;
         c.scoped_refits = !self.no_scoped_refits;
+        c.set_aside_unmeasured = self.set_aside_unmeasured;
+        set(&mut c.refine_factor, self.refine_factor);
         c
     }
 }
@@ -317,6 +327,34 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
          {:.4} nats per unit. {:.0} s in all.\n",
         r.kind, r.train_objects, r.check_objects, r.eval_objects, r.eval_units, r.base_mll, r.seconds
     );
+    if !r.eval_imprecise.is_empty() {
+        let listed: Vec<String> = r
+            .eval_imprecise
+            .iter()
+            .map(|o| {
+                format!(
+                    "scene {} object {} ({} units; Monte Carlo sd {:.0} nats, refined {:.1}: {})",
+                    o.scene,
+                    o.id,
+                    o.units,
+                    o.mc_sd,
+                    o.refined_mc_sd,
+                    if o.set_aside { "set aside" } else { "kept" }
+                )
+            })
+            .collect();
+        let set_aside_units: usize = r.eval_imprecise.iter().filter(|o| o.set_aside).map(|o| o.units).sum();
+        let _ = writeln!(
+            s,
+            "Objects a model did not measure (under at least one model the Monte Carlo sd of the log-likelihood \
+             exceeded {:.1} nats, the smallest gain that names a cause over the whole part), filtered again by every \
+             model with {} times the particles: {}. The gains and units above and below are over the others and \
+             those kept.\n",
+            c.min_gain * (r.eval_units + set_aside_units) as f64,
+            c.refine_factor,
+            listed.join("; ")
+        );
+    }
     let _ = writeln!(s, "## Finding\n");
     match r.cause.as_str() {
         NO_CAUSE => {

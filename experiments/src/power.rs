@@ -69,6 +69,10 @@ pub struct PowerArgs {
     /// session did: their directories' tables need it.
     #[arg(long)]
     no_scoped_refits: bool,
+    /// Every diagnosis sets aside the evaluation objects a model does not measure
+    /// (`sefi diagnose --set-aside-unmeasured`). Use a fresh `--out` for it.
+    #[arg(long)]
+    set_aside_unmeasured: bool,
     /// Every fit of every diagnosis returns the mean of its last this share of
     /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
     /// fits. Use a fresh `--out` for it.
@@ -147,7 +151,8 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
 
 /// The diagnosis settings every cell of a study shares (`--candidate-lr`,
 /// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-/// `--average-tail`, `--no-scoped-refits`): a study's directory holds one setting.
+/// `--average-tail`, `--no-scoped-refits`, `--set-aside-unmeasured`): a study's
+/// directory holds one setting.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct StudySetting {
     /// Adam's rate of every refit (an extension's parameters).
@@ -166,6 +171,9 @@ struct StudySetting {
     /// Whether each candidate is refitted within its extension's refit scope
     /// (the default; `sefi diagnose --no-scoped-refits` turns it off).
     scoped_refits: bool,
+    /// Whether each diagnosis sets aside the evaluation objects a model does
+    /// not measure (`sefi diagnose --set-aside-unmeasured`).
+    set_aside_unmeasured: bool,
 }
 
 impl StudySetting {
@@ -200,6 +208,7 @@ impl StudySetting {
             nesting_from_nested: config.nesting_from_nested,
             average_tail: config.average_tail,
             scoped_refits: config.scoped_refits,
+            set_aside_unmeasured: config.set_aside_unmeasured,
         }
     }
 
@@ -213,6 +222,7 @@ impl StudySetting {
             nesting_from_nested: self.nesting_from_nested,
             average_tail: self.average_tail,
             scoped_refits: self.scoped_refits,
+            set_aside_unmeasured: self.set_aside_unmeasured,
             ..DiagnoseConfig::quick()
         }
     }
@@ -239,6 +249,9 @@ impl std::fmt::Display for StudySetting {
         }
         if self.average_tail > 0.0 {
             write!(f, ", each fit's last {} of iterates averaged", self.average_tail)?;
+        }
+        if self.set_aside_unmeasured {
+            write!(f, ", unmeasured objects set aside")?;
         }
         Ok(())
     }
@@ -278,6 +291,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
         likelihood_screen: args.likelihood_screen,
         nesting_from_nested: !args.no_nesting_from_nested,
         scoped_refits: !args.no_scoped_refits,
+        set_aside_unmeasured: args.set_aside_unmeasured,
         ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
     };
     ensure_dir(&args.out)?;
@@ -527,13 +541,13 @@ fn run_cell(
     }
     // Nor is a report of another setting (an `--out` reused with another
     // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-    // `--average-tail` or `--no-scoped-refits`).
+    // `--average-tail`, `--no-scoped-refits` or `--set-aside-unmeasured`).
     let found = StudySetting::of(&report.config);
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr, --likelihood-screen, --no-nesting-from-nested, --average-tail or \
-             --no-scoped-refits? use another --out)",
+             --refit-base-lr, --likelihood-screen, --no-nesting-from-nested, --average-tail, \
+             --no-scoped-refits or --set-aside-unmeasured? use another --out)",
             report_path.display(),
         ));
     }

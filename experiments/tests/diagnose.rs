@@ -110,7 +110,8 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         // The reseeded refit keeps its per-object gains, which sum to its gain.
         let reseeded = &reference["reseeded"];
         let gains = reseeded["object_gains"].as_array().expect("the reseeded refit's object gains");
-        assert_eq!(gains.len() as u64, report["eval_objects"].as_u64().unwrap());
+        assert_eq!(gains.len(), typed.eval_object_keys.len());
+        assert_eq!(reseeded["object_mc_sd"].as_array().map(Vec::len), Some(gains.len()));
         let sum: f64 = gains.iter().map(|g| g.as_f64().unwrap()).sum();
         let (gain, units) = (reseeded["gain"].as_f64().unwrap(), report["eval_units"].as_f64().unwrap());
         assert!((sum / units - gain).abs() <= 1e-9 * (1.0 + gain.abs()), "{sum} / {units} against {gain}");
@@ -146,6 +147,19 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         assert!(close(kept["last"].as_f64(), rows.last().unwrap().1), "{}: {kept} against {rows:?}", dir.display());
         assert!(rows.len() >= 3, "evaluated along the way: {rows:?}");
     }
+    // The evaluation part's objects are those measured, in the order of every
+    // candidate's per-object gains and Monte Carlo sds, and those set aside.
+    let set_aside = typed.eval_imprecise.iter().filter(|o| o.set_aside).count();
+    assert_eq!(typed.eval_object_keys.len() + set_aside, typed.eval_objects);
+    assert_eq!(typed.eval_object_units.len(), typed.eval_object_keys.len());
+    let measured_units: usize = typed.eval_object_units.iter().sum();
+    assert_eq!(measured_units, typed.eval_units);
+    for c in &typed.candidates {
+        assert_eq!(
+            (c.object_gains.len(), c.object_mc_sd.len()),
+            (typed.eval_object_keys.len(), typed.eval_object_keys.len())
+        );
+    }
     let md = std::fs::read_to_string(out.join("report.md")).expect("report.md");
     assert!(md.contains("## Parameters each fit kept") && md.contains("| base | "), "{md}");
     // The held-out Monte Carlo error comes from the evaluation's own filter runs:
@@ -155,7 +169,7 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // precise object's error and sqrt(objects) times it.
     if report["config"]["eval_runs"].as_u64().unwrap() >= 2 {
         let units = report["eval_units"].as_f64().unwrap();
-        let objects = report["eval_objects"].as_f64().unwrap();
+        let objects = typed.eval_object_keys.len() as f64;
         for c in candidates {
             let (total, worst) = (c["gain_mc_sd"].as_f64(), c["worst_object_mc_sd"].as_f64());
             let (Some(total), Some(worst)) = (total, worst) else {

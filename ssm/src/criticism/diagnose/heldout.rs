@@ -22,6 +22,46 @@ pub(super) struct EvalLikelihoods {
     pub(super) units: usize,
 }
 
+impl EvalLikelihoods {
+    /// The same likelihoods without the objects `set_aside` (indices in
+    /// ascending order), whose observed units `object_units` gives per object.
+    pub(super) fn without(&self, set_aside: &[usize], object_units: &[usize]) -> EvalLikelihoods {
+        let keep = |i: &usize| set_aside.binary_search(i).is_err();
+        let kept = |v: &[f64]| v.iter().enumerate().filter(|(i, _)| keep(i)).map(|(_, x)| *x).collect();
+        EvalLikelihoods {
+            object_ll: kept(&self.object_ll),
+            object_mc_sd: kept(&self.object_mc_sd),
+            units: self.units - set_aside.iter().map(|&i| object_units[i]).sum::<usize>(),
+        }
+    }
+
+    /// Puts the likelihoods of `refined`, one model's estimates of the objects
+    /// `objects` alone (in that order), in place of this model's.
+    pub(super) fn replace(&mut self, objects: &[usize], refined: &EvalLikelihoods) {
+        assert_eq!(objects.len(), refined.object_ll.len(), "one refined estimate per object");
+        for (k, &o) in objects.iter().enumerate() {
+            self.object_ll[o] = refined.object_ll[k];
+            self.object_mc_sd[o] = refined.object_mc_sd[k];
+        }
+    }
+}
+
+/// The evaluation objects on which the models of `models` cannot be compared,
+/// in ascending order: those whose log-likelihood has a Monte Carlo sd
+/// ([`monte_carlo_sd`]) above `bar` nats under at least one model, so that
+/// any difference with that model is its filter's noise. Under *every* model
+/// would not do: two runs can agree where both are far off (measured: an
+/// object whose estimate under the base 32768 particles do not pin to 200
+/// nats had its two runs 31 nats apart under one candidate, and 4,311 nats
+/// below its reference's estimate). Decided from the runs' spreads alone, the same
+/// under any exchange of two models, so a paired sign-flip test over the other
+/// objects keeps its level. An sd that is not a number (one run) counts as
+/// measured.
+pub(super) fn unmeasured_objects(models: &[&EvalLikelihoods], bar: f64) -> Vec<usize> {
+    let Some(first) = models.first() else { return Vec::new() };
+    (0..first.object_mc_sd.len()).filter(|&o| models.iter().any(|m| m.object_mc_sd[o] > bar)).collect()
+}
+
 /// The log-likelihoods of `model` on its data: each object's likelihood
 /// estimates of [`DiagnoseConfig::eval_runs`] filter runs, averaged.
 pub(super) fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) -> Result<EvalLikelihoods, String> {
@@ -187,6 +227,31 @@ mod tests {
         let s = monte_carlo_sd(&[1.0, 2.0, 3.0, 4.0]);
         assert!((s - (5.0f64 / 3.0).sqrt() / 2.0).abs() < 1e-12, "{s}");
         assert!(monte_carlo_sd(&[-5.0]).is_nan());
+    }
+
+    #[test]
+    fn an_object_is_set_aside_when_a_model_does_not_measure_it() {
+        let ll =
+            |sd: Vec<f64>| EvalLikelihoods { object_ll: vec![-1.0, -2.0, -3.0, -4.0], object_mc_sd: sd, units: 40 };
+        let a = ll(vec![50.0, 0.1, 30.0, f64::NAN]);
+        let b = ll(vec![60.0, 40.0, 0.2, 70.0]);
+        // Objects 0 to 3: above 20 nats under both models, under one, under
+        // the other, and under one where the other's sd is NaN (measured).
+        assert_eq!(unmeasured_objects(&[&a, &b], 20.0), vec![0, 1, 2, 3]);
+        assert_eq!(unmeasured_objects(&[&a, &b], 45.0), vec![0, 3]);
+        assert_eq!(unmeasured_objects(&[&b, &a], 45.0), vec![0, 3], "the same under an exchange of the models");
+        assert_eq!(unmeasured_objects(&[&a], 20.0), vec![0, 2]);
+        assert_eq!(unmeasured_objects(&[&a, &b], 100.0), Vec::<usize>::new());
+        assert!(unmeasured_objects(&[], 20.0).is_empty());
+        let kept = a.without(&[0, 3], &[10, 5, 20, 5]);
+        assert_eq!(kept.object_ll, vec![-2.0, -3.0]);
+        assert_eq!(kept.object_mc_sd, vec![0.1, 30.0]);
+        assert_eq!(kept.units, 25);
+        let mut refined = ll(vec![50.0, 0.1, 30.0, 1.0]);
+        refined
+            .replace(&[0, 2], &EvalLikelihoods { object_ll: vec![-9.0, -8.0], object_mc_sd: vec![2.0, 3.0], units: 7 });
+        assert_eq!((refined.object_ll, refined.object_mc_sd), (vec![-9.0, -2.0, -8.0, -4.0], vec![2.0, 0.1, 3.0, 1.0]));
+        assert_eq!(refined.units, 40, "the units are the whole part's");
     }
 
     #[test]

@@ -77,7 +77,9 @@
 mod heldout;
 mod replicated;
 
-use heldout::{differences, gain_monte_carlo_sd, gain_of, likelihoods, top_two_share, EvalLikelihoods};
+use heldout::{
+    differences, gain_monte_carlo_sd, gain_of, likelihoods, top_two_share, unmeasured_objects, EvalLikelihoods,
+};
 pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 use replicated::{posterior_predictive_checks, ModelChecks};
 
@@ -244,6 +246,32 @@ pub struct DiagnoseConfig {
     /// before it reads `false` (every refit moved every parameter).
     #[serde(default)]
     pub scoped_refits: bool,
+    /// Set aside, before the decision, the evaluation objects on which the
+    /// models cannot be compared: those whose held-out log-likelihood has a
+    /// Monte Carlo sd (over the [`DiagnoseConfig::eval_runs`] runs) above the
+    /// smallest gain that names a cause over the whole evaluation part
+    /// ([`DiagnoseConfig::min_gain`] times its observed units) under any model
+    /// evaluated: the references, their reseeded twins or a candidate. A
+    /// difference with such an object is that filter's noise (and its
+    /// estimate's downward bias) rather than the models', and can decide the
+    /// sum alone. Decided from the runs' spreads, symmetrically in the models,
+    /// so the sign-flip test over the other objects keeps its level; the report
+    /// lists them ([`Report::eval_imprecise`]). Before that, every model
+    /// filters such objects again with [`DiagnoseConfig::refine_factor`] times
+    /// the particles (the same seeds for every model, so the pairing holds),
+    /// and an object the refined runs bring under the bar stays, with its
+    /// refined estimates. Off by default (measured on a few cells; README,
+    /// "Objects a model does not measure").
+    #[serde(default)]
+    pub set_aside_unmeasured: bool,
+    /// How many times the evaluation particles refine an object a model did
+    /// not measure ([`DiagnoseConfig::set_aside_unmeasured`]; 1: no
+    /// refinement). 8 by default: a filter's log-likelihood sd falls about as
+    /// the square root of its particles (measured on one object: 1,035 nats
+    /// at 1,024 particles, 386 at 8,192), so an object up to about 2.8 times
+    /// over the bar can be brought under it.
+    #[serde(default = "one")]
+    pub refine_factor: usize,
     /// Family-wise level of the candidates' gain tests (Holm-corrected sign-flip
     /// p-values).
     pub cause_level: f64,
@@ -288,11 +316,18 @@ impl Default for DiagnoseConfig {
             likelihood_screen: false,
             nesting_from_nested: true,
             scoped_refits: true,
+            set_aside_unmeasured: false,
+            refine_factor: 8,
             cause_level: 0.05,
             min_gain: MIN_GAIN,
             permutations: 9999,
         }
     }
+}
+
+/// `1`: [`DiagnoseConfig::refine_factor`] of a report written before it existed.
+fn one() -> usize {
+    1
 }
 
 /// The default [`DiagnoseConfig::min_gain`]: 0.003 nats per observed unit, about
@@ -346,6 +381,7 @@ impl DiagnoseConfig {
         SettingError::check(self.particles > 0, "particles", self.particles, "at least 1")?;
         SettingError::check(self.eval_particles > 0, "eval_particles", self.eval_particles, "at least 1")?;
         SettingError::check(self.eval_runs > 0, "eval_runs", self.eval_runs, "at least 1")?;
+        SettingError::check(self.refine_factor > 0, "refine_factor", self.refine_factor, "at least 1")?;
         SettingError::check(self.draws >= 3, "draws", self.draws, "at least 3")?;
         SettingError::check(fraction(self.alpha), "alpha", self.alpha, "in (0, 1)")?;
         let p = self.plausible_p;
@@ -464,6 +500,10 @@ pub struct CandidateReport {
     pub p_adjusted: f64,
     /// Per evaluated object, its log-likelihood gain (nats).
     pub object_gains: Vec<f64>,
+    /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
+    /// this candidate (nats; empty in reports written before it was kept).
+    #[serde(default)]
+    pub object_mc_sd: Vec<f64>,
     /// Its log-likelihood on the evaluation part (nats per observed unit; NaN
     /// in reports written before it was recorded): which qualifying candidate
     /// is the cause, where candidates of different refit scopes have gains
@@ -905,6 +945,32 @@ pub struct ReferenceReport {
     /// ([`DiagnoseConfig::refit_noise`]); `None` without it.
     #[serde(default)]
     pub reseeded: Option<ReseededReport>,
+    /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
+    /// this refit (nats; empty in reports written before it was kept).
+    #[serde(default)]
+    pub object_mc_sd: Vec<f64>,
+}
+
+/// An evaluation object that a model did not measure at the evaluation's
+/// budget ([`DiagnoseConfig::set_aside_unmeasured`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ImpreciseObject {
+    /// Its scene id.
+    pub scene: i64,
+    /// Its object id within the scene.
+    pub id: i64,
+    /// Its observed units.
+    pub units: usize,
+    /// The largest Monte Carlo sd of its log-likelihood over the models at
+    /// the evaluation's particles (nats).
+    pub mc_sd: f64,
+    /// The same after every model filtered it again with
+    /// [`DiagnoseConfig::refine_factor`] times the particles (NaN without).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub refined_mc_sd: f64,
+    /// Whether it stayed over the bar and was set aside (else the refined
+    /// estimates replaced every model's).
+    pub set_aside: bool,
 }
 
 /// The base refitted alone with another training seed: how far two refits that
@@ -923,6 +989,10 @@ pub struct ReseededReport {
     /// (empty in reports written before they were kept).
     #[serde(default)]
     pub object_gains: Vec<f64>,
+    /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
+    /// this refit (nats; empty in reports written before it was kept).
+    #[serde(default)]
+    pub object_mc_sd: Vec<f64>,
     /// Training time (s).
     pub train_seconds: f64,
     /// Training steps skipped (non-finite estimates).
@@ -930,6 +1000,16 @@ pub struct ReseededReport {
     /// The evaluation on the check part whose parameters the refit kept.
     #[serde(default)]
     pub kept: Option<KeptBest>,
+}
+
+impl ReseededReport {
+    /// Sets the gain of the refit whose likelihoods are `again` over the
+    /// reference's `reference`, paired by object.
+    fn compare(&mut self, again: &EvalLikelihoods, reference: &EvalLikelihoods) {
+        self.object_gains = differences(&again.object_ll, &reference.object_ll);
+        (self.gain, self.gain_se) = gain_of(&self.object_gains, reference.units);
+        self.object_mc_sd = again.object_mc_sd.clone();
+    }
 }
 
 impl Report {
@@ -1178,6 +1258,12 @@ pub struct Report {
     /// Each evaluation object's observed units, in the same order.
     #[serde(default)]
     pub eval_object_units: Vec<usize>,
+    /// The evaluation objects a model did not measure at the evaluation's
+    /// budget ([`DiagnoseConfig::set_aside_unmeasured`]): refined, and set
+    /// aside where that did not bring them under the bar. Those set aside are
+    /// not among `eval_object_keys`, and neither their units nor their gains count.
+    #[serde(default)]
+    pub eval_imprecise: Vec<ImpreciseObject>,
     /// Observed units (points, detections) of the evaluation part.
     pub eval_units: usize,
     /// Log-likelihood of the reference on the evaluation part (nats per
@@ -1330,12 +1416,19 @@ struct Reference {
     eval: EvalLikelihoods,
     /// The same refit with another training seed ([`DiagnoseConfig::refit_noise`]).
     reseeded: Option<ReseededReport>,
+    /// The reseeded refit's parameters and likelihoods on the evaluation part.
+    reseeded_eval: Option<(ParamStore<f64>, EvalLikelihoods)>,
     /// Its likelihoods on the check part, where a candidate of its scope was
     /// admitted by the likelihood screen (rule (d) for it).
     on_check: Option<EvalLikelihoods>,
 }
 
 impl Reference {
+    /// The reference of `scope` among `references` (the first where none is of it).
+    fn of_scope(references: &[Reference], scope: RefitScope) -> &Reference {
+        references.iter().find(|r| r.scope == scope).unwrap_or(&references[0])
+    }
+
     /// Its part of the report (`None` for the base).
     fn report(&self) -> Option<ReferenceReport> {
         self.run.as_ref().map(|run| ReferenceReport {
@@ -1344,6 +1437,7 @@ impl Reference {
             skipped_steps: run.skipped,
             kept: run.kept.clone(),
             reseeded: self.reseeded.clone(),
+            object_mc_sd: self.eval.object_mc_sd.clone(),
         })
     }
 }
@@ -1381,28 +1475,29 @@ impl ReferenceFit<'_> {
         progress(&Stage::Evaluating { model: dir.into() });
         let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
         // The refits' own noise: the base refitted alone with another seed.
-        let reseeded = if config.refit_noise {
+        let (reseeded, reseeded_eval) = if config.refit_noise {
             let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
             let dir = out_dir.join(reseeded_dir);
             let again =
                 fit(parts, None, self.base.clone(), self.schedule, &held, &reseeded_config, &dir, comm, progress)?;
             progress(&Stage::Evaluating { model: reseeded_dir.into() });
             let again_eval = eval_likelihoods(parts.eval, &again.params, None, config)?;
-            let object_gains = differences(&again_eval.object_ll, &eval.object_ll);
-            let (gain, gain_se) = gain_of(&object_gains, eval.units);
-            Some(ReseededReport {
-                gain,
-                gain_se,
-                object_gains,
+            let mut reseeded = ReseededReport {
+                gain: f64::NAN,
+                gain_se: f64::NAN,
+                object_gains: Vec::new(),
+                object_mc_sd: Vec::new(),
                 train_seconds: again.seconds,
                 skipped_steps: again.skipped,
                 kept: again.kept.clone(),
-            })
+            };
+            reseeded.compare(&again_eval, &eval);
+            (Some(reseeded), Some((again.params, again_eval)))
         } else {
-            None
+            (None, None)
         };
         let on_check = if screened { Some(eval_likelihoods(parts.check, &run.params, None, config)?) } else { None };
-        Ok(Reference { scope, run: Some(run), checks, eval, reseeded, on_check })
+        Ok(Reference { scope, run: Some(run), checks, eval, reseeded, reseeded_eval, on_check })
     }
 }
 
@@ -1521,14 +1616,12 @@ fn run(
             checks: before.clone(),
             eval: eval_likelihoods(parts.eval, &base.params, None, config)?,
             reseeded: None,
+            reseeded_eval: None,
             // Rule (d) of a screened candidate: the base, filtered on the check part already.
             on_check: if screened_any { base_on_check } else { None },
         });
     }
-    let reference_of = |extension: Extension| {
-        let scope = scope_of(extension);
-        references.iter().find(|r| r.scope == scope).unwrap_or(&references[0])
-    };
+    let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
     let mut fits: Vec<Fit> = Vec::new();
     for (extension, flagged_by, screened_in) in plausible {
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
@@ -1557,7 +1650,37 @@ fn run(
     }
 
     // 5. The decision on the evaluation part, each candidate against the
-    // reference of its scope.
+    // reference of its scope, over the objects every model measures.
+    let eval_object_units: Vec<usize> = (0..parts.eval.objects().len()).map(|o| parts.eval.object_units(o)).collect();
+    let eval_imprecise = if config.set_aside_unmeasured {
+        refine_unmeasured(parts.eval, &base.params, &mut references, &mut fits, config, progress)?
+    } else {
+        Vec::new()
+    };
+    let set_aside: Vec<usize> = eval_imprecise
+        .iter()
+        .filter(|o| o.set_aside)
+        .map(|o| parts.eval.find_object(o.scene, o.id).expect("an evaluation object"))
+        .collect();
+    if !set_aside.is_empty() {
+        for reference in &mut references {
+            reference.eval = reference.eval.without(&set_aside, &eval_object_units);
+            if let Some((_, again)) = &mut reference.reseeded_eval {
+                *again = again.without(&set_aside, &eval_object_units);
+            }
+        }
+        for f in &mut fits {
+            f.eval = f.eval.without(&set_aside, &eval_object_units);
+        }
+    }
+    // The reseeded refits' gains over the objects kept, refined ones included.
+    for reference in &mut references {
+        if let (Some(reseeded), Some((_, again))) = (&mut reference.reseeded, &reference.reseeded_eval) {
+            reseeded.compare(again, &reference.eval);
+        }
+    }
+    let measured = |o: &usize| set_aside.binary_search(o).is_err();
+    let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
     let reference_eval = &references[0].eval;
     let object_gains: Vec<Vec<f64>> =
         fits.iter().map(|f| differences(&f.eval.object_ll, &reference_of(f.extension).eval.object_ll)).collect();
@@ -1594,6 +1717,7 @@ fn run(
             p_adjusted: adjusted[i],
             top_two_share: top_two_share(&d),
             object_gains: d,
+            object_mc_sd: f.eval.object_mc_sd.clone(),
             mll: f.eval.object_ll.iter().sum::<f64>() / reference_eval.units.max(1) as f64,
             refit_scope: reference.scope,
             over_reseeded: over_reseeded[i],
@@ -1655,8 +1779,16 @@ fn run(
         train_objects: parts.fit.objects().len(),
         check_objects: parts.check.objects().len(),
         eval_objects: parts.eval.objects().len(),
-        eval_object_keys: parts.eval.objects().iter().map(|o| (o.scene, o.id)).collect(),
-        eval_object_units: (0..parts.eval.objects().len()).map(|o| parts.eval.object_units(o)).collect(),
+        eval_object_keys: parts
+            .eval
+            .objects()
+            .iter()
+            .enumerate()
+            .filter(|(o, _)| measured(o))
+            .map(|(_, o)| (o.scene, o.id))
+            .collect(),
+        eval_object_units: eval_object_units.iter().enumerate().filter(|(o, _)| measured(o)).map(|(_, u)| *u).collect(),
+        eval_imprecise,
         eval_units: reference_eval.units,
         base_mll,
         reference: references.iter().find(|r| r.scope == RefitScope::All).and_then(Reference::report),
@@ -1667,6 +1799,72 @@ fn run(
         seconds: started.elapsed().as_secs_f64(),
         config: config.clone(),
     })
+}
+
+/// [`DiagnoseConfig::set_aside_unmeasured`] on the evaluation part `eval`:
+/// finds the objects some model (a reference, its reseeded twin, a candidate;
+/// `base` the parameters of a reference without a refit) did not measure,
+/// filters them again with every model at [`DiagnoseConfig::refine_factor`]
+/// times the particles, puts the refined estimates in every model's
+/// likelihoods, and marks those still unmeasured to be set aside.
+fn refine_unmeasured(
+    eval: &Dataset,
+    base: &ParamStore<f64>,
+    references: &mut [Reference],
+    fits: &mut [Fit],
+    config: &DiagnoseConfig,
+    progress: &mut dyn FnMut(&Stage),
+) -> Result<Vec<ImpreciseObject>, String> {
+    let mut models: Vec<(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)> = Vec::new();
+    for r in references.iter_mut() {
+        models.push((r.run.as_ref().map_or(base, |run| &run.params), None, &mut r.eval));
+        if let Some((params, again)) = &mut r.reseeded_eval {
+            models.push((&*params, None, again));
+        }
+    }
+    for f in fits.iter_mut() {
+        models.push((&f.run.params, Some(f.extension), &mut f.eval));
+    }
+    let Some(first) = models.first() else { return Ok(Vec::new()) };
+    let bar = config.min_gain * first.2.units as f64;
+    let unmeasured = |models: &[(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)]| {
+        unmeasured_objects(&models.iter().map(|m| &*m.2).collect::<Vec<_>>(), bar)
+    };
+    let worst = |models: &[(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)], o: usize| {
+        models.iter().map(|m| m.2.object_mc_sd[o]).fold(f64::NAN, f64::max)
+    };
+    let flagged = unmeasured(&models);
+    let mut imprecise: Vec<ImpreciseObject> = flagged
+        .iter()
+        .map(|&o| ImpreciseObject {
+            scene: eval.objects()[o].scene,
+            id: eval.objects()[o].id,
+            units: eval.object_units(o),
+            mc_sd: worst(&models, o),
+            refined_mc_sd: f64::NAN,
+            set_aside: true,
+        })
+        .collect();
+    if flagged.is_empty() || config.refine_factor <= 1 {
+        return Ok(imprecise);
+    }
+    let subset = eval.select_objects(&flagged);
+    let keys: Vec<(i64, i64)> = subset.objects().iter().map(|o| (o.scene, o.id)).collect();
+    assert_eq!(keys, imprecise.iter().map(|o| (o.scene, o.id)).collect::<Vec<_>>(), "the subset keeps the order");
+    let refine = DiagnoseConfig { eval_particles: config.eval_particles * config.refine_factor, ..config.clone() };
+    for (i, (params, extension, likelihoods)) in models.iter_mut().enumerate() {
+        progress(&Stage::Evaluating {
+            model: format!("{} objects refined, model {} of those compared", flagged.len(), i + 1),
+        });
+        let refined = eval_likelihoods(&subset, params, *extension, &refine)?;
+        likelihoods.replace(&flagged, &refined);
+    }
+    let still = unmeasured(&models);
+    for (object, &o) in imprecise.iter_mut().zip(&flagged) {
+        object.refined_mc_sd = worst(&models, o);
+        object.set_aside = still.binary_search(&o).is_ok();
+    }
+    Ok(imprecise)
 }
 
 /// Training runs end at this fraction of the initial learning rate.
@@ -1983,6 +2181,7 @@ mod tests {
             p: 0.001,
             p_adjusted: 0.001,
             object_gains: vec![],
+            object_mc_sd: vec![],
             mll: -1.0,
             refit_scope: RefitScope::All,
             over_reseeded: None,
