@@ -348,3 +348,75 @@ fn bad_input_is_a_clear_error() {
     assert!(!out.status.success(), "a strength of zero is refused");
     assert!(String::from_utf8_lossy(&out.stderr).contains("strength"));
 }
+
+/// `--set-aside-unmeasured`, at a small scale with every extension fitted (so
+/// that every model compared is in the report): a first diagnosis without it
+/// gives every model's per-object Monte Carlo sds; a second, resumed from the
+/// same fits with the bar set between two of the objects' largest sds, flags
+/// exactly the objects over it (the evaluation is deterministic), refilters
+/// them at `--refine-factor` times the particles and sets aside exactly those
+/// that stay over it; the objects set aside leave the evaluation part's keys,
+/// units and every gain, and every model's estimates of the others are the
+/// first run's, refined ones excepted.
+#[test]
+fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
+    let dir = temp("diagnose", "set-aside");
+    let (data, out) = (dir.join("data"), dir.join("out"));
+    ok(&sefi(&["generate", "--hidden", "latency", "--scenes", "4", "--out", s(&data), "--seed", "3"]));
+    let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "3", "--fit-all"];
+    command.extend(["--base-steps", "12", "--candidate-steps", "6", "--particles", "32", "--eval-particles", "32"]);
+    let read =
+        || -> Report { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
+    ok(&sefi(&command));
+    let first = read();
+    assert!(first.eval_imprecise.is_empty() && first.eval_object_keys.len() == first.eval_objects);
+    let every_model = |r: &Report| -> Vec<Vec<f64>> {
+        let mut sds: Vec<Vec<f64>> = r.candidates.iter().map(|c| c.object_mc_sd.clone()).collect();
+        for reference in r.reference.iter().chain(&r.dynamics_reference) {
+            sds.push(reference.object_mc_sd.clone());
+            sds.extend(reference.reseeded.iter().map(|r| r.object_mc_sd.clone()));
+        }
+        sds
+    };
+    let sds = every_model(&first);
+    assert!(sds.len() >= 4, "every extension and the references compared");
+    let worst: Vec<f64> = (0..first.eval_objects).map(|o| sds.iter().map(|m| m[o]).fold(f64::NAN, f64::max)).collect();
+    let mut sorted = worst.clone();
+    sorted.sort_by(f64::total_cmp);
+    let bar = 0.5 * (sorted[sorted.len() / 2] + sorted[sorted.len() / 2 + 1]);
+    assert!(sorted[sorted.len() / 2 + 1] > sorted[sorted.len() / 2], "two objects' sds apart: {sorted:?}");
+    let min_gain = format!("{:e}", bar / first.eval_units as f64);
+    command.extend(["--set-aside-unmeasured", "--refine-factor", "4", "--min-gain", &min_gain]);
+    ok(&sefi(&command));
+    let second = read();
+    assert!(second.config.set_aside_unmeasured && second.config.refine_factor == 4);
+    let flagged: Vec<(i64, i64)> = second.eval_imprecise.iter().map(|o| (o.scene, o.id)).collect();
+    let over: Vec<(i64, i64)> =
+        first.eval_object_keys.iter().zip(&worst).filter(|(_, &w)| w > bar).map(|(k, _)| *k).collect();
+    assert_eq!(flagged, over, "the objects over {bar} nats under some model");
+    for o in &second.eval_imprecise {
+        assert!(o.refined_mc_sd.is_finite() && o.set_aside == (o.refined_mc_sd > bar), "{o:?} against {bar}");
+        assert_eq!(second.eval_object_keys.contains(&(o.scene, o.id)), !o.set_aside, "{o:?}");
+    }
+    let set_aside: Vec<_> = second.eval_imprecise.iter().filter(|o| o.set_aside).collect();
+    assert_eq!(second.eval_object_keys.len() + set_aside.len(), second.eval_objects);
+    assert_eq!(second.eval_object_units.iter().sum::<usize>(), second.eval_units);
+    assert_eq!(second.eval_units + set_aside.iter().map(|o| o.units).sum::<usize>(), first.eval_units);
+    // Per model, the kept objects' sds: the first run's where never flagged,
+    // and under the bar everywhere.
+    for (before, after) in sds.iter().zip(every_model(&second)) {
+        assert_eq!(after.len(), second.eval_object_keys.len());
+        for (key, sd) in second.eval_object_keys.iter().zip(&after) {
+            assert!(*sd <= bar, "{key:?}: {sd} over {bar}");
+            if !flagged.contains(key) {
+                let o = first.eval_object_keys.iter().position(|k| k == key).unwrap();
+                assert_eq!(*sd, before[o], "{key:?}");
+            }
+        }
+    }
+    for c in &second.candidates {
+        assert_eq!(c.object_gains.len(), second.eval_object_keys.len(), "{}", c.cause);
+    }
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("Objects a model did not measure") && md.contains("4 times the particles"), "{md}");
+}

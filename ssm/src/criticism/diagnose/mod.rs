@@ -1801,6 +1801,10 @@ fn run(
     })
 }
 
+/// A model compared on the evaluation part: its parameters, its extension, and
+/// its likelihoods there.
+type Compared<'a> = (&'a ParamStore<f64>, Option<Extension>, &'a mut EvalLikelihoods);
+
 /// [`DiagnoseConfig::set_aside_unmeasured`] on the evaluation part `eval`:
 /// finds the objects some model (a reference, its reseeded twin, a candidate;
 /// `base` the parameters of a reference without a refit) did not measure,
@@ -1815,7 +1819,7 @@ fn refine_unmeasured(
     config: &DiagnoseConfig,
     progress: &mut dyn FnMut(&Stage),
 ) -> Result<Vec<ImpreciseObject>, String> {
-    let mut models: Vec<(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)> = Vec::new();
+    let mut models: Vec<Compared> = Vec::new();
     for r in references.iter_mut() {
         models.push((r.run.as_ref().map_or(base, |run| &run.params), None, &mut r.eval));
         if let Some((params, again)) = &mut r.reseeded_eval {
@@ -1827,12 +1831,8 @@ fn refine_unmeasured(
     }
     let Some(first) = models.first() else { return Ok(Vec::new()) };
     let bar = config.min_gain * first.2.units as f64;
-    let unmeasured = |models: &[(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)]| {
-        unmeasured_objects(&models.iter().map(|m| &*m.2).collect::<Vec<_>>(), bar)
-    };
-    let worst = |models: &[(&ParamStore<f64>, Option<Extension>, &mut EvalLikelihoods)], o: usize| {
-        models.iter().map(|m| m.2.object_mc_sd[o]).fold(f64::NAN, f64::max)
-    };
+    let unmeasured = |models: &[Compared]| unmeasured_objects(&models.iter().map(|m| &*m.2).collect::<Vec<_>>(), bar);
+    let worst = |models: &[Compared], o: usize| models.iter().map(|m| m.2.object_mc_sd[o]).fold(f64::NAN, f64::max);
     let flagged = unmeasured(&models);
     let mut imprecise: Vec<ImpreciseObject> = flagged
         .iter()
@@ -1845,24 +1845,31 @@ fn refine_unmeasured(
             set_aside: true,
         })
         .collect();
-    if flagged.is_empty() || config.refine_factor <= 1 {
-        return Ok(imprecise);
-    }
-    let subset = eval.select_objects(&flagged);
-    let keys: Vec<(i64, i64)> = subset.objects().iter().map(|o| (o.scene, o.id)).collect();
-    assert_eq!(keys, imprecise.iter().map(|o| (o.scene, o.id)).collect::<Vec<_>>(), "the subset keeps the order");
     let refine = DiagnoseConfig { eval_particles: config.eval_particles * config.refine_factor, ..config.clone() };
-    for (i, (params, extension, likelihoods)) in models.iter_mut().enumerate() {
-        progress(&Stage::Evaluating {
-            model: format!("{} objects refined, model {} of those compared", flagged.len(), i + 1),
-        });
-        let refined = eval_likelihoods(&subset, params, *extension, &refine)?;
-        likelihoods.replace(&flagged, &refined);
+    if !flagged.is_empty() && config.refine_factor > 1 {
+        let subset = eval.select_objects(&flagged);
+        let keys: Vec<(i64, i64)> = subset.objects().iter().map(|o| (o.scene, o.id)).collect();
+        assert_eq!(keys, imprecise.iter().map(|o| (o.scene, o.id)).collect::<Vec<_>>(), "the subset keeps the order");
+        for (i, (params, extension, likelihoods)) in models.iter_mut().enumerate() {
+            progress(&Stage::Evaluating {
+                model: format!("{} objects refined, model {} of those compared", flagged.len(), i + 1),
+            });
+            let refined = eval_likelihoods(&subset, params, *extension, &refine)?;
+            likelihoods.replace(&flagged, &refined);
+        }
+        let still = unmeasured(&models);
+        for (object, &o) in imprecise.iter_mut().zip(&flagged) {
+            object.refined_mc_sd = worst(&models, o);
+            object.set_aside = still.binary_search(&o).is_ok();
+        }
     }
-    let still = unmeasured(&models);
-    for (object, &o) in imprecise.iter_mut().zip(&flagged) {
-        object.refined_mc_sd = worst(&models, o);
-        object.set_aside = still.binary_search(&o).is_ok();
+    if imprecise.iter().filter(|o| o.set_aside).count() == eval.objects().len() {
+        return Err(format!(
+            "no evaluation object is measured: under some model each one's log-likelihood has a Monte Carlo sd \
+             above {bar:.3} nats at {} particles; raise --eval-particles, --eval-runs or --refine-factor (the fits \
+             are kept and resume)",
+            refine.eval_particles
+        ));
     }
     Ok(imprecise)
 }
