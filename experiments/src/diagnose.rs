@@ -343,14 +343,13 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
                 )
             })
             .collect();
-        let set_aside_units: usize = r.eval_imprecise.iter().filter(|o| o.set_aside).map(|o| o.units).sum();
         let _ = writeln!(
             s,
             "Objects a model did not measure (under at least one model the Monte Carlo sd of the log-likelihood \
              exceeded {:.1} nats, the smallest gain that names a cause over the whole part), filtered again by every \
              model with {} times the particles: {}. The gains and units above and below are over the others and \
              those kept.\n",
-            c.min_gain * (r.eval_units + set_aside_units) as f64,
+            r.unmeasured_bar(),
             c.refine_factor,
             listed.join("; ")
         );

@@ -414,6 +414,14 @@ impl DiagnoseConfig {
         self.train_tempering.unwrap_or_default()
     }
 
+    /// The Monte Carlo sd (nats) above which an evaluation object of a part
+    /// with `units` observed units counts as unmeasured
+    /// ([`DiagnoseConfig::set_aside_unmeasured`]): the smallest gain that names
+    /// a cause over the whole part.
+    pub fn unmeasured_bar(&self, units: usize) -> f64 {
+        self.min_gain * units as f64
+    }
+
     /// The filter of the checks and of the evaluation, with run `run`'s seed.
     fn eval_filter(&self, run: usize) -> FilterConfig {
         FilterConfig::new(Sampling::new(self.eval_particles, Some(self.tempering())), 0, self.seed + run as u64)
@@ -1003,16 +1011,31 @@ pub struct ReseededReport {
 }
 
 impl ReseededReport {
-    /// Sets the gain of the refit whose likelihoods are `again` over the
-    /// reference's `reference`, paired by object.
-    fn compare(&mut self, again: &EvalLikelihoods, reference: &EvalLikelihoods) {
-        self.object_gains = differences(&again.object_ll, &reference.object_ll);
-        (self.gain, self.gain_se) = gain_of(&self.object_gains, reference.units);
-        self.object_mc_sd = again.object_mc_sd.clone();
+    /// The refit `run`, whose likelihoods are `again`, against the reference's
+    /// likelihoods `reference`, paired by object.
+    fn new(run: &Fitted, again: &EvalLikelihoods, reference: &EvalLikelihoods) -> ReseededReport {
+        let object_gains = differences(&again.object_ll, &reference.object_ll);
+        let (gain, gain_se) = gain_of(&object_gains, reference.units);
+        ReseededReport {
+            gain,
+            gain_se,
+            object_gains,
+            object_mc_sd: again.object_mc_sd.clone(),
+            train_seconds: run.seconds,
+            skipped_steps: run.skipped,
+            kept: run.kept.clone(),
+        }
     }
 }
 
 impl Report {
+    /// The bar of [`DiagnoseConfig::set_aside_unmeasured`] on this report's
+    /// evaluation part, its objects set aside included.
+    pub fn unmeasured_bar(&self) -> f64 {
+        let set_aside: usize = self.eval_imprecise.iter().filter(|o| o.set_aside).map(|o| o.units).sum();
+        self.config.unmeasured_bar(self.eval_units + set_aside)
+    }
+
     /// The least gain (nats per observed unit) that names a cause, rule (b):
     /// [`DiagnoseConfig::min_gain`], or the size of the refits' own noise when
     /// it was measured and is larger.
@@ -1414,10 +1437,12 @@ struct Reference {
     checks: Vec<CheckResult>,
     /// Its likelihoods on the evaluation part.
     eval: EvalLikelihoods,
-    /// The same refit with another training seed ([`DiagnoseConfig::refit_noise`]).
+    /// The same refit with another training seed ([`DiagnoseConfig::refit_noise`])
+    /// and its likelihoods on the evaluation part.
+    reseeded_run: Option<(Fitted, EvalLikelihoods)>,
+    /// Its comparison with this reference, made in step 5 over the objects
+    /// kept ([`DiagnoseConfig::set_aside_unmeasured`]).
     reseeded: Option<ReseededReport>,
-    /// The reseeded refit's parameters and likelihoods on the evaluation part.
-    reseeded_eval: Option<(ParamStore<f64>, EvalLikelihoods)>,
     /// Its likelihoods on the check part, where a candidate of its scope was
     /// admitted by the likelihood screen (rule (d) for it).
     on_check: Option<EvalLikelihoods>,
@@ -1475,29 +1500,19 @@ impl ReferenceFit<'_> {
         progress(&Stage::Evaluating { model: dir.into() });
         let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
         // The refits' own noise: the base refitted alone with another seed.
-        let (reseeded, reseeded_eval) = if config.refit_noise {
+        let reseeded_run = if config.refit_noise {
             let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
             let dir = out_dir.join(reseeded_dir);
             let again =
                 fit(parts, None, self.base.clone(), self.schedule, &held, &reseeded_config, &dir, comm, progress)?;
             progress(&Stage::Evaluating { model: reseeded_dir.into() });
             let again_eval = eval_likelihoods(parts.eval, &again.params, None, config)?;
-            let mut reseeded = ReseededReport {
-                gain: f64::NAN,
-                gain_se: f64::NAN,
-                object_gains: Vec::new(),
-                object_mc_sd: Vec::new(),
-                train_seconds: again.seconds,
-                skipped_steps: again.skipped,
-                kept: again.kept.clone(),
-            };
-            reseeded.compare(&again_eval, &eval);
-            (Some(reseeded), Some((again.params, again_eval)))
+            Some((again, again_eval))
         } else {
-            (None, None)
+            None
         };
         let on_check = if screened { Some(eval_likelihoods(parts.check, &run.params, None, config)?) } else { None };
-        Ok(Reference { scope, run: Some(run), checks, eval, reseeded, reseeded_eval, on_check })
+        Ok(Reference { scope, run: Some(run), checks, eval, reseeded_run, reseeded: None, on_check })
     }
 }
 
@@ -1615,8 +1630,8 @@ fn run(
             run: None,
             checks: before.clone(),
             eval: eval_likelihoods(parts.eval, &base.params, None, config)?,
+            reseeded_run: None,
             reseeded: None,
-            reseeded_eval: None,
             // Rule (d) of a screened candidate: the base, filtered on the check part already.
             on_check: if screened_any { base_on_check } else { None },
         });
@@ -1652,20 +1667,15 @@ fn run(
     // 5. The decision on the evaluation part, each candidate against the
     // reference of its scope, over the objects every model measures.
     let eval_object_units: Vec<usize> = (0..parts.eval.objects().len()).map(|o| parts.eval.object_units(o)).collect();
-    let eval_imprecise = if config.set_aside_unmeasured {
+    let (eval_imprecise, set_aside) = if config.set_aside_unmeasured {
         refine_unmeasured(parts.eval, &base.params, &mut references, &mut fits, config, progress)?
     } else {
-        Vec::new()
+        (Vec::new(), Vec::new())
     };
-    let set_aside: Vec<usize> = eval_imprecise
-        .iter()
-        .filter(|o| o.set_aside)
-        .map(|o| parts.eval.find_object(o.scene, o.id).expect("an evaluation object"))
-        .collect();
     if !set_aside.is_empty() {
         for reference in &mut references {
             reference.eval = reference.eval.without(&set_aside, &eval_object_units);
-            if let Some((_, again)) = &mut reference.reseeded_eval {
+            if let Some((_, again)) = &mut reference.reseeded_run {
                 *again = again.without(&set_aside, &eval_object_units);
             }
         }
@@ -1675,9 +1685,8 @@ fn run(
     }
     // The reseeded refits' gains over the objects kept, refined ones included.
     for reference in &mut references {
-        if let (Some(reseeded), Some((_, again))) = (&mut reference.reseeded, &reference.reseeded_eval) {
-            reseeded.compare(again, &reference.eval);
-        }
+        reference.reseeded =
+            reference.reseeded_run.as_ref().map(|(run, again)| ReseededReport::new(run, again, &reference.eval));
     }
     let measured = |o: &usize| set_aside.binary_search(o).is_err();
     let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
@@ -1810,7 +1819,8 @@ type Compared<'a> = (&'a ParamStore<f64>, Option<Extension>, &'a mut EvalLikelih
 /// `base` the parameters of a reference without a refit) did not measure,
 /// filters them again with every model at [`DiagnoseConfig::refine_factor`]
 /// times the particles, puts the refined estimates in every model's
-/// likelihoods, and marks those still unmeasured to be set aside.
+/// likelihoods, and marks those still unmeasured to be set aside: the flagged
+/// objects, and the indices of those set aside (ascending).
 fn refine_unmeasured(
     eval: &Dataset,
     base: &ParamStore<f64>,
@@ -1818,19 +1828,18 @@ fn refine_unmeasured(
     fits: &mut [Fit],
     config: &DiagnoseConfig,
     progress: &mut dyn FnMut(&Stage),
-) -> Result<Vec<ImpreciseObject>, String> {
+) -> Result<(Vec<ImpreciseObject>, Vec<usize>), String> {
     let mut models: Vec<Compared> = Vec::new();
     for r in references.iter_mut() {
         models.push((r.run.as_ref().map_or(base, |run| &run.params), None, &mut r.eval));
-        if let Some((params, again)) = &mut r.reseeded_eval {
-            models.push((&*params, None, again));
+        if let Some((again, likelihoods)) = &mut r.reseeded_run {
+            models.push((&again.params, None, likelihoods));
         }
     }
     for f in fits.iter_mut() {
         models.push((&f.run.params, Some(f.extension), &mut f.eval));
     }
-    let Some(first) = models.first() else { return Ok(Vec::new()) };
-    let bar = config.min_gain * first.2.units as f64;
+    let bar = config.unmeasured_bar(models[0].2.units);
     let unmeasured = |models: &[Compared]| unmeasured_objects(&models.iter().map(|m| &*m.2).collect::<Vec<_>>(), bar);
     let worst = |models: &[Compared], o: usize| models.iter().map(|m| m.2.object_mc_sd[o]).fold(f64::NAN, f64::max);
     let flagged = unmeasured(&models);
@@ -1863,7 +1872,8 @@ fn refine_unmeasured(
             object.set_aside = still.binary_search(&o).is_ok();
         }
     }
-    if imprecise.iter().filter(|o| o.set_aside).count() == eval.objects().len() {
+    let set_aside: Vec<usize> = flagged.iter().zip(&imprecise).filter(|(_, o)| o.set_aside).map(|(&i, _)| i).collect();
+    if set_aside.len() == eval.objects().len() {
         return Err(format!(
             "no evaluation object is measured: under some model each one's log-likelihood has a Monte Carlo sd \
              above {bar:.3} nats at {} particles; raise --eval-particles, --eval-runs or --refine-factor (the fits \
@@ -1871,7 +1881,7 @@ fn refine_unmeasured(
             refine.eval_particles
         ));
     }
-    Ok(imprecise)
+    Ok((imprecise, set_aside))
 }
 
 /// Training runs end at this fraction of the initial learning rate.
