@@ -418,5 +418,8 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
         assert_eq!(c.object_gains.len(), second.eval_object_keys.len(), "{}", c.cause);
     }
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    // The report's bar is the one the objects were flagged against, its set-aside units included.
+    assert!((second.unmeasured_bar() - bar).abs() <= 1e-9 * bar, "{} against {bar}", second.unmeasured_bar());
+    assert!(md.contains(&format!("exceeded {:.1} nats", second.unmeasured_bar())), "{md}");
     assert!(md.contains("Objects a model did not measure") && md.contains("4 times the particles"), "{md}");
 }

@@ -1839,7 +1839,8 @@ fn refine_unmeasured(
     for f in fits.iter_mut() {
         models.push((&f.run.params, Some(f.extension), &mut f.eval));
     }
-    let bar = config.unmeasured_bar(models[0].2.units);
+    let Some(units) = models.first().map(|m| m.2.units) else { return Ok((Vec::new(), Vec::new())) };
+    let bar = config.unmeasured_bar(units);
     let unmeasured = |models: &[Compared]| unmeasured_objects(&models.iter().map(|m| &*m.2).collect::<Vec<_>>(), bar);
     let worst = |models: &[Compared], o: usize| models.iter().map(|m| m.2.object_mc_sd[o]).fold(f64::NAN, f64::max);
     let flagged = unmeasured(&models);
