@@ -20,47 +20,59 @@ EXPECTED = {"student_t_accel": "heavy_tailed_accel", "ego_pose_noise": "unexplai
 
 
 def rows(source):
+    """One study's `power.csv` by cell, (effect, strength, seed) -> row."""
     path = os.path.join(ROOT, source, "power.csv")
     return {(r["effect"], r["strength"], r["seed"]): r for r in csv.DictReader(open(path))}
 
 
-tables = [rows(s) for s in SOURCES]
-cells = {}
-for key in tables[-1]:
-    for source, table in zip(SOURCES, tables):
-        if key in table:
-            cells[key] = (source, table[key])
-            break
+def default_cells():
+    """The default study, cell by cell: (effect, strength, seed) -> (source, row),
+    each cell from the first of SOURCES that holds it; and every source's table."""
+    tables = [rows(s) for s in SOURCES]
+    cells = {}
+    for key in tables[-1]:
+        for source, table in zip(SOURCES, tables):
+            if key in table:
+                cells[key] = (source, table[key])
+                break
+    return cells, tables
 
-effects = list(dict.fromkeys(k[0] for k in tables[-1]))
-strengths = ["0.5", "1", "2"]
-print("| effect | " + " | ".join(f"x {s}" for s in strengths) + " |")
-print("|---|" + "---|" * len(strengths))
-for e in effects:
-    out = []
-    for s in strengths:
-        group = [cells[k] for k in sorted(cells) if k[0] == e and k[1] == s]
-        if not group:
-            out.append("")
+
+def main():
+    cells, tables = default_cells()
+    effects = list(dict.fromkeys(k[0] for k in tables[-1]))
+    strengths = ["0.5", "1", "2"]
+    print("| effect | " + " | ".join(f"x {s}" for s in strengths) + " |")
+    print("|---|" + "---|" * len(strengths))
+    for e in effects:
+        out = []
+        for s in strengths:
+            group = [cells[k] for k in sorted(cells) if k[0] == e and k[1] == s]
+            if not group:
+                out.append("")
+                continue
+            named = sum(r["named"] == "true" for _, r in group)
+            expected = EXPECTED.get(e, e)
+            false = sum(r["cause"] not in (expected, "none", "unexplained") for _, r in group)
+            rerun = sum(src == SOURCES[0] for src, _ in group)
+            note = f"{named} of {len(group)}"
+            if false:
+                note += f", {false} false"
+            note += f" ({rerun} rerun)"
+            out.append(note)
+        print(f"| {e} | " + " | ".join(out) + " |")
+    print()
+    print("Cells whose outcome differs from the earlier directories':")
+    for key in sorted(cells):
+        source, r = cells[key]
+        if source != SOURCES[0]:
             continue
-        named = sum(r["named"] == "true" for _, r in group)
-        expected = EXPECTED.get(e, e)
-        false = sum(r["cause"] not in (expected, "none", "unexplained") for _, r in group)
-        rerun = sum(src == SOURCES[0] for src, _ in group)
-        note = f"{named} of {len(group)}"
-        if false:
-            note += f", {false} false"
-        note += f" ({rerun} rerun)"
-        out.append(note)
-    print(f"| {e} | " + " | ".join(out) + " |")
-print()
-print("Cells whose outcome differs from the earlier directories':")
-for key in sorted(cells):
-    source, r = cells[key]
-    if source != SOURCES[0]:
-        continue
-    for old_source, table in zip(SOURCES[1:], tables[1:]):
-        if key in table:
-            if table[key]["cause"] != r["cause"]:
-                print(f"- {key[0]} x{key[1]} seed {key[2]}: {table[key]['cause']} ({old_source}) -> {r['cause']}")
-            break
+        for old_source, table in zip(SOURCES[1:], tables[1:]):
+            if key in table:
+                if table[key]["cause"] != r["cause"]:
+                    print(f"- {key[0]} x{key[1]} seed {key[2]}: {table[key]['cause']} ({old_source}) -> {r['cause']}")
+                break
+
+
+if __name__ == "__main__":
+    main()

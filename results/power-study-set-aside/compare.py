@@ -1,37 +1,66 @@
 #!/usr/bin/env python3
-# Each finished cell of this directory against the same cell of the default study
-# (power-study-scoped, else power-study-nesting, else power-study-eval-crn): outcome and
-# the named cause's gain, default -> set aside, and the objects flagged and set aside.
-# Outcomes are the study tables' (power.csv: every finished report decided again under
-# today's rules), not report.json's `cause`, which is the rules of the build that wrote it.
-# Run from the repository root: python3 results/power-study-set-aside/compare.py
-import csv, glob, json, os
+"""Each finished cell of this directory against the same cell of the default study
+(`power-study-scoped/merge.py`'s cells: power-study-scoped, else power-study-nesting,
+else power-study-eval-crn): outcome and the named cause's gain, default -> set aside,
+and the objects flagged and set aside. Outcomes are the study tables' (power.csv:
+every finished report decided again under today's rules), not report.json's `cause`,
+which is the rules of the build that wrote it. Where nothing was flagged the cell's
+candidates must equal the default's (gain and adjusted p); a cell where they do not is
+marked. Run from the repository root: python3 results/power-study-set-aside/compare.py
+"""
+import glob
+import json
+import os
+import sys
 
-def outcomes(d):
-    with open(f'results/{d}/power.csv') as f:
-        return {(r['effect'], r['strength'], r['seed']): r for r in csv.DictReader(f)}
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "power-study-scoped"))
+from merge import ROOT, default_cells, rows  # noqa: E402
 
-defaults = {d: outcomes(d) for d in ['power-study-scoped', 'power-study-nesting', 'power-study-eval-crn']}
-mine = outcomes('power-study-set-aside')
+HERE = "power-study-set-aside"
 
-changed = 0
-for new in sorted(glob.glob('results/power-study-set-aside/*/*/seed*/report.json')):
-    parts = new.split('/')
-    e, x, k = parts[2], parts[3], parts[4]
-    key = (e, x[1:], k[4:])
-    old = None
-    for d, table in defaults.items():
-        if os.path.exists(f'results/{d}/{e}/{x}/{k}/report.json') and key in table:
-            old = table[key]
-            break
-    n = mine.get(key)
-    im = json.load(open(new))['eval_imprecise']
-    def show(row):
-        if row is None:
-            return '?'
-        named = row['cause'] not in ('none', 'unexplained')
-        return row['cause'] + (f" {float(row['gain']):+.4f}" if named else '')
-    flag = '' if old is None or n is None or old['cause'] == n['cause'] else '  <- changed'
-    changed += bool(flag)
-    print(f"{e} {x} {k}: {show(old)} -> {show(n)} | flagged {len(im)}, set aside {sum(o['set_aside'] for o in im)}{flag}")
-print(f"outcomes changed: {changed}")
+
+def show(row):
+    """A cell's outcome, with the named cause's gain."""
+    if row is None:
+        return "?"
+    named = row["cause"] not in ("none", "unexplained")
+    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
+
+
+def candidates(report):
+    """Each candidate's gain and adjusted p, by cause."""
+    return {c["cause"]: (round(c["gain"], 10), c["p_adjusted"]) for c in report["candidates"]}
+
+
+def main():
+    defaults, _ = default_cells()
+    mine = rows(HERE)
+    changed = uncompared = unequal = 0
+    for path in sorted(glob.glob(f"{ROOT}/{HERE}/*/*/seed*/report.json")):
+        effect, x, seed = path.split("/")[2:5]
+        key = (effect, x[1:], seed[4:])
+        source, old = defaults.get(key, (None, None))
+        new = mine.get(key)
+        report = json.load(open(path))
+        flagged = report["eval_imprecise"]
+        marks = []
+        if old is None or new is None:
+            uncompared += 1
+            marks.append("not compared")
+        elif old["cause"] != new["cause"]:
+            changed += 1
+            marks.append("changed")
+        if not flagged and source is not None:
+            default = json.load(open(f"{ROOT}/{source}/{effect}/{x}/{seed}/report.json"))
+            if candidates(default) != candidates(report):
+                unequal += 1
+                marks.append("nothing flagged, candidates differ")
+        set_aside = sum(o["set_aside"] for o in flagged)
+        mark = f"  <- {'; '.join(marks)}" if marks else ""
+        print(f"{effect} {x} {seed}: {show(old)} -> {show(new)} | flagged {len(flagged)}, set aside {set_aside}{mark}")
+    print(f"outcomes changed: {changed}; not compared: {uncompared}; "
+          f"unflagged cells whose candidates differ: {unequal}")
+
+
+if __name__ == "__main__":
+    main()
