@@ -120,12 +120,17 @@ pub struct DiagnoseArgs {
     /// 2026-12-01 did.
     #[arg(long)]
     no_scoped_refits: bool,
-    /// Set aside the evaluation objects on which the models cannot be compared: whose held-out log-likelihood has
-    /// a Monte Carlo sd above --min-gain times the evaluation part's units under any model (listed in the report).
-    #[arg(long)]
+    /// Keep every evaluation object, as diagnoses before 2026-12-02 did, instead of setting aside those on which
+    /// the models cannot be compared: whose held-out log-likelihood has a Monte Carlo sd above --min-gain times the
+    /// evaluation part's units under some model, after a refinement (listed in the report).
+    #[arg(long, conflicts_with = "set_aside_unmeasured")]
+    keep_unmeasured: bool,
+    /// Set aside the objects no model measures: the default, accepted so that commands written before it was
+    /// still run.
+    #[arg(long, hide = true)]
     set_aside_unmeasured: bool,
-    /// With --set-aside-unmeasured: every model filters those objects again with this many times the evaluation
-    /// particles first, and an object brought under the bar stays (1: no refinement) [default: 8].
+    /// Every model filters an object it did not measure again with this many times the evaluation particles
+    /// before it is set aside, and an object brought under the bar stays (1: no refinement) [default: 8].
     #[arg(long)]
     refine_factor: Option<usize>,
 }
@@ -161,7 +166,7 @@ impl DiagnoseArgs {
         c.refit = !self.no_refit;
         c.refit_noise = !self.no_refit_noise;
         c.scoped_refits = !self.no_scoped_refits;
-        c.set_aside_unmeasured = self.set_aside_unmeasured;
+        c.set_aside_unmeasured = !self.keep_unmeasured;
         set(&mut c.refine_factor, self.refine_factor);
         c
     }

@@ -69,9 +69,14 @@ pub struct PowerArgs {
     /// session did: their directories' tables need it.
     #[arg(long)]
     no_scoped_refits: bool,
-    /// Every diagnosis sets aside the evaluation objects a model does not measure
-    /// (`sefi diagnose --set-aside-unmeasured`). Use a fresh `--out` for it.
-    #[arg(long)]
+    /// Every diagnosis keeps every evaluation object (`sefi diagnose
+    /// --keep-unmeasured`), as the studies before 2026-12-02's thirty-fourth
+    /// session did: their directories' tables need it.
+    #[arg(long, conflicts_with = "set_aside_unmeasured")]
+    keep_unmeasured: bool,
+    /// Every diagnosis sets aside the evaluation objects no model measures: the
+    /// default, accepted so that commands written before it was still run.
+    #[arg(long, hide = true)]
     set_aside_unmeasured: bool,
     /// Every fit of every diagnosis returns the mean of its last this share of
     /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
@@ -151,7 +156,7 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
 
 /// The diagnosis settings every cell of a study shares (`--candidate-lr`,
 /// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-/// `--average-tail`, `--no-scoped-refits`, `--set-aside-unmeasured`): a study's
+/// `--average-tail`, `--no-scoped-refits`, `--keep-unmeasured`): a study's
 /// directory holds one setting.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct StudySetting {
@@ -171,8 +176,8 @@ struct StudySetting {
     /// Whether each candidate is refitted within its extension's refit scope
     /// (the default; `sefi diagnose --no-scoped-refits` turns it off).
     scoped_refits: bool,
-    /// Whether each diagnosis sets aside the evaluation objects a model does
-    /// not measure (`sefi diagnose --set-aside-unmeasured`).
+    /// Whether each diagnosis sets aside the evaluation objects no model
+    /// measures (the default; `sefi diagnose --keep-unmeasured` turns it off).
     set_aside_unmeasured: bool,
 }
 
@@ -250,8 +255,8 @@ impl std::fmt::Display for StudySetting {
         if self.average_tail > 0.0 {
             write!(f, ", each fit's last {} of iterates averaged", self.average_tail)?;
         }
-        if self.set_aside_unmeasured {
-            write!(f, ", unmeasured objects set aside")?;
+        if !self.set_aside_unmeasured {
+            write!(f, ", every evaluation object kept")?;
         }
         Ok(())
     }
@@ -291,7 +296,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
         likelihood_screen: args.likelihood_screen,
         nesting_from_nested: !args.no_nesting_from_nested,
         scoped_refits: !args.no_scoped_refits,
-        set_aside_unmeasured: args.set_aside_unmeasured,
+        set_aside_unmeasured: !args.keep_unmeasured,
         ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
     };
     ensure_dir(&args.out)?;
@@ -541,13 +546,13 @@ fn run_cell(
     }
     // Nor is a report of another setting (an `--out` reused with another
     // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-    // `--average-tail`, `--no-scoped-refits` or `--set-aside-unmeasured`).
+    // `--average-tail`, `--no-scoped-refits` or `--keep-unmeasured`).
     let found = StudySetting::of(&report.config);
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
              --refit-base-lr, --likelihood-screen, --no-nesting-from-nested, --average-tail, \
-             --no-scoped-refits or --set-aside-unmeasured? use another --out)",
+             --no-scoped-refits or --keep-unmeasured? use another --out)",
             report_path.display(),
         ));
     }
@@ -716,11 +721,13 @@ mod tests {
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// The setting of the committed studies, run before a nesting extension's
-    /// fit started from its nested one's and before refits had scopes.
+    /// fit started from its nested one's, before refits had scopes and before
+    /// unmeasured objects were set aside.
     fn before_nesting() -> StudySetting {
         StudySetting {
             nesting_from_nested: false,
             scoped_refits: false,
+            set_aside_unmeasured: false,
             ..StudySetting::new(None, None, None).unwrap()
         }
     }
@@ -771,6 +778,12 @@ mod tests {
         let err = run_cell(&out, &effect, 1.0, 0, scoped, true).err().expect("a report from before scoped refits");
         assert!(err.contains("every refit in every parameter") && err.contains("--no-scoped-refits"), "{err}");
         assert!(today.scoped_refits && today.diagnose_config(0).scoped_refits);
+        // Nor one that kept every evaluation object with one that set aside
+        // those no model measures (today's default).
+        let set_aside = StudySetting { set_aside_unmeasured: true, ..setting };
+        let err = run_cell(&out, &effect, 1.0, 0, set_aside, true).err().expect("a report that kept every object");
+        assert!(err.contains("every evaluation object kept") && err.contains("--keep-unmeasured"), "{err}");
+        assert!(today.set_aside_unmeasured && today.diagnose_config(0).set_aside_unmeasured);
         assert!(StudySetting::new(None, Some(0.0), None).unwrap_err().contains("--refit-base-lr"));
         assert!(StudySetting::new(Some(f64::NAN), None, None).unwrap_err().contains("--candidate-lr"));
         effect.scenes = 32;

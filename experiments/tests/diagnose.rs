@@ -349,9 +349,10 @@ fn bad_input_is_a_clear_error() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("strength"));
 }
 
-/// `--set-aside-unmeasured`, at a small scale with every extension fitted (so
-/// that every model compared is in the report): a first diagnosis without it
-/// gives every model's per-object Monte Carlo sds; a second, resumed from the
+/// Setting aside the objects no model measures (the default), at a small scale
+/// with every extension fitted (so that every model compared is in the
+/// report): a first diagnosis with `--keep-unmeasured` gives every model's
+/// per-object Monte Carlo sds; a second, by default and resumed from the
 /// same fits with the bar set between two of the objects' largest sds, flags
 /// exactly the objects over it (the evaluation is deterministic), refilters
 /// them at `--refine-factor` times the particles and sets aside exactly those
@@ -367,8 +368,9 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     command.extend(["--base-steps", "12", "--candidate-steps", "6", "--particles", "32", "--eval-particles", "32"]);
     let read =
         || -> Report { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
-    ok(&sefi(&command));
+    ok(&sefi(&[command.as_slice(), &["--keep-unmeasured"]].concat()));
     let first = read();
+    assert!(!first.config.set_aside_unmeasured, "--keep-unmeasured");
     assert!(first.eval_imprecise.is_empty() && first.eval_object_keys.len() == first.eval_objects);
     let every_model = |r: &Report| -> Vec<Vec<f64>> {
         let mut sds: Vec<Vec<f64>> = r.candidates.iter().map(|c| c.object_mc_sd.clone()).collect();
@@ -386,7 +388,7 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     let bar = 0.5 * (sorted[sorted.len() / 2] + sorted[sorted.len() / 2 + 1]);
     assert!(sorted[sorted.len() / 2 + 1] > sorted[sorted.len() / 2], "two objects' sds apart: {sorted:?}");
     let min_gain = format!("{:e}", bar / first.eval_units as f64);
-    command.extend(["--set-aside-unmeasured", "--refine-factor", "4", "--min-gain", &min_gain]);
+    command.extend(["--refine-factor", "4", "--min-gain", &min_gain]);
     ok(&sefi(&command));
     let second = read();
     assert!(second.config.set_aside_unmeasured && second.config.refine_factor == 4);
