@@ -9,7 +9,7 @@
 //! data beyond the files. The power study (`sefi power-study`, README) runs the
 //! same at three strengths and five seeds each.
 
-use crate::common::{ok, s, sefi, temp};
+use crate::common::{failed, ok, s, sefi, temp};
 use autodiff::nn::ParamStore;
 use serde_json::Value;
 use ssm::criticism::diagnose::{beats_reseeded, Report};
@@ -347,6 +347,31 @@ fn bad_input_is_a_clear_error() {
     let out = sefi(&["generate", "--hidden", "latency", "--strength", "0", "--out", s(&dir.join("d"))]);
     assert!(!out.status.success(), "a strength of zero is refused");
     assert!(String::from_utf8_lossy(&out.stderr).contains("strength"));
+}
+
+/// `sefi power-study`'s flags reach every cell's setting: a table rebuilt over a
+/// committed cell of the first study (before nesting starts, refit scopes and
+/// setting aside unmeasured objects) is refused by today's defaults, naming the
+/// flag of the last, and rebuilt with the three flags that restore its setting;
+/// `--keep-unmeasured` and the old `--set-aside-unmeasured` exclude each other.
+#[test]
+fn power_study_flags_set_the_study_setting() {
+    let out = temp("power", "flags");
+    let cell = out.join("latency/x1/seed0");
+    std::fs::create_dir_all(&cell).unwrap();
+    let committed =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study/latency/x1/seed0/report.json");
+    std::fs::copy(committed, cell.join("report.json")).unwrap();
+    let table = ["power-study", "--table-only", "--effects", "latency", "--strengths", "1", "--seeds", "1"];
+    let table = [table.as_slice(), &["--out", s(&out)]].concat();
+    let err = failed(&sefi(&[table.as_slice(), &["--no-nesting-from-nested", "--no-scoped-refits"]].concat()));
+    assert!(err.contains("every evaluation object kept") && err.contains("--keep-unmeasured"), "{err}");
+    let old = [table.as_slice(), &["--no-nesting-from-nested", "--no-scoped-refits", "--keep-unmeasured"]].concat();
+    ok(&sefi(&old));
+    assert!(std::fs::read_to_string(out.join("power.csv")).unwrap().contains("latency,1,0,"));
+    let err = failed(&sefi(&[old.as_slice(), &["--set-aside-unmeasured"]].concat()));
+    assert!(err.contains("--set-aside-unmeasured") && err.contains("--keep-unmeasured"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
 }
 
 /// Setting aside the objects no model measures (the default), at a small scale
