@@ -409,3 +409,51 @@ fn neural_policy_layout_parameters_and_precision() {
     assert!(close(&g64.l11, &g32.l11) && close(&g64.l21, &g32.l21) && close(&g64.l22, &g32.l22));
     assert!(g64.l11.iter().chain(&g64.l22).all(|&s| s > 0.0));
 }
+
+/// The neural policy's plain path (the block kernel the filter runs) against its tape
+/// version, at states inside and beyond the inputs' clamps, over several networks and
+/// batch sizes that are and are not whole blocks: f64 to rounding, f32 to f32's.
+#[test]
+fn neural_plain_path_matches_the_tape() {
+    for seed in [40u64, 41, 42] {
+        let mut rng = StdRng::seed_from_u64(seed);
+        let mut policy = NeuralPolicy::new(&mut rng);
+        // Perturbed biases and weights, so no unit sits at a ReLU's kink by construction.
+        let mut params = policy.parameters();
+        for p in params.iter_mut() {
+            p.data_mut().iter_mut().for_each(|x| *x += rng.random_range(-0.1..0.1));
+        }
+        policy.set_parameters(&params).unwrap();
+        for n in [1usize, 63, 64, 65, 200] {
+            let v: Vec<f64> = (0..n).map(|_| rng.random_range(-80.0..80.0)).collect();
+            let k: Vec<f64> = (0..n).map(|_| rng.random_range(-0.8..0.8)).collect();
+            let mut plain = ActionGaussians::default();
+            policy.gaussians(&v, &k, &mut plain);
+            let tape = Tape::<f64>::new();
+            let bound = policy.bind_parameters(&tape);
+            let c = |x: &[f64]| tape.constant(Tensor::from_vec(x.to_vec()));
+            let on_tape = policy.gaussians_on_tape(&bound, c(&v), c(&k));
+            let l21 = on_tape.l21.expect("full Cholesky factor");
+            for (name, a, b) in [
+                ("mean_accel", &plain.mean_accel, on_tape.mean_accel),
+                ("mean_pinch", &plain.mean_pinch, on_tape.mean_pinch),
+                ("l11", &plain.l11, on_tape.l11),
+                ("l21", &plain.l21, l21),
+                ("l22", &plain.l22, on_tape.l22),
+            ] {
+                for (i, (x, y)) in a.iter().zip(b.to_tensor().data()).enumerate() {
+                    assert!((x - y).abs() <= 1e-12 * y.abs().max(1.0), "seed {seed}, n {n}, {name}[{i}]: {x} vs {y}");
+                }
+            }
+            let v32: Vec<f32> = v.iter().map(|&x| x as f32).collect();
+            let k32: Vec<f32> = k.iter().map(|&x| x as f32).collect();
+            let mut plain32 = ActionGaussians::default();
+            policy.gaussians(&v32, &k32, &mut plain32);
+            for (a, b) in [(&plain32.mean_accel, &plain.mean_accel), (&plain32.l11, &plain.l11), (&plain32.l22, &plain.l22)] {
+                for (x, y) in a.iter().zip(b) {
+                    assert!((*x as f64 - y).abs() <= 1e-4 * y.abs().max(1.0), "seed {seed}, n {n}: f32 {x} vs f64 {y}");
+                }
+            }
+        }
+    }
+}

@@ -15,6 +15,7 @@
 //! * [`linear_gaussian`]: the linear-Gaussian model with its exact Kalman
 //!   likelihood and score, and as a particle model.
 //! * [`params`]: the parameter-file convention ([`params::Models`]).
+//! * `plain_mlp`: the tape-free block kernel that runs the networks in the filter.
 //! * [`error`]: [`ModelError`], why a model could not be built.
 
 pub mod drift;
@@ -24,6 +25,7 @@ pub mod flip_chain;
 pub mod linear_gaussian;
 pub mod observation;
 pub mod params;
+pub(crate) mod plain_mlp;
 pub mod road_user;
 pub mod traits;
 pub mod vehicle;

@@ -3,13 +3,16 @@
 //! and the lower-triangular Cholesky factor of their covariance (positive diagonal
 //! through a softplus). 1,317 parameters, held in an [`autodiff::nn::ParamStore`].
 //!
-//! The network is written once, on the tape: the plain (filter) path runs it on a
-//! non-recording tape and copies the outputs out, so both paths compute the same
-//! numbers.
+//! The network is written twice: on the tape for the estimators, and on the plain
+//! path the filter runs, [`crate::models::plain_mlp`]'s block kernel (the same
+//! operations in the same order, the layers' sums accumulated in another order: the
+//! two agree to rounding, which a test checks).
 
 use autodiff::nn::{Activation, Mlp, ParamStore};
-use autodiff::{Float, Parallelism, Tape, Tensor, Var};
+use autodiff::{Float, Tensor, Var};
 use rand::Rng;
+
+use crate::models::plain_mlp::forward_feature_major;
 
 use super::policy::{check_parameters, ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 
@@ -55,7 +58,6 @@ pub const MIN_SD_PINCH: f64 = 1e-4;
 pub struct NeuralPolicy {
     store: ParamStore<f64>,
     mlp: Mlp,
-    par: Parallelism,
 }
 
 impl NeuralPolicy {
@@ -66,7 +68,7 @@ impl NeuralPolicy {
         let mut rng = rng;
         let mlp =
             Mlp::new(&mut store, "policy", &NEURAL_POLICY_LAYERS, Activation::Relu, Activation::Identity, &mut rng);
-        NeuralPolicy { store, mlp, par: Parallelism::Serial }
+        NeuralPolicy { store, mlp }
     }
 
     /// The same network with the output biases set so that, where the hidden
@@ -86,13 +88,6 @@ impl NeuralPolicy {
         let b = self.store.get_mut(bias).data_mut();
         b[2] = inverse_softplus(sd_accel - MIN_SD_ACCEL);
         b[4] = inverse_softplus((sd_pinch - MIN_SD_PINCH) / PINCH_OUTPUT_SCALE);
-        self
-    }
-
-    /// How the plain path's matrix products use threads: `Serial` (default; the
-    /// filter parallelises over objects) or `Rayon`.
-    pub fn with_parallelism(mut self, par: Parallelism) -> Self {
-        self.par = par;
         self
     }
 
@@ -166,19 +161,31 @@ impl GaussianPolicy for NeuralPolicy {
         if n == 0 {
             return;
         }
-        let tape = Tape::<F>::no_record().with_parallelism(self.par);
-        let params: Vec<Var<'_, F>> = self.store.values().iter().map(|p| tape.constant(p.cast())).collect();
-        let c = |x: &[F]| tape.constant(Tensor::from_vec(x.to_vec()));
-        let g = self.forward(&params, c(v), c(kappa));
-        let l21 = g.l21.expect("the neural policy has a full Cholesky factor");
-        for (dst, var) in [
-            (&mut out.mean_accel, g.mean_accel),
-            (&mut out.mean_pinch, g.mean_pinch),
-            (&mut out.l11, g.l11),
-            (&mut out.l21, l21),
-            (&mut out.l22, g.l22),
-        ] {
-            dst.copy_from_slice(var.value().data());
+        // The tape version's operations in its order (clamp, scale; the layers; the
+        // heads), on the block kernel of the filter's networks.
+        let f = F::from_f64;
+        let (v_lim, k_lim) = (f(INPUT_SPEED_LIMIT), f(INPUT_CURVATURE_LIMIT));
+        let (v_scale, k_scale) = (f(SPEED_INPUT_SCALE), f(CURVATURE_INPUT_SCALE));
+        let mut input = Vec::with_capacity(2 * n);
+        input.extend(v.iter().map(|&x| x.max(-v_lim).min(v_lim) * v_scale));
+        input.extend(kappa.iter().map(|&x| x.max(-k_lim).min(k_lim) * k_scale));
+        let weights: Vec<Tensor<F>> = self.store.values().iter().map(|p| p.cast()).collect();
+        let (mut hidden, mut o) = ([Vec::new(), Vec::new()], Vec::new());
+        forward_feature_major(&self.mlp, &weights, n, &input, &mut hidden, &mut o);
+        let col = |j: usize| &o[j * n..(j + 1) * n];
+        let (pinch_scale, min_accel, min_pinch) = (f(PINCH_OUTPUT_SCALE), f(MIN_SD_ACCEL), f(MIN_SD_PINCH));
+        out.mean_accel.copy_from_slice(col(0));
+        for (dst, &o1) in out.mean_pinch.iter_mut().zip(col(1)) {
+            *dst = o1 * pinch_scale;
+        }
+        for (dst, &o2) in out.l11.iter_mut().zip(col(2)) {
+            *dst = o2.softplus() + min_accel;
+        }
+        for (dst, &o3) in out.l21.iter_mut().zip(col(3)) {
+            *dst = o3 * pinch_scale;
+        }
+        for (dst, &o4) in out.l22.iter_mut().zip(col(4)) {
+            *dst = o4.softplus() * pinch_scale + min_pinch;
         }
     }
 
