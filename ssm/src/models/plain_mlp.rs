@@ -89,7 +89,7 @@ const TILE_OUTPUTS: usize = 4;
 /// tile and each weight broadcast once per tile (4 vectors of 16 lanes per tile was
 /// 11% slower than 2).
 const TILE_VECTORS: usize = 2;
-const _: () = assert!(NET_BLOCK % (TILE_VECTORS * LANES) == 0, "a block is whole tiles");
+const _: () = assert!(NET_BLOCK.is_multiple_of(TILE_VECTORS * LANES), "a block is whole tiles");
 
 /// One layer `y = act(x W + b)` for one block: `x` holds `k_in` rows of
 /// [`NET_BLOCK`] values, `y` receives `k_out` rows; `W` is `k_in x k_out`, row-major.
