@@ -48,8 +48,13 @@ pub struct DiagnoseArgs {
     /// Fit also the extensions no check flagged whose start raises the check objects' likelihood over the base's
     /// (one-sided sign-flip p below 0.2); such an extension must raise it again after its fit, over the
     /// reference's, to be named.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "fit_all")]
     likelihood_screen: bool,
+    /// Fit every extension no check flagged, and keep one as a candidate only when its fitted model raises the check
+    /// objects' likelihood over its reference's (one-sided sign-flip p below 0.2): a screen by the fitted model's
+    /// likelihood rather than a summary statistic, at the cost of fitting every extension.
+    #[arg(long, conflicts_with_all = ["fit_all", "likelihood_screen"])]
+    fitted_screen: bool,
     /// Fit a nesting extension (persistent_flip) from the base, as every other, instead of where its nested
     /// extension's fit (heading_flip) ended (the base's parameters and the fraction from that fit, the
     /// persistence from the checks).
@@ -141,6 +146,7 @@ impl DiagnoseArgs {
         c.seed = self.seed;
         c.fit_all = self.fit_all;
         c.likelihood_screen = self.likelihood_screen;
+        c.fitted_screen = self.fitted_screen;
         c.nesting_from_nested = !self.no_nesting_from_nested;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
@@ -491,6 +497,20 @@ fn screen_table(s: &mut String, r: &Report) {
     }
 }
 
+/// What `report.md` says of the fitted screen (`--fitted-screen`) where it ran;
+/// empty otherwise.
+fn fitted_screen_note(r: &Report) -> String {
+    if !r.config.fitted_screen {
+        return String::new();
+    }
+    format!(
+        " With the fitted screen every extension no check flagged was fitted too: it is tested (in the Holm family \
+         of (a) and (b)) and passes (d) only where its fitted model raises the check objects' log-likelihood over \
+         the reference's with a one-sided sign-flip p below {}; the others show `p adj.` 1 and fail (d).",
+        r.config.plausible_p
+    )
+}
+
 /// What `report.md` says of a nesting extension's start when one was compared
 /// with its nested extension and started from its fit
 /// ([`DiagnoseConfig::nesting_from_nested`]); empty otherwise.
@@ -548,11 +568,12 @@ fn candidate_table(s: &mut String, r: &Report) {
          p below {}, (b) by at least {:.4} nats per unit{}, (c) change the model materially, (d) lower the \
          |z| of a check that flagged it below the reference's (or carry it past the measured value without \
          failing it, where the reference still flagged it) and (e), if it contains another fitted extension as \
-         a special case, beat that one by object (same test and minimum).{}\n",
+         a special case, beat that one by object (same test and minimum).{}{}\n",
         c.cause_level,
         r.gain_bar(),
         noise_note(r),
-        nesting_note(r)
+        nesting_note(r),
+        fitted_screen_note(r)
     );
     let _ = writeln!(
         s,
@@ -752,6 +773,41 @@ mod tests {
                  admit it (start gain -0.0007, p 0.787)"
             )
         );
+    }
+
+    /// The fitted screen on a committed diagnosis (heavy tails × 1, 16 scenes,
+    /// seed 2, whose checks flagged no heavy tails: `unexplained` without the
+    /// screen): every extension was fitted; those no check flagged carry their
+    /// check-part gain and p; the ones the screen did not admit are left out of
+    /// the Holm family (p adj. 1) and fail rule (d), the admitted heavy tails are
+    /// adjusted over the tests made (two, not four) and named, and the decision
+    /// read again from the report agrees.
+    #[test]
+    fn the_fitted_screen_admits_by_the_check_part_and_tests_only_what_it_admits() {
+        let report = committed_in("power-study-fitted-screen", "heavy_tailed_accel/x1/seed2");
+        assert!(report.config.fitted_screen && report.not_fitted.is_empty());
+        let plausible_p = report.config.plausible_p;
+        let by_id = |id: &str| report.candidates.iter().find(|c| c.cause == id).unwrap();
+        for id in ["latency", "clutter"] {
+            let c = by_id(id);
+            assert!(c.flagged_by.is_empty() && c.check_part_p.is_some_and(|p| p >= plausible_p), "{id}");
+            assert!(!c.admitted(plausible_p) && c.p_adjusted == 1.0 && !c.checks_improved, "{id}");
+        }
+        let tails = by_id("heavy_tailed_accel");
+        assert!(tails.flagged_by.is_empty() && tails.admitted(plausible_p));
+        assert!(tails.check_part_gain.is_some_and(|g| g > 0.0) && tails.checks_improved);
+        let size_bias = by_id("size_bias");
+        assert!(!size_bias.flagged_by.is_empty() && size_bias.check_part_p.is_none());
+        // Holm over the two tests made: heavy tails and the flagged size bias.
+        let expected = ssm::criticism::checks::holm(&[tails.p, size_bias.p])[0];
+        assert!((tails.p_adjusted - expected).abs() < 1e-12, "{} against {expected}", tails.p_adjusted);
+        assert_eq!(
+            (report.cause.as_str(), report.decided(true).0.as_str()),
+            ("heavy_tailed_accel", "heavy_tailed_accel")
+        );
+        let md = markdown(&report, Path::new("data"), &[]);
+        assert!(md.contains("With the fitted screen every extension no check flagged was fitted too"), "{md}");
+        assert!(md.contains("fitted screen: check-part gain over the reference -0.0010, one-sided p 0.892"), "{md}");
     }
 
     /// Refit scopes on a committed diagnosis of the study under them (heavy

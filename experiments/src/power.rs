@@ -59,6 +59,11 @@ pub struct PowerArgs {
     /// in by their start's likelihood. Use a fresh `--out` for it.
     #[arg(long)]
     likelihood_screen: bool,
+    /// Every diagnosis runs the fitted screen (`sefi diagnose --fitted-screen`):
+    /// every extension fitted, those no check flagged kept as candidates by their
+    /// fitted model's likelihood on the check objects. Use a fresh `--out` for it.
+    #[arg(long, conflicts_with = "likelihood_screen")]
+    fitted_screen: bool,
     /// Every diagnosis fits a nesting extension from the base (`sefi diagnose
     /// --no-nesting-from-nested`), as the studies before 2026-11-30's
     /// twenty-eighth session did: their directories' tables need it.
@@ -167,6 +172,9 @@ struct StudySetting {
     /// Whether each diagnosis runs the likelihood screen (`sefi diagnose
     /// --likelihood-screen`).
     likelihood_screen: bool,
+    /// Whether each diagnosis runs the fitted screen (`sefi diagnose
+    /// --fitted-screen`).
+    fitted_screen: bool,
     /// Whether a nesting extension's fit starts where its nested one's ended
     /// (the default; `sefi diagnose --no-nesting-from-nested` turns it off).
     nesting_from_nested: bool,
@@ -210,6 +218,7 @@ impl StudySetting {
             candidate_lr: config.candidate_lr,
             refit_base_lr: config.refit_base_lr,
             likelihood_screen: config.likelihood_screen,
+            fitted_screen: config.fitted_screen,
             nesting_from_nested: config.nesting_from_nested,
             average_tail: config.average_tail,
             scoped_refits: config.scoped_refits,
@@ -224,6 +233,7 @@ impl StudySetting {
             candidate_lr: self.candidate_lr,
             refit_base_lr: self.refit_base_lr,
             likelihood_screen: self.likelihood_screen,
+            fitted_screen: self.fitted_screen,
             nesting_from_nested: self.nesting_from_nested,
             average_tail: self.average_tail,
             scoped_refits: self.scoped_refits,
@@ -245,6 +255,9 @@ impl std::fmt::Display for StudySetting {
         }?;
         if self.likelihood_screen {
             write!(f, ", likelihood screen on")?;
+        }
+        if self.fitted_screen {
+            write!(f, ", fitted screen on")?;
         }
         if !self.nesting_from_nested {
             write!(f, ", nesting fits from the base")?;
@@ -294,6 +307,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     }
     let setting = StudySetting {
         likelihood_screen: args.likelihood_screen,
+        fitted_screen: args.fitted_screen,
         nesting_from_nested: !args.no_nesting_from_nested,
         scoped_refits: !args.no_scoped_refits,
         set_aside_unmeasured: !args.keep_unmeasured,
@@ -545,13 +559,13 @@ fn run_cell(
         ));
     }
     // Nor is a report of another setting (an `--out` reused with another
-    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-    // `--average-tail`, `--no-scoped-refits` or `--keep-unmeasured`).
+    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--fitted-screen`,
+    // `--no-nesting-from-nested`, `--average-tail`, `--no-scoped-refits` or `--keep-unmeasured`).
     let found = StudySetting::of(&report.config);
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr, --likelihood-screen, --no-nesting-from-nested, --average-tail, \
+             --refit-base-lr, --likelihood-screen, --fitted-screen, --no-nesting-from-nested, --average-tail, \
              --no-scoped-refits or --keep-unmeasured? use another --out)",
             report_path.display(),
         ));
@@ -767,6 +781,10 @@ mod tests {
             run_cell(&out, &effect, 1.0, 0, screened, true).err().expect("an unscreened report in a screened study");
         assert!(err.contains("likelihood screen on") && err.contains("--likelihood-screen"), "{err}");
         assert!(screened.diagnose_config(3).likelihood_screen && screened.diagnose_config(3).seed == 3);
+        let fitted = StudySetting { fitted_screen: true, ..setting };
+        let err = run_cell(&out, &effect, 1.0, 0, fitted, true).err().expect("an unscreened report in a fitted study");
+        assert!(err.contains("fitted screen on") && err.contains("--fitted-screen"), "{err}");
+        assert!(fitted.diagnose_config(3).fitted_screen && !setting.diagnose_config(3).fitted_screen);
         // The committed report fitted the nesting extension from the base, as
         // every study before the nesting start did; today's default is refused.
         let today = StudySetting::new(None, None, None).unwrap();

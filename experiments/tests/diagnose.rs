@@ -50,7 +50,8 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
         .collect();
     if let Some(reseeded) = reseeded.filter(|r| !r.is_empty()) {
         let gains: Vec<&[f64]> = typed.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
-        let again = beats_reseeded(&gains, &reseeded, typed.eval_units, &typed.config);
+        let family: Vec<bool> = typed.candidates.iter().map(|c| c.admitted(typed.config.plausible_p)).collect();
+        let again = beats_reseeded(&gains, &reseeded, typed.eval_units, &family, &typed.config);
         // The same p-values; the gains to rounding (the per-object gains went
         // through JSON's decimal text).
         for ((gain, p), c) in again.into_iter().zip(&typed.candidates) {

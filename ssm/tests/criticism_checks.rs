@@ -7,7 +7,9 @@ use std::f64::consts::{FRAC_PI_2, PI};
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
 
-use ssm::criticism::checks::{calibrate, checks_for, format_z, statistics, CheckDef, Direction, Suggestion};
+use ssm::criticism::checks::{
+    calibrate, checks_for, format_z, holm, holm_within, statistics, CheckDef, Direction, Suggestion,
+};
 use ssm::criticism::ObjectSample;
 use ssm::data::{Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Pose, Prior, State};
 use ssm::models::extended::{lagged_pose, ObjectObservations};
@@ -511,4 +513,16 @@ fn a_check_with_non_finite_statistics_survives_a_json_round_trip() {
     let back: ssm::criticism::checks::CheckResult = serde_json::from_str(&text).unwrap();
     assert!(back.measured.is_nan() && back.replicated.is_nan());
     assert_eq!((back.z, back.p, back.draws), (result.z, result.p, result.draws));
+}
+
+#[test]
+fn holm_within_a_family_adjusts_for_its_members_only() {
+    let p = [0.01, 0.3, 0.02, 0.04];
+    // The whole family: Holm over four.
+    assert_eq!(holm_within(&p, &[true; 4]), holm(&p));
+    // Two members: each adjusted for two tests; the others are not tested.
+    let within = holm_within(&p, &[true, false, true, false]);
+    assert!((within[0] - 0.02).abs() < 1e-15 && (within[2] - 0.02).abs() < 1e-15, "{within:?}");
+    assert_eq!((within[1], within[3]), (1.0, 1.0));
+    assert_eq!(holm_within(&p, &[false; 4]), vec![1.0; 4]);
 }

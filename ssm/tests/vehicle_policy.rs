@@ -449,7 +449,9 @@ fn neural_plain_path_matches_the_tape() {
             let k32: Vec<f32> = k.iter().map(|&x| x as f32).collect();
             let mut plain32 = ActionGaussians::default();
             policy.gaussians(&v32, &k32, &mut plain32);
-            for (a, b) in [(&plain32.mean_accel, &plain.mean_accel), (&plain32.l11, &plain.l11), (&plain32.l22, &plain.l22)] {
+            for (a, b) in
+                [(&plain32.mean_accel, &plain.mean_accel), (&plain32.l11, &plain.l11), (&plain32.l22, &plain.l22)]
+            {
                 for (x, y) in a.iter().zip(b) {
                     assert!((*x as f64 - y).abs() <= 1e-4 * y.abs().max(1.0), "seed {seed}, n {n}: f32 {x} vs f64 {y}");
                 }

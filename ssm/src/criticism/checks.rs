@@ -702,3 +702,12 @@ pub fn holm(p: &[f64]) -> Vec<f64> {
     }
     adjusted
 }
+
+/// [`holm`] over the members of a family (`family[i]`), each adjusted for the
+/// family's size only; a p-value outside it is 1, as no test of it is made.
+pub fn holm_within(p: &[f64], family: &[bool]) -> Vec<f64> {
+    assert_eq!(p.len(), family.len(), "one membership per p-value");
+    let members: Vec<f64> = p.iter().zip(family).filter(|(_, &m)| m).map(|(&p, _)| p).collect();
+    let mut adjusted = holm(&members).into_iter();
+    family.iter().map(|&m| if m { adjusted.next().expect("one per member") } else { 1.0 }).collect()
+}

@@ -97,7 +97,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::checks::{calibrate, checks_for, format_z, holm, CheckDef, CheckResult};
+use super::checks::{calibrate, checks_for, format_z, holm_within, CheckDef, CheckResult};
 use crate::data::{Dataset, ObservationKind};
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::{stream_seed, FilterConfig, FilterPurpose, Sampling, Tempering};
@@ -231,6 +231,20 @@ pub struct DiagnoseConfig {
     /// default (measured on a few cells only; README, "A likelihood screen").
     #[serde(default)]
     pub likelihood_screen: bool,
+    /// Screen the extensions no check flagged by the likelihood of their
+    /// *fitted* model: every such extension is fitted, and it is a candidate
+    /// (tested in step 5's Holm family, rule (d) passed) only when its fitted
+    /// model raises the check part's likelihood over its scope's reference
+    /// with a one-sided sign-flip p over the check objects below
+    /// [`DiagnoseConfig::plausible_p`] ([`CandidateReport::check_part_p`]).
+    /// Plausibility still comes from the check part alone, and the gain from
+    /// the evaluation part alone; what it adds over the checks is a screen
+    /// that a summary statistic cannot miss, at the cost of fitting every
+    /// extension. Off by default; excludes [`DiagnoseConfig::fit_all`] and
+    /// [`DiagnoseConfig::likelihood_screen`]; a report written before it reads
+    /// `false`.
+    #[serde(default)]
+    pub fitted_screen: bool,
     /// Start a nesting extension's fit (`persistent_flip`) where its nested
     /// extension's fit (`heading_flip`) ended, when both are fitted: the base's
     /// parameters as the nested fit left them and the values the two share (the
@@ -321,6 +335,7 @@ impl Default for DiagnoseConfig {
             plausible_p: 0.2,
             fit_all: false,
             likelihood_screen: false,
+            fitted_screen: false,
             nesting_from_nested: true,
             scoped_refits: true,
             set_aside_unmeasured: true,
@@ -399,6 +414,13 @@ impl DiagnoseConfig {
         SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
         let t = self.average_tail;
         SettingError::check((0.0..=1.0).contains(&t), "average_tail", t, "in [0, 1]")?;
+        let screens = [self.fit_all, self.likelihood_screen, self.fitted_screen].into_iter().filter(|&on| on).count();
+        SettingError::check(
+            screens <= 1,
+            "fit_all + likelihood_screen + fitted_screen",
+            screens,
+            "at most one of them on",
+        )?;
         for tempering in self.tempering.iter().chain(&self.train_tempering) {
             tempering.validate()?;
         }
@@ -559,6 +581,14 @@ pub struct CandidateReport {
     /// seeds), rule (d)'s measure for it. `None` otherwise.
     #[serde(default)]
     pub check_part_gain: Option<f64>,
+    /// For a candidate no check flagged that the fitted screen fitted
+    /// ([`DiagnoseConfig::fitted_screen`]): the one-sided sign-flip p of
+    /// [`CandidateReport::check_part_gain`] over the check objects. Below
+    /// [`DiagnoseConfig::plausible_p`] it admits the candidate (into step 5's
+    /// Holm family, and rule (d)); above it the candidate was fitted and not
+    /// admitted. `None` otherwise.
+    #[serde(default)]
+    pub check_part_p: Option<f64>,
     /// Rule (d): whether the extension improves a check that flagged it, or
     /// for one the likelihood screen admitted the check part's likelihood
     /// ([`CandidateReport::improves_what_flagged_it`]; only such an extension
@@ -683,7 +713,7 @@ impl CandidateReport {
     /// verdict.
     pub fn improves_what_flagged_it(&self, reference: &[CheckResult], plausible_p: f64) -> bool {
         match self.screened_gain() {
-            Some(gain) => gain > 0.0,
+            Some(gain) => gain > 0.0 && admitted(self.check_part_p, plausible_p),
             None if self.checks_after.is_empty() => self.checks_improved,
             None => improves_flagged_checks(&self.flagged_by, reference, &self.checks_after, plausible_p),
         }
@@ -700,10 +730,22 @@ impl CandidateReport {
     /// check-part gain of a candidate the likelihood screen admitted, else
     /// [`flagged_check_moves`].
     pub fn flagging_moves(&self, reference: &[CheckResult]) -> String {
-        match self.screened_gain() {
-            Some(gain) => format!("admitted by the likelihood screen; check-part gain over the reference {gain:+.4}"),
-            None => flagged_check_moves(&self.flagged_by, reference, &self.checks_after),
+        match (self.screened_gain(), self.check_part_p) {
+            (Some(gain), Some(p)) => {
+                format!("fitted screen: check-part gain over the reference {gain:+.4}, one-sided p {p:.3}")
+            }
+            (Some(gain), None) => {
+                format!("admitted by the likelihood screen; check-part gain over the reference {gain:+.4}")
+            }
+            (None, _) => flagged_check_moves(&self.flagged_by, reference, &self.checks_after),
         }
+    }
+
+    /// Whether the candidate is tested in step 5's Holm family: every
+    /// candidate but one the fitted screen fitted and did not admit
+    /// ([`CandidateReport::check_part_p`]).
+    pub fn admitted(&self, plausible_p: f64) -> bool {
+        admitted(self.check_part_p, plausible_p)
     }
 
     /// Whether the candidate passes the decision's rules on its learned
@@ -835,11 +877,12 @@ pub fn beats_reseeded(
     object_gains: &[&[f64]],
     reseeded: &[&[f64]],
     units: usize,
+    family: &[bool],
     config: &DiagnoseConfig,
 ) -> Vec<(f64, f64)> {
     assert_eq!(object_gains.len(), reseeded.len(), "one reseeded refit per candidate");
     let over: Vec<Vec<f64>> = object_gains.iter().zip(reseeded).map(|(g, r)| differences(g, r)).collect();
-    let adjusted = holm(&sign_flip_ps(&over, config, RESEEDED_PERMUTATIONS));
+    let adjusted = holm_within(&sign_flip_ps(&over, config, RESEEDED_PERMUTATIONS), family);
     over.iter().zip(adjusted).map(|(d, p)| (gain_of(d, units).0, p)).collect()
 }
 
@@ -852,6 +895,14 @@ const RESEEDED_PERMUTATIONS: u64 = 0x5f1c;
 const NESTED_PERMUTATIONS: u64 = 0x5f1d;
 /// Seeds those of the likelihood screen ([`LikelihoodScreen`]).
 const SCREEN_PERMUTATIONS: u64 = 0x5f1e;
+/// Seeds those of the fitted screen ([`DiagnoseConfig::fitted_screen`]).
+const FITTED_SCREEN_PERMUTATIONS: u64 = 0x5f1f;
+
+/// Whether a candidate whose fitted-screen p is `check_part_p` (`None`: not
+/// screened so) is admitted at `plausible_p` ([`CandidateReport::admitted`]).
+fn admitted(check_part_p: Option<f64>, plausible_p: f64) -> bool {
+    check_part_p.is_none_or(|p| p < plausible_p)
+}
 
 /// Rule (d) of the decision: the extension improves at least one check that
 /// flagged it (`flagged_by`), both calibrated on the check part. A check
@@ -1228,7 +1279,8 @@ impl Report {
         match reseeded {
             Some(r) if self.candidates.iter().any(|c| c.over_reseeded.is_none()) => {
                 let gains: Vec<&[f64]> = self.candidates.iter().map(|c| c.object_gains.as_slice()).collect();
-                beats_reseeded(&gains, &r, self.eval_units, &self.config).into_iter().map(Some).collect()
+                let family: Vec<bool> = self.candidates.iter().map(|c| c.admitted(self.config.plausible_p)).collect();
+                beats_reseeded(&gains, &r, self.eval_units, &family, &self.config).into_iter().map(Some).collect()
             }
             _ => self.candidates.iter().map(|c| c.over_reseeded).collect(),
         }
@@ -1429,6 +1481,7 @@ struct Fit {
     extension: Extension,
     flagged_by: Vec<String>,
     check_part_gain: Option<f64>,
+    check_part_p: Option<f64>,
     run: Fitted,
     checks: ModelChecks,
     eval: EvalLikelihoods,
@@ -1608,7 +1661,8 @@ fn run(
             screens.push(screen);
             admitted
         } else {
-            false
+            // The fitted screen fits every extension no check flagged; its check-part likelihood decides later.
+            flagged_by.is_empty() && config.fitted_screen
         };
         if flagged_by.is_empty() && !config.fit_all && !screened_in {
             not_fitted.push(extension.id().to_string());
@@ -1639,8 +1693,13 @@ fn run(
             eval: eval_likelihoods(parts.eval, &base.params, None, config)?,
             reseeded_run: None,
             reseeded: None,
-            // Rule (d) of a screened candidate: the base, filtered on the check part already.
-            on_check: if screened_any { base_on_check } else { None },
+            // Rule (d) of a screened candidate: the base on the check part (filtered already by the likelihood
+            // screen; filtered now for the fitted screen).
+            on_check: match (screened_any, base_on_check) {
+                (false, _) => None,
+                (true, Some(l)) => Some(l),
+                (true, None) => Some(eval_likelihoods(parts.check, &base.params, None, config)?),
+            },
         });
     }
     let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
@@ -1661,14 +1720,17 @@ fn run(
         let checks = check_model(parts.check, &run.params, Some(extension), config)?;
         progress(&Stage::Evaluating { model: extension.id().into() });
         let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
-        let check_part_gain = match &reference_of(extension).on_check {
+        let (check_part_gain, check_part_p) = match &reference_of(extension).on_check {
             Some(reference_ll) if screened_in => {
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
-                Some(gain_of(&differences(&on_check.object_ll, &reference_ll.object_ll), reference_ll.units).0)
+                let d = differences(&on_check.object_ll, &reference_ll.object_ll);
+                let seed = stream_seed(config.seed ^ FITTED_SCREEN_PERMUTATIONS, fits.len() as u64);
+                let p = config.fitted_screen.then(|| sign_flip_p(&d, config.permutations, seed));
+                (Some(gain_of(&d, reference_ll.units).0), p)
             }
-            _ => None,
+            _ => (None, None),
         };
-        fits.push(Fit { extension, flagged_by, check_part_gain, run, checks, eval });
+        fits.push(Fit { extension, flagged_by, check_part_gain, check_part_p, run, checks, eval });
     }
 
     // 5. The decision on the evaluation part, each candidate against the
@@ -1701,13 +1763,15 @@ fn run(
     let object_gains: Vec<Vec<f64>> =
         fits.iter().map(|f| differences(&f.eval.object_ll, &reference_of(f.extension).eval.object_ll)).collect();
     let p_values = sign_flip_ps(&object_gains, config, REFERENCE_PERMUTATIONS);
-    let adjusted = holm(&p_values);
+    // The tests made: every candidate but those the fitted screen did not admit.
+    let family: Vec<bool> = fits.iter().map(|f| admitted(f.check_part_p, config.plausible_p)).collect();
+    let adjusted = holm_within(&p_values, &family);
     let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
     let reseeded_gains: Option<Vec<&[f64]>> =
         fits.iter().map(|f| reference_of(f.extension).reseeded.as_ref().map(|r| r.object_gains.as_slice())).collect();
     let over_reseeded: Vec<Option<(f64, f64)>> = match &reseeded_gains {
         Some(reseeded) if !fits.is_empty() => {
-            beats_reseeded(&gains, reseeded, reference_eval.units, config).into_iter().map(Some).collect()
+            beats_reseeded(&gains, reseeded, reference_eval.units, &family, config).into_iter().map(Some).collect()
         }
         _ => vec![None; fits.len()],
     };
@@ -1742,6 +1806,7 @@ fn run(
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
             check_part_gain: f.check_part_gain,
+            check_part_p: f.check_part_p,
             checks_improved: false,
             checks_after: after,
             material,
@@ -2158,15 +2223,15 @@ mod tests {
         let like_the_refit: Vec<f64> = (0..n).map(|i| 0.8 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
         let beyond_it: Vec<f64> = (0..n).map(|i| 1.6 + wobble(i) + 0.05 * wobble(i * 7 + 3)).collect();
         let units = 3 * n;
-        let over = beats_reseeded(&[&like_the_refit, &beyond_it], &[&reseeded, &reseeded], units, &config);
+        let over = beats_reseeded(&[&like_the_refit, &beyond_it], &[&reseeded, &reseeded], units, &[true; 2], &config);
         assert!(over[0].1 > 0.05 && over[1].1 < 1e-3, "{over:?}");
         assert!((over[1].0 - 0.8 * n as f64 / units as f64).abs() < 0.02, "{over:?}");
-        let alone = beats_reseeded(&[&beyond_it], &[&reseeded], units, &config);
+        let alone = beats_reseeded(&[&beyond_it], &[&reseeded], units, &[true], &config);
         assert!(alone[0].1 <= over[1].1, "Holm over two candidates: {} against {}", alone[0].1, over[1].1);
         // Candidates of two refit scopes: each against its own scope's reseeded
         // refit. The second candidate's scope refits as noisily as it gains.
         let noisy_scope: Vec<f64> = beyond_it.iter().map(|g| g - 0.001 * wobble(3)).collect();
-        let scoped = beats_reseeded(&[&beyond_it, &beyond_it], &[&reseeded, &noisy_scope], units, &config);
+        let scoped = beats_reseeded(&[&beyond_it, &beyond_it], &[&reseeded, &noisy_scope], units, &[true; 2], &config);
         assert!(scoped[0].1 < 1e-3 && scoped[1].1 > 0.05, "{scoped:?}");
         assert!(scoped[1].0.abs() < 1e-3, "{scoped:?}");
         // A refit that lost three objects by 50 nats: its mean gain (-5 per
@@ -2176,7 +2241,7 @@ mod tests {
         lost[11] = -50.0;
         lost[20] = -50.0;
         let candidate: Vec<f64> = (0..n).map(|i| 0.6 + 0.1 * wobble(i)).collect();
-        let over = beats_reseeded(&[&candidate], &[&lost], units, &config);
+        let over = beats_reseeded(&[&candidate], &[&lost], units, &[true], &config);
         assert!(over[0].1 < 0.05 && over[0].0 > 0.0, "{over:?}");
         // The rules with and without the comparison.
         let cand = qualifying_candidate();
@@ -2216,6 +2281,7 @@ mod tests {
             description: String::new(),
             flagged_by: vec![],
             check_part_gain: None,
+            check_part_p: None,
             checks_improved: true,
             checks_after: vec![],
             material: true,
@@ -2421,6 +2487,31 @@ mod tests {
         let fit_all = CandidateReport { check_part_gain: None, ..screened(0.12) };
         assert!(!fit_all.improves_what_flagged_it(&reference, 0.2));
         assert_eq!(fit_all.flagging_moves(&reference), NO_FLAGGING_CHECK);
+        // The fitted screen: the same gain, admitted only below the screen's level.
+        let fitted = |gain: f64, p: f64| CandidateReport { check_part_p: Some(p), ..screened(gain) };
+        assert!(fitted(0.12, 0.05).improves_what_flagged_it(&reference, 0.2) && fitted(0.12, 0.05).admitted(0.2));
+        assert!(!fitted(0.12, 0.3).improves_what_flagged_it(&reference, 0.2) && !fitted(0.12, 0.3).admitted(0.2));
+        assert!(!fitted(-0.01, 0.05).improves_what_flagged_it(&reference, 0.2));
+        assert!(screened(0.12).admitted(0.2) && flagged.admitted(0.2), "only the fitted screen leaves a candidate out");
+        assert_eq!(
+            fitted(0.1234, 0.0412).flagging_moves(&reference),
+            "fitted screen: check-part gain over the reference +0.1234, one-sided p 0.041"
+        );
+    }
+
+    /// The fitted screen is one way of fitting what no check flagged: it
+    /// excludes `fit_all` and the likelihood screen.
+    #[test]
+    fn one_screen_of_what_no_check_flagged_at_a_time() {
+        let fitted = DiagnoseConfig { fitted_screen: true, ..DiagnoseConfig::quick() };
+        assert!(fitted.validate().is_ok());
+        for other in [
+            DiagnoseConfig { fit_all: true, ..fitted.clone() },
+            DiagnoseConfig { likelihood_screen: true, ..fitted.clone() },
+        ] {
+            let err = other.validate().unwrap_err();
+            assert!(err.to_string().contains("fitted_screen"), "{err}");
+        }
     }
 
     /// Three disjoint, covering parts with the requested sizes.
