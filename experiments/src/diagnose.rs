@@ -808,6 +808,14 @@ mod tests {
         let md = markdown(&report, Path::new("data"), &[]);
         assert!(md.contains("With the fitted screen every extension no check flagged was fitted too"), "{md}");
         assert!(md.contains("fitted screen: check-part gain over the reference -0.0010, one-sided p 0.892"), "{md}");
+        // A study that expected a cause the screen did not admit says so.
+        assert_eq!(
+            report.why_not("latency").as_deref(),
+            Some(
+                "`heavy_tailed_accel`: `latency` fitted, not admitted by the fitted screen: check-part gain -0.0010, \
+                 p 0.892"
+            )
+        );
     }
 
     /// Refit scopes on a committed diagnosis of the study under them (heavy

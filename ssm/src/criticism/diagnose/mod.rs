@@ -27,6 +27,11 @@
 //!    plausible too when its start raises the check part's likelihood over the
 //!    base's ([`LikelihoodScreen`]); rule (d) below then asks the same of the
 //!    fitted extension against the reference.
+//!    With [`DiagnoseConfig::fitted_screen`] every extension is fitted, and one
+//!    no check flagged is a candidate only when its *fitted* model raises the
+//!    check part's likelihood over its reference's (one-sided sign-flip p
+//!    below [`DiagnoseConfig::plausible_p`]); the others are left out of step
+//!    5's Holm families and cannot be the cause.
 //!    A nesting extension's fit starts where its nested extension's fit ended
 //!    ([`DiagnoseConfig::nesting_from_nested`]), so that rule (e) below
 //!    compares its extra parameter, not two optimisations.
@@ -1218,6 +1223,14 @@ impl Report {
         let why_missed = (cause != expected).then(|| {
             let candidate = self.candidates.iter().position(|c| c.cause == expected);
             let why = match (candidate, chosen) {
+                (Some(i), _) if !self.candidates[i].admitted(self.config.plausible_p) => {
+                    let c = &self.candidates[i];
+                    format!(
+                        "`{expected}` fitted, not admitted by the fitted screen: check-part gain {:+.4}, p {:.3}",
+                        c.check_part_gain.unwrap_or(f64::NAN),
+                        c.check_part_p.unwrap_or(f64::NAN)
+                    )
+                }
                 (Some(i), _) => match verdicts[i] {
                     Some(rule) => format!(
                         "`{expected}` fails {rule}: {}",
