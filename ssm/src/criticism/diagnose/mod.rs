@@ -903,6 +903,21 @@ const SCREEN_PERMUTATIONS: u64 = 0x5f1e;
 /// Seeds those of the fitted screen ([`DiagnoseConfig::fitted_screen`]).
 const FITTED_SCREEN_PERMUTATIONS: u64 = 0x5f1f;
 
+/// Step 5's tests against the references: per candidate (its per-object
+/// gains, its fitted-screen p or `None`), the one-sided sign-flip p, that p
+/// Holm-adjusted over the tests made (1 for a candidate the fitted screen did
+/// not admit), and which tests were made.
+fn reference_tests(
+    object_gains: &[Vec<f64>],
+    check_part_ps: &[Option<f64>],
+    config: &DiagnoseConfig,
+) -> (Vec<f64>, Vec<f64>, Vec<bool>) {
+    let p_values = sign_flip_ps(object_gains, config, REFERENCE_PERMUTATIONS);
+    let family: Vec<bool> = check_part_ps.iter().map(|&p| admitted(p, config.plausible_p)).collect();
+    let adjusted = holm_within(&p_values, &family);
+    (p_values, adjusted, family)
+}
+
 /// Whether a candidate whose fitted-screen p is `check_part_p` (`None`: not
 /// screened so) is admitted at `plausible_p` ([`CandidateReport::admitted`]).
 fn admitted(check_part_p: Option<f64>, plausible_p: f64) -> bool {
@@ -1775,10 +1790,8 @@ fn run(
     let reference_eval = &references[0].eval;
     let object_gains: Vec<Vec<f64>> =
         fits.iter().map(|f| differences(&f.eval.object_ll, &reference_of(f.extension).eval.object_ll)).collect();
-    let p_values = sign_flip_ps(&object_gains, config, REFERENCE_PERMUTATIONS);
-    // The tests made: every candidate but those the fitted screen did not admit.
-    let family: Vec<bool> = fits.iter().map(|f| admitted(f.check_part_p, config.plausible_p)).collect();
-    let adjusted = holm_within(&p_values, &family);
+    let check_part_ps: Vec<Option<f64>> = fits.iter().map(|f| f.check_part_p).collect();
+    let (p_values, adjusted, family) = reference_tests(&object_gains, &check_part_ps, config);
     let gains: Vec<&[f64]> = object_gains.iter().map(Vec::as_slice).collect();
     let reseeded_gains: Option<Vec<&[f64]>> =
         fits.iter().map(|f| reference_of(f.extension).reseeded.as_ref().map(|r| r.object_gains.as_slice())).collect();
@@ -2510,6 +2523,22 @@ mod tests {
             fitted(0.1234, 0.0412).flagging_moves(&reference),
             "fitted screen: check-part gain over the reference +0.1234, one-sided p 0.041"
         );
+    }
+
+    /// Step 5's tests leave out the candidate the fitted screen did not admit
+    /// (adjusted p 1) and adjust the others for the tests made only.
+    #[test]
+    fn the_reference_tests_are_made_of_the_admitted_candidates_only() {
+        let config = DiagnoseConfig { permutations: 999, ..DiagnoseConfig::quick() };
+        let gains: Vec<Vec<f64>> =
+            (0..3).map(|k| (0..30).map(|i| 0.2 + 0.1 * ((i * 7 + k) % 5) as f64).collect()).collect();
+        let (p, adjusted, family) = reference_tests(&gains, &[None, Some(0.5), Some(0.01)], &config);
+        assert_eq!(family, [true, false, true]);
+        assert_eq!(adjusted[1], 1.0);
+        let within = crate::criticism::checks::holm(&[p[0], p[2]]);
+        assert_eq!((adjusted[0], adjusted[2]), (within[0], within[1]));
+        let (_, whole, _) = reference_tests(&gains, &[None; 3], &config);
+        assert_eq!(whole, crate::criticism::checks::holm(&p), "without the screen, Holm over every candidate");
     }
 
     /// The fitted screen is one way of fitting what no check flagged: it
