@@ -1,0 +1,69 @@
+#!/usr/bin/env python3
+"""Each cell of this directory's `power.csv` against the same cell of the default
+study (`power-study-set-aside/power.csv`): the outcome with the fitted screen and
+without it, each as the study tables decide it today (every finished report decided
+again under the current rules). Then, per effect and strength, how many seeds gave
+the expected outcome on each side, and the false causes (a catalogue cause other than
+the expected one) over every compared cell. Rebuild both tables first (`sefi
+power-study --table-only ...`, see results/README.md), then run from the repository
+root: python3 results/power-study-fitted-screen/compare.py
+"""
+import csv
+import os
+from collections import defaultdict
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+EXPECTED = {"none-points": "none", "none-boxes": "none", "ego_pose_noise": "unexplained",
+            "student_t_accel": "heavy_tailed_accel"}
+
+
+def cells(study):
+    """The study's cells by (effect, strength, seed)."""
+    with open(os.path.join(ROOT, study, "power.csv")) as f:
+        return {(r["effect"], r["strength"], int(r["seed"])): r for r in csv.DictReader(f)}
+
+
+def show(row):
+    """A cell's outcome, with the named cause's gain."""
+    if row is None:
+        return "-"
+    named = row["cause"] not in ("none", "unexplained")
+    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
+
+
+def false_cause(effect, row):
+    """Whether the cell names a catalogue cause other than the expected one."""
+    expected = EXPECTED.get(effect, effect)
+    return row["cause"] not in ("none", "unexplained", expected)
+
+
+def main():
+    screened = cells("power-study-fitted-screen")
+    default = cells("power-study-set-aside")
+    counts = defaultdict(lambda: [0, 0, 0])
+    false = [0, 0]
+    print("| cell | without the screen | fitted screen |")
+    print("|---|---|---|")
+    for key in sorted(screened):
+        effect, strength, seed = key
+        mine, theirs = screened[key], default.get(key)
+        print(f"| {effect} x{strength} seed {seed} | {show(theirs)} | {show(mine)} |")
+        if theirs is None:
+            continue
+        count = counts[(effect, strength)]
+        count[0] += 1
+        count[1] += theirs["named"] == "true"
+        count[2] += mine["named"] == "true"
+        false[0] += false_cause(effect, theirs)
+        false[1] += false_cause(effect, mine)
+    print()
+    print("| effect | strength | seeds compared | expected, without | expected, fitted screen |")
+    print("|---|---|---|---|---|")
+    for (effect, strength), (n, without, with_screen) in sorted(counts.items()):
+        print(f"| {effect} | {strength} | {n} | {without} | {with_screen} |")
+    total = sum(c[0] for c in counts.values())
+    print(f"\nfalse causes over {total} compared cells: {false[0]} without the screen, {false[1]} with it")
+
+
+if __name__ == "__main__":
+    main()
