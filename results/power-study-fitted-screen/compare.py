@@ -8,43 +8,22 @@ the expected one) over every compared cell. Rebuild both tables first (`sefi
 power-study --table-only ...`, see results/README.md), then run from the repository
 root: python3 results/power-study-fitted-screen/compare.py
 """
-import csv
 import os
+import sys
 from collections import defaultdict
 
-ROOT = os.path.join(os.path.dirname(__file__), "..")
-EXPECTED = {"none-points": "none", "none-boxes": "none", "ego_pose_noise": "unexplained",
-            "student_t_accel": "heavy_tailed_accel"}
-
-
-def cells(study):
-    """The study's cells by (effect, strength, seed)."""
-    with open(os.path.join(ROOT, study, "power.csv")) as f:
-        return {(r["effect"], r["strength"], int(r["seed"])): r for r in csv.DictReader(f)}
-
-
-def show(row):
-    """A cell's outcome, with the named cause's gain."""
-    if row is None:
-        return "-"
-    named = row["cause"] not in ("none", "unexplained")
-    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
-
-
-def false_cause(effect, row):
-    """Whether the cell names a catalogue cause other than the expected one."""
-    expected = EXPECTED.get(effect, effect)
-    return row["cause"] not in ("none", "unexplained", expected)
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "power-study-scoped"))
+from merge import false_cause, rows, show  # noqa: E402
 
 
 def main():
-    screened = cells("power-study-fitted-screen")
-    default = cells("power-study-set-aside")
+    screened = rows("power-study-fitted-screen")
+    default = rows("power-study-set-aside")
     counts = defaultdict(lambda: [0, 0, 0])
     false = [0, 0]
     print("| cell | without the screen | fitted screen |")
     print("|---|---|---|")
-    for key in sorted(screened):
+    for key in sorted(screened, key=lambda k: (k[0], k[1], int(k[2]))):
         effect, strength, seed = key
         mine, theirs = screened[key], default.get(key)
         print(f"| {effect} x{strength} seed {seed} | {show(theirs)} | {show(mine)} |")

@@ -25,6 +25,19 @@ def rows(source):
     return {(r["effect"], r["strength"], r["seed"]): r for r in csv.DictReader(open(path))}
 
 
+def show(row):
+    """A cell's outcome, with the named cause's gain ("?" for a missing cell)."""
+    if row is None:
+        return "?"
+    named = row["cause"] not in ("none", "unexplained")
+    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
+
+
+def false_cause(effect, row):
+    """Whether the cell names a catalogue cause other than the effect's expected one."""
+    return row["cause"] not in (EXPECTED.get(effect, effect), "none", "unexplained")
+
+
 def default_cells():
     """The default study, cell by cell: (effect, strength, seed) -> (source, row),
     each cell from the first of SOURCES that holds it; and every source's table."""
@@ -52,8 +65,7 @@ def main():
                 out.append("")
                 continue
             named = sum(r["named"] == "true" for _, r in group)
-            expected = EXPECTED.get(e, e)
-            false = sum(r["cause"] not in (expected, "none", "unexplained") for _, r in group)
+            false = sum(false_cause(e, r) for _, r in group)
             rerun = sum(src == SOURCES[0] for src, _ in group)
             note = f"{named} of {len(group)}"
             if false:

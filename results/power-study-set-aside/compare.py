@@ -19,17 +19,9 @@ import sys
 from collections import Counter
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "power-study-scoped"))
-from merge import ROOT, default_cells, rows  # noqa: E402
+from merge import ROOT, default_cells, rows, show  # noqa: E402
 
 HERE = "power-study-set-aside"
-
-
-def show(row):
-    """A cell's outcome, with the named cause's gain."""
-    if row is None:
-        return "?"
-    named = row["cause"] not in ("none", "unexplained")
-    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
 
 
 def candidates(report):

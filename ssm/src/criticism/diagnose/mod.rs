@@ -2530,9 +2530,13 @@ mod tests {
     #[test]
     fn the_reference_tests_are_made_of_the_admitted_candidates_only() {
         let config = DiagnoseConfig { permutations: 999, ..DiagnoseConfig::quick() };
-        let gains: Vec<Vec<f64>> =
-            (0..3).map(|k| (0..30).map(|i| 0.2 + 0.1 * ((i * 7 + k) % 5) as f64).collect()).collect();
+        // Three candidates whose p-values differ (more objects lose as k grows),
+        // so a family read out of order would not pass.
+        let gains: Vec<Vec<f64>> = (0..3)
+            .map(|k| (0..30).map(|i| if i % 10 < 2 * k { -1.0 } else { 0.2 + 0.1 * ((i * 7) % 5) as f64 }).collect())
+            .collect();
         let (p, adjusted, family) = reference_tests(&gains, &[None, Some(0.5), Some(0.01)], &config);
+        assert!(p[0] < p[1] && p[1] < p[2], "{p:?}");
         assert_eq!(family, [true, false, true]);
         assert_eq!(adjusted[1], 1.0);
         let within = crate::criticism::checks::holm(&[p[0], p[2]]);
