@@ -446,7 +446,14 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         let _ = writeln!(s, "- `{}`: {}", ch.name, ch.description);
     }
     let _ = writeln!(s, "\n## Candidate extensions\n");
-    if r.candidates.is_empty() {
+    if r.candidates.is_empty() && !r.not_admitted.is_empty() {
+        let _ = writeln!(
+            s,
+            "No candidate: no check that suggests an extension had an uncorrected p below {} in the direction the \
+             extension moves it, and the fitted screen admitted none of the extensions it fitted (below).",
+            c.plausible_p
+        );
+    } else if r.candidates.is_empty() {
         let screen = if c.likelihood_screen { ", nor did the likelihood screen admit one" } else { "" };
         let _ = writeln!(
             s,
@@ -462,6 +469,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
         let _ = writeln!(s, "\nNot fitted ({why} made them plausible): {}.", r.not_fitted.join(", "));
     }
     screen_table(&mut s, r);
+    not_admitted_table(&mut s, r);
     s.push_str(&fits_kept(r));
     let _ = writeln!(s, "\n## The worst checks\n");
     let _ = writeln!(
@@ -497,16 +505,43 @@ fn screen_table(s: &mut String, r: &Report) {
     }
 }
 
+/// `report.md`'s table of the extensions the fitted screen (`--fitted-screen`)
+/// fitted and did not admit; nothing where there are none.
+fn not_admitted_table(s: &mut String, r: &Report) {
+    if r.not_admitted.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        s,
+        "\nFitted and not admitted by the fitted screen (no check flagged them, and the fitted model did not raise \
+         the check objects' log-likelihood over the reference's with a one-sided sign-flip p below {}): neither \
+         checked again nor evaluated.\n",
+        r.config.plausible_p
+    );
+    let _ = writeln!(s, "| extension | check-part gain over the reference (nats/unit) | p | learned |");
+    let _ = writeln!(s, "|---|---|---|---|");
+    for n in &r.not_admitted {
+        let _ =
+            writeln!(s, "| {} | {:+.4} | {} | {} |", n.cause, n.check_part_gain, fmt(n.check_part_p), n.description);
+    }
+}
+
 /// What `report.md` says of the fitted screen (`--fitted-screen`) where it ran;
 /// empty otherwise.
 fn fitted_screen_note(r: &Report) -> String {
     if !r.config.fitted_screen {
         return String::new();
     }
+    let others = if r.not_admitted.is_empty() && r.candidates.iter().any(|c| !c.admitted(r.config.plausible_p)) {
+        "the others show `p adj.` 1 and fail (d)"
+    } else {
+        "the others are listed below as not admitted, neither checked again nor evaluated (or, where an admitted \
+         one nests them, evaluated for (e) and shown with `p adj.` 1)"
+    };
     format!(
         " With the fitted screen every extension no check flagged was fitted too: it is tested (in the Holm family \
          of (a) and (b)) and passes (d) only where its fitted model raises the check objects' log-likelihood over \
-         the reference's with a one-sided sign-flip p below {}; the others show `p adj.` 1 and fail (d).",
+         the reference's with a one-sided sign-flip p below {}; {others}.",
         r.config.plausible_p
     )
 }
@@ -619,31 +654,35 @@ fn candidate_table(s: &mut String, r: &Report) {
 /// the step of its best evaluation on the check part, that MLL and the last, so
 /// that a fit that wandered off shows; empty for a report whose fits kept their last.
 fn fits_kept(r: &Report) -> String {
-    let mut fits = vec![("base".to_string(), r.base_kept.as_ref())];
+    let (base_steps, refit_steps) = (r.config.base_steps, r.config.candidate_steps);
+    let mut fits = vec![("base".to_string(), r.base_kept.as_ref(), base_steps)];
     for (name, reference) in [("reference", &r.reference), ("reference in the policy", &r.dynamics_reference)] {
         if let Some(reference) = reference {
-            fits.push((name.into(), reference.kept.as_ref()));
+            fits.push((name.into(), reference.kept.as_ref(), refit_steps));
             if let Some(reseeded) = &reference.reseeded {
-                fits.push((format!("{name}, reseeded"), reseeded.kept.as_ref()));
+                fits.push((format!("{name}, reseeded"), reseeded.kept.as_ref(), refit_steps));
             }
         }
     }
-    fits.extend(r.candidates.iter().map(|c| (c.cause.clone(), c.kept.as_ref())));
-    if fits.iter().all(|(_, kept)| kept.is_none()) {
+    fits.extend(r.candidates.iter().map(|c| (c.cause.clone(), c.kept.as_ref(), refit_steps)));
+    fits.extend(r.not_admitted.iter().map(|n| (format!("{} (not admitted)", n.cause), n.kept.as_ref(), refit_steps)));
+    if fits.iter().all(|(_, kept, _)| kept.is_none()) {
         return String::new();
     }
     let mut s = String::new();
     let _ = writeln!(
         s,
         "\n## Parameters each fit kept\n\nEvery fit was evaluated on the check objects every {} steps (training filter \
-         and particles) and kept its best evaluation; a large fall from it means the fit wandered off after it.\n",
+         and particles) and kept its best evaluation; a large fall from it means the fit wandered off after it, and \
+         one that kept its last step (marked *last*) may have stopped while still improving.\n",
         r.config.keep_best_every
     );
     let _ = writeln!(s, "| fit | step kept | check MLL there | at the end | fall |");
     let _ = writeln!(s, "|---|---|---|---|---|");
-    for (name, kept) in fits {
+    for (name, kept, steps) in fits {
         if let Some(k) = kept {
-            let _ = writeln!(s, "| {name} | {} | {} | {} | {} |", k.step, fmt(k.value), fmt(k.last), fmt(k.fall()));
+            let step = if k.step == steps { format!("{} (*last*)", k.step) } else { k.step.to_string() };
+            let _ = writeln!(s, "| {name} | {step} | {} | {} | {} |", fmt(k.value), fmt(k.last), fmt(k.fall()));
         }
     }
     s
@@ -893,4 +932,20 @@ mod tests {
         );
         assert!(!section.contains("| extension |") && !section.contains("uncertain by"), "{section}");
     }
+    /// The table of the parameters each fit kept marks a fit that kept its
+    /// last step: it may have stopped while still improving.
+    #[test]
+    fn a_fit_that_kept_its_last_step_is_marked() {
+        let mut report = committed_in("power-study-fitted-screen", "heavy_tailed_accel/x1/seed2");
+        let steps = report.config.base_steps;
+        let kept = report.base_kept.as_mut().expect("the base kept an evaluation");
+        kept.step = steps - 1;
+        assert!(fits_kept(&report).contains(&format!("| base | {} |", steps - 1)), "{}", fits_kept(&report));
+        report.base_kept.as_mut().unwrap().step = steps;
+        assert!(fits_kept(&report).contains(&format!("| base | {steps} (*last*) |")), "{}", fits_kept(&report));
+        // The refits count their own steps: the heavy tails' candidate kept its 150th of 150.
+        let tails = format!("| heavy_tailed_accel | {} (*last*) |", report.config.candidate_steps);
+        assert!(fits_kept(&report).contains(&tails), "{}", fits_kept(&report));
+    }
+
 }

@@ -451,3 +451,67 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     assert!(md.contains(&format!("exceeded {:.1} nats", second.unmeasured_bar())), "{md}");
     assert!(md.contains("Objects a model did not measure") && md.contains("4 times the particles"), "{md}");
 }
+
+/// The fitted screen at a small scale, resumed from a `--fit-all` diagnosis of
+/// the same data (the same fits, every extension evaluated): every extension is
+/// fitted; those no check flagged and the screen did not admit are reported as
+/// not admitted (check-part p at or over the plausibility level) and are
+/// neither candidates nor evaluated; every candidate's per-object gains are
+/// the fit-all diagnosis's, to the bit (the same fits and filter seeds, every
+/// object kept); a scope's reseeded refit is fitted only where it has a
+/// candidate; and the outcome decided again from the report is the one named.
+#[test]
+fn the_fitted_screen_evaluates_only_what_it_admits() {
+    let dir = temp("diagnose", "fitted-screen");
+    let (data, out) = (dir.join("data"), dir.join("out"));
+    ok(&sefi(&["generate", "--hidden", "latency", "--scenes", "4", "--out", s(&data), "--seed", "1"]));
+    let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "1"];
+    command.extend(["--base-steps", "12", "--candidate-steps", "6", "--particles", "32", "--eval-particles", "32"]);
+    command.push("--keep-unmeasured");
+    let read =
+        || -> Report { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
+    ok(&sefi(&[command.as_slice(), &["--fit-all"]].concat()));
+    let every = read();
+    ok(&sefi(&[command.as_slice(), &["--fitted-screen"]].concat()));
+    let screened = read();
+    let plausible_p = screened.config.plausible_p;
+    assert!(screened.config.fitted_screen && screened.not_fitted.is_empty());
+    // The data exercise a screen that turns extensions away, in one scope all of them.
+    assert!(!screened.not_admitted.is_empty(), "nothing turned away");
+    let turned_away =
+        |r: &Option<ssm::criticism::diagnose::ReferenceReport>| r.as_ref().is_some_and(|r| r.reseeded.is_none());
+    assert!(
+        turned_away(&screened.reference) || turned_away(&screened.dynamics_reference),
+        "no scope left without a candidate"
+    );
+    let mut fitted: Vec<&str> = screened.candidates.iter().map(|c| c.cause.as_str()).collect();
+    fitted.extend(screened.not_admitted.iter().map(|n| n.cause.as_str()));
+    fitted.sort_unstable();
+    let mut all: Vec<&str> = every.candidates.iter().map(|c| c.cause.as_str()).collect();
+    all.sort_unstable();
+    assert_eq!(fitted, all, "every extension fitted once");
+    for n in &screened.not_admitted {
+        assert!(n.check_part_p >= plausible_p && n.check_part_gain.is_finite(), "{n:?}");
+        assert!(out.join("candidates").join(&n.cause).join("train.csv").is_file(), "{}'s fit", n.cause);
+    }
+    for c in &screened.candidates {
+        if c.flagged_by.is_empty() {
+            assert!(c.admitted(plausible_p), "{}: not admitted, and no admitted candidate nests it", c.cause);
+        }
+        let full = every.candidates.iter().find(|f| f.cause == c.cause).unwrap();
+        assert_eq!(c.object_gains, full.object_gains, "{}: the fit-all diagnosis's gains", c.cause);
+    }
+    for (reference, scope) in [(&screened.reference, "all"), (&screened.dynamics_reference, "dynamics")] {
+        let in_scope = screened.candidates.iter().any(|c| serde_json::to_value(c.refit_scope).unwrap() == scope);
+        let reseeded = reference.as_ref().is_some_and(|r| r.reseeded.is_some());
+        assert_eq!(reseeded, in_scope, "the reseeded refit of scope {scope}");
+    }
+    assert_eq!(screened.decided(true).0, screened.cause, "decided again from the report");
+    for expected in screened.not_admitted.iter().map(|n| n.cause.as_str()).filter(|&id| id != screened.cause) {
+        let why = screened.why_not(expected).unwrap();
+        assert!(why.contains(&format!("`{expected}` fitted, not admitted by the fitted screen")), "{why}");
+    }
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains("Fitted and not admitted by the fitted screen"), "{md}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -30,8 +30,10 @@
 //!    With [`DiagnoseConfig::fitted_screen`] every extension is fitted, and one
 //!    no check flagged is a candidate only when its *fitted* model raises the
 //!    check part's likelihood over its reference's (one-sided sign-flip p
-//!    below [`DiagnoseConfig::plausible_p`]); the others are left out of step
-//!    5's Holm families and cannot be the cause.
+//!    below [`DiagnoseConfig::plausible_p`]); the others are reported as not
+//!    admitted ([`NotAdmitted`]), neither checked again nor evaluated (unless
+//!    an admitted candidate nests one: then it is evaluated for rule (e) and
+//!    left out of step 5's Holm families), and cannot be the cause.
 //!    A nesting extension's fit starts where its nested extension's fit ended
 //!    ([`DiagnoseConfig::nesting_from_nested`]), so that rule (e) below
 //!    compares its extra parameter, not two optimisations.
@@ -45,7 +47,8 @@
 //!    same seed and batches: this *reference* of the scope is what each of its
 //!    candidates is compared with. Without it, only the extension's parameters
 //!    are learned on top of the fixed base, which is the reference. Each fitted
-//!    model is checked again on the check part.
+//!    candidate is checked again on the check part. A scope's reseeded refit
+//!    (rule (b)) is fitted only where a candidate of the scope is evaluated.
 //! 5. **Decide on the evaluation part**: per object, the tempered filter's
 //!    log-likelihood under the extended minus its scope's reference model, both
 //!    filtered with the same seeds, over the objects every model measures (an
@@ -245,7 +248,8 @@ pub struct DiagnoseConfig {
     /// Plausibility still comes from the check part alone, and the gain from
     /// the evaluation part alone; what it adds over the checks is a screen
     /// that a summary statistic cannot miss, at the cost of fitting every
-    /// extension. Off by default; excludes [`DiagnoseConfig::fit_all`] and
+    /// extension (one it does not admit is not checked again nor evaluated:
+    /// [`NotAdmitted`]). Off by default; excludes [`DiagnoseConfig::fit_all`] and
     /// [`DiagnoseConfig::likelihood_screen`]; a report written before it reads
     /// `false`.
     #[serde(default)]
@@ -509,6 +513,39 @@ pub struct CheckReport {
     pub draws_after: Vec<(f64, f64)>,
 }
 
+/// An extension the fitted screen fitted and did not admit
+/// ([`DiagnoseConfig::fitted_screen`]): no check flagged it, and its fitted
+/// model did not raise the check part's likelihood over its scope's reference
+/// with a one-sided sign-flip p below [`DiagnoseConfig::plausible_p`]. No rule
+/// of step 5 reads anything else of it, so it is neither checked again nor
+/// evaluated (unless an admitted candidate nests it: rule (e) compares them,
+/// and it stays a candidate outside the Holm family).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NotAdmitted {
+    /// The extension's id.
+    pub cause: String,
+    /// Its fitted model's log-likelihood on the check part over its scope's
+    /// reference's (nats per observed unit, the same filter seeds).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub check_part_gain: f64,
+    /// That gain's one-sided sign-flip p over the check objects.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
+    pub check_part_p: f64,
+    /// The refit it was compared with.
+    pub refit_scope: RefitScope,
+    /// The learned parameters in physical units: `(name, value, unit)`.
+    pub params: Vec<(String, f64, String)>,
+    /// The learned parameters in a sentence.
+    pub description: String,
+    /// Training steps skipped (non-finite estimates).
+    pub skipped_steps: usize,
+    /// Training time (s).
+    pub train_seconds: f64,
+    /// The evaluation on the check part whose parameters the fit kept.
+    #[serde(default)]
+    pub kept: Option<KeptBest>,
+}
+
 /// One fitted extension.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CandidateReport {
@@ -590,8 +627,10 @@ pub struct CandidateReport {
     /// ([`DiagnoseConfig::fitted_screen`]): the one-sided sign-flip p of
     /// [`CandidateReport::check_part_gain`] over the check objects. Below
     /// [`DiagnoseConfig::plausible_p`] it admits the candidate (into step 5's
-    /// Holm family, and rule (d)); above it the candidate was fitted and not
-    /// admitted. `None` otherwise.
+    /// Holm family, and rule (d)); above it the extension was fitted and not
+    /// admitted, and is a candidate only where an admitted one nests it (in
+    /// reports written before 2026-12-06, every such extension was). `None`
+    /// otherwise.
     #[serde(default)]
     pub check_part_p: Option<f64>,
     /// Rule (d): whether the extension improves a check that flagged it, or
@@ -918,6 +957,17 @@ fn reference_tests(
     (p_values, adjusted, family)
 }
 
+/// Which fitted extensions (each with its fitted-screen p, `None` where it was
+/// not screened so) are checked again and evaluated as candidates: every one
+/// admitted at `plausible_p`, and one an admitted extension nests (rule (e)
+/// compares them on the evaluation part).
+fn to_evaluate(fitted: &[(Extension, Option<f64>)], plausible_p: f64) -> Vec<bool> {
+    let is_admitted = |&(_, p): &(Extension, Option<f64>)| admitted(p, plausible_p);
+    let nested_by_admitted =
+        |extension: Extension| fitted.iter().any(|n| is_admitted(n) && n.0.nests() == Some(extension));
+    fitted.iter().map(|f| is_admitted(f) || nested_by_admitted(f.0)).collect()
+}
+
 /// Whether a candidate whose fitted-screen p is `check_part_p` (`None`: not
 /// screened so) is admitted at `plausible_p` ([`CandidateReport::admitted`]).
 fn admitted(check_part_p: Option<f64>, plausible_p: f64) -> bool {
@@ -1237,23 +1287,21 @@ impl Report {
         let (cause, chosen) = self.outcome(&verdicts);
         let why_missed = (cause != expected).then(|| {
             let candidate = self.candidates.iter().position(|c| c.cause == expected);
-            let why = match (candidate, chosen) {
-                (Some(i), _) if !self.candidates[i].admitted(self.config.plausible_p) => {
+            let not_admitted = self.not_admitted.iter().find(|n| n.cause == expected);
+            let why = match (candidate, chosen, not_admitted) {
+                (Some(i), _, _) if !self.candidates[i].admitted(self.config.plausible_p) => {
                     let c = &self.candidates[i];
-                    format!(
-                        "`{expected}` fitted, not admitted by the fitted screen: check-part gain {:+.4}, p {:.3}",
-                        c.check_part_gain.unwrap_or(f64::NAN),
-                        c.check_part_p.unwrap_or(f64::NAN)
-                    )
+                    not_admitted_phrase(expected, c.check_part_gain.unwrap_or(f64::NAN), c.check_part_p)
                 }
-                (Some(i), _) => match verdicts[i] {
+                (Some(i), _, _) => match verdicts[i] {
                     Some(rule) => format!(
                         "`{expected}` fails {rule}: {}",
                         self.failure_numbers(&self.candidates[i], over[i], rule)
                     ),
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
                 },
-                (None, _) if expected != NO_CAUSE && expected != UNEXPLAINED => {
+                (None, _, Some(n)) => not_admitted_phrase(expected, n.check_part_gain, Some(n.check_part_p)),
+                (None, _, None) if expected != NO_CAUSE && expected != UNEXPLAINED => {
                     match self.likelihood_screen.iter().find(|s| s.cause == expected) {
                         Some(s) => format!(
                             "`{expected}` not fitted: no check flagged it, nor did the likelihood screen admit it \
@@ -1263,8 +1311,8 @@ impl Report {
                         None => format!("`{expected}` not fitted"),
                     }
                 }
-                (None, Some(c)) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
-                (None, None) => match outcome_without_cause(&self.reference_checks()).1 {
+                (None, Some(c), _) => format!("`{}` named (gain {:+.4}, p adj. {:.4})", c.cause, c.gain, c.p_adjusted),
+                (None, None, _) => match outcome_without_cause(&self.reference_checks()).1 {
                     failing if failing.is_empty() => {
                         "no check of the reference fails at the family-wise level".to_string()
                     }
@@ -1315,6 +1363,15 @@ impl Report {
     }
 }
 
+/// What [`Report::why_not`] says of the expected extension `expected` when the
+/// fitted screen fitted it and did not admit it (its check-part gain and p).
+fn not_admitted_phrase(expected: &str, check_part_gain: f64, check_part_p: Option<f64>) -> String {
+    format!(
+        "`{expected}` fitted, not admitted by the fitted screen: check-part gain {check_part_gain:+.4}, p {:.3}",
+        check_part_p.unwrap_or(f64::NAN)
+    )
+}
+
 /// Rule (b)'s least gain over the reference: `min_gain`; in reports whose
 /// reseeded refit did not keep its per-object gains (before 2026-11-27, so no
 /// candidate could be compared with it by object), the size of its gain when
@@ -1352,6 +1409,12 @@ pub struct Report {
     /// without [`DiagnoseConfig::likelihood_screen`]).
     #[serde(default)]
     pub likelihood_screen: Vec<LikelihoodScreen>,
+    /// The extensions the fitted screen fitted and did not admit
+    /// ([`DiagnoseConfig::fitted_screen`]; empty without it, and in reports
+    /// written before 2026-12-06, which kept them among `candidates` with
+    /// `p adj.` 1).
+    #[serde(default)]
+    pub not_admitted: Vec<NotAdmitted>,
     /// The data's kind.
     pub kind: ObservationKind,
     /// Objects that fitted the models.
@@ -1504,6 +1567,20 @@ struct Parts<'a> {
     eval: &'a Dataset,
 }
 
+/// A fitted extension before the fitted screen's verdict.
+struct Trained {
+    extension: Extension,
+    flagged_by: Vec<String>,
+    check_part_gain: Option<f64>,
+    check_part_p: Option<f64>,
+    run: Fitted,
+}
+
+/// An extension's learned parameters `raw` in physical units, `(name, value, unit)`.
+fn natural_params(extension: Extension, raw: &[f64]) -> Result<Vec<(String, f64, String)>, String> {
+    Ok(extension.natural(raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect())
+}
+
 /// A fitted candidate before the decision.
 struct Fit {
     extension: Extension,
@@ -1565,10 +1642,11 @@ struct ReferenceFit<'a> {
 }
 
 impl ReferenceFit<'_> {
-    /// The base refitted alone within `scope` (in the scope's directories
-    /// under `out_dir`, resuming a run found there), checked, evaluated, and
-    /// refitted once more with another seed for the refits' own noise; filtered
-    /// on the check part too where a `screened` candidate of the scope needs it.
+    /// The base refitted alone within `scope` (in the scope's directory under
+    /// `out_dir`, resuming a run found there), checked and evaluated; filtered
+    /// on the check part too where a `screened` candidate of the scope needs
+    /// it. Its reseeded twin is fitted later, where a candidate of the scope is
+    /// evaluated ([`ReferenceFit::fit_reseeded`]).
     fn fit(
         &self,
         scope: RefitScope,
@@ -1578,7 +1656,7 @@ impl ReferenceFit<'_> {
         progress: &mut dyn FnMut(&Stage),
     ) -> Result<Reference, String> {
         let (parts, config) = (self.parts, self.config);
-        let [dir, reseeded_dir] = reference_dirs(scope);
+        let dir = reference_dirs(scope)[0];
         let held = scope.held(self.base);
         let run =
             fit(parts, None, self.base.clone(), self.schedule, &held, config, &out_dir.join(dir), comm, progress)?;
@@ -1587,20 +1665,31 @@ impl ReferenceFit<'_> {
         let checks = calibrate(self.defs, &checks.measured, &checks.replicated, config.alpha);
         progress(&Stage::Evaluating { model: dir.into() });
         let eval = eval_likelihoods(parts.eval, &run.params, None, config)?;
-        // The refits' own noise: the base refitted alone with another seed.
-        let reseeded_run = if config.refit_noise {
-            let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
-            let dir = out_dir.join(reseeded_dir);
-            let again =
-                fit(parts, None, self.base.clone(), self.schedule, &held, &reseeded_config, &dir, comm, progress)?;
-            progress(&Stage::Evaluating { model: reseeded_dir.into() });
-            let again_eval = eval_likelihoods(parts.eval, &again.params, None, config)?;
-            Some((again, again_eval))
-        } else {
-            None
-        };
         let on_check = if screened { Some(eval_likelihoods(parts.check, &run.params, None, config)?) } else { None };
-        Ok(Reference { scope, run: Some(run), checks, eval, reseeded_run, reseeded: None, on_check })
+        Ok(Reference { scope, run: Some(run), checks, eval, reseeded_run: None, reseeded: None, on_check })
+    }
+
+    /// The refits' own noise ([`DiagnoseConfig::refit_noise`]): the base
+    /// refitted alone within `reference`'s scope once more, with another
+    /// training seed (in the scope's reseeded directory, resuming a run found
+    /// there), and evaluated, into `reference.reseeded_run`.
+    fn fit_reseeded(
+        &self,
+        reference: &mut Reference,
+        out_dir: &Path,
+        comm: &Arc<dyn Collective>,
+        progress: &mut dyn FnMut(&Stage),
+    ) -> Result<(), String> {
+        let (parts, config) = (self.parts, self.config);
+        let reseeded_dir = reference_dirs(reference.scope)[1];
+        let held = reference.scope.held(self.base);
+        let reseeded_config = DiagnoseConfig { seed: config.seed ^ RESEED_BITS, ..config.clone() };
+        let dir = out_dir.join(reseeded_dir);
+        let again = fit(parts, None, self.base.clone(), self.schedule, &held, &reseeded_config, &dir, comm, progress)?;
+        progress(&Stage::Evaluating { model: reseeded_dir.into() });
+        let again_eval = eval_likelihoods(parts.eval, &again.params, None, config)?;
+        reference.reseeded_run = Some((again, again_eval));
+        Ok(())
     }
 }
 
@@ -1705,10 +1794,10 @@ fn run(
     let refit_schedule = FitSchedule::refit(config);
     let screened_any = plausible.iter().any(|&(_, _, screened_in)| screened_in);
     let mut references: Vec<Reference> = Vec::new();
+    let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
     if config.refit {
         for scope in RefitScope::ALL.into_iter().filter(|&scope| plausible.iter().any(|p| scope_of(p.0) == scope)) {
             let screened = plausible.iter().any(|&(e, _, screened_in)| screened_in && scope_of(e) == scope);
-            let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
             references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
         }
     }
@@ -1730,12 +1819,14 @@ fn run(
             },
         });
     }
+    // Every plausible extension is fitted; one the fitted screen fitted is
+    // admitted by its check-part likelihood over its reference's.
     let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
-    let mut fits: Vec<Fit> = Vec::new();
-    for (extension, flagged_by, screened_in) in plausible {
+    let mut trained: Vec<Trained> = Vec::new();
+    for (slot, (extension, flagged_by, screened_in)) in plausible.into_iter().enumerate() {
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
         // `plausible` is in catalogue order, a nested extension before its nesting one.
-        let nested_fit = extension.nests().and_then(|nested| fits.iter().find(|f| f.extension == nested));
+        let nested_fit = extension.nests().and_then(|nested| trained.iter().find(|t| t.extension == nested));
         let start = match nested_fit {
             Some(nested) if config.nesting_from_nested => {
                 start_from_nested(extension, start_of(extension), &nested.run.params)?
@@ -1744,21 +1835,56 @@ fn run(
         };
         let held = if config.refit { scope_of(extension).held(&start) } else { Vec::new() };
         let run = fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?;
-        progress(&Stage::Checking { model: extension.id().into() });
-        let checks = check_model(parts.check, &run.params, Some(extension), config)?;
-        progress(&Stage::Evaluating { model: extension.id().into() });
-        let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
         let (check_part_gain, check_part_p) = match &reference_of(extension).on_check {
             Some(reference_ll) if screened_in => {
+                progress(&Stage::Evaluating { model: format!("{} (check part)", extension.id()) });
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
                 let d = differences(&on_check.object_ll, &reference_ll.object_ll);
-                let seed = stream_seed(config.seed ^ FITTED_SCREEN_PERMUTATIONS, fits.len() as u64);
+                let seed = stream_seed(config.seed ^ FITTED_SCREEN_PERMUTATIONS, slot as u64);
                 let p = config.fitted_screen.then(|| sign_flip_p(&d, config.permutations, seed));
                 (Some(gain_of(&d, reference_ll.units).0), p)
             }
             _ => (None, None),
         };
+        trained.push(Trained { extension, flagged_by, check_part_gain, check_part_p, run });
+    }
+    // The candidates, checked again and evaluated: every admitted extension,
+    // and one an admitted candidate nests (rule (e) compares them); the
+    // fitted screen's others are reported as not admitted.
+    let screened: Vec<(Extension, Option<f64>)> = trained.iter().map(|t| (t.extension, t.check_part_p)).collect();
+    let evaluated = to_evaluate(&screened, config.plausible_p);
+    let mut fits: Vec<Fit> = Vec::new();
+    let mut not_admitted: Vec<NotAdmitted> = Vec::new();
+    for (t, evaluated) in trained.into_iter().zip(evaluated) {
+        let Trained { extension, flagged_by, check_part_gain, check_part_p, run } = t;
+        if !evaluated {
+            let raw = run.params.get(run.params.id(&extension.param_name()).expect("the extension's parameter")).data();
+            not_admitted.push(NotAdmitted {
+                cause: extension.id().into(),
+                check_part_gain: check_part_gain.unwrap_or(f64::NAN),
+                check_part_p: check_part_p.unwrap_or(f64::NAN),
+                refit_scope: reference_of(extension).scope,
+                params: natural_params(extension, raw)?,
+                description: extension.describe(raw)?,
+                skipped_steps: run.skipped,
+                train_seconds: run.seconds,
+                kept: run.kept,
+            });
+            continue;
+        }
+        progress(&Stage::Checking { model: extension.id().into() });
+        let checks = check_model(parts.check, &run.params, Some(extension), config)?;
+        progress(&Stage::Evaluating { model: extension.id().into() });
+        let eval = eval_likelihoods(parts.eval, &run.params, Some(extension), config)?;
         fits.push(Fit { extension, flagged_by, check_part_gain, check_part_p, run, checks, eval });
+    }
+    // The refits' own noise, in every scope with a candidate: rule (b).
+    if config.refit_noise {
+        for reference in references.iter_mut().filter(|r| r.run.is_some()) {
+            if fits.iter().any(|f| scope_of(f.extension) == reference.scope) {
+                fitting.fit_reseeded(reference, out_dir, comm, progress)?;
+            }
+        }
     }
 
     // 5. The decision on the evaluation part, each candidate against the
@@ -1828,7 +1954,7 @@ fn run(
             refit_scope: reference.scope,
             over_reseeded: over_reseeded[i],
             over_nested: over_nested[i].clone(),
-            params: ext.natural(&raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect(),
+            params: natural_params(ext, &raw)?,
             description: ext.describe(&raw)?,
             flagged_by: f.flagged_by.clone(),
             check_part_gain: f.check_part_gain,
@@ -1882,6 +2008,7 @@ fn run(
         candidates,
         not_fitted,
         likelihood_screen: screens,
+        not_admitted,
         kind,
         train_objects: parts.fit.objects().len(),
         check_objects: parts.check.objects().len(),
@@ -2547,6 +2674,20 @@ mod tests {
 
     /// The fitted screen is one way of fitting what no check flagged: it
     /// excludes `fit_all` and the likelihood screen.
+    /// The fitted screen evaluates what it admits, and an extension it did
+    /// not admit only where an admitted one nests it (rule (e) needs both).
+    #[test]
+    fn the_fitted_screen_evaluates_what_it_admits_and_what_that_nests() {
+        use Extension::{HeadingFlip, Latency, PersistentFlip};
+        let (inside, outside, level) = (Some(0.01), Some(0.5), 0.05);
+        assert_eq!(to_evaluate(&[(HeadingFlip, outside), (PersistentFlip, inside)], level), [true, true]);
+        assert_eq!(to_evaluate(&[(HeadingFlip, inside), (PersistentFlip, outside)], level), [true, false]);
+        assert_eq!(to_evaluate(&[(HeadingFlip, outside), (PersistentFlip, outside)], level), [false, false]);
+        // Flagged by a check (no fitted-screen p): always a candidate.
+        assert_eq!(to_evaluate(&[(Latency, None), (HeadingFlip, outside)], level), [true, false]);
+        assert_eq!(to_evaluate(&[(Latency, Some(level))], level), [false], "p at the level is not below it");
+    }
+
     #[test]
     fn one_screen_of_what_no_check_flagged_at_a_time() {
         let fitted = DiagnoseConfig { fitted_screen: true, ..DiagnoseConfig::quick() };
