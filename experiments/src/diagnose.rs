@@ -947,5 +947,4 @@ mod tests {
         let tails = format!("| heavy_tailed_accel | {} (*last*) |", report.config.candidate_steps);
         assert!(fits_kept(&report).contains(&tails), "{}", fits_kept(&report));
     }
-
 }

@@ -1576,6 +1576,12 @@ struct Trained {
     run: Fitted,
 }
 
+/// The values of `extension`'s own parameter in `params`, a store its fit
+/// made (which always holds it).
+fn learned(params: &ParamStore<f64>, extension: Extension) -> &[f64] {
+    params.get(params.id(&extension.param_name()).expect("a fitted extension's store holds its parameter")).data()
+}
+
 /// An extension's learned parameters `raw` in physical units, `(name, value, unit)`.
 fn natural_params(extension: Extension, raw: &[f64]) -> Result<Vec<(String, f64, String)>, String> {
     Ok(extension.natural(raw)?.into_iter().map(|(n, v, u)| (n.to_string(), v, u.to_string())).collect())
@@ -1858,7 +1864,7 @@ fn run(
     for (t, evaluated) in trained.into_iter().zip(evaluated) {
         let Trained { extension, flagged_by, check_part_gain, check_part_p, run } = t;
         if !evaluated {
-            let raw = run.params.get(run.params.id(&extension.param_name()).expect("the extension's parameter")).data();
+            let raw = learned(&run.params, extension);
             not_admitted.push(NotAdmitted {
                 cause: extension.id().into(),
                 check_part_gain: check_part_gain.unwrap_or(f64::NAN),
@@ -1936,8 +1942,7 @@ fn run(
         let (gain, gain_se) = gain_of(&d, reference_eval.units);
         let (gain_mc_sd, worst_object_mc_sd) = gain_monte_carlo_sd(&f.eval, &reference.eval);
         let after = calibrate(&defs, &f.checks.measured, &f.checks.replicated, config.alpha);
-        let raw =
-            f.run.params.get(f.run.params.id(&ext.param_name()).expect("the extension's parameter")).data().to_vec();
+        let raw = learned(&f.run.params, ext).to_vec();
         let material = ext.is_material(&raw)?;
         let mut candidate = CandidateReport {
             cause: ext.id().into(),
