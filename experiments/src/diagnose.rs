@@ -532,16 +532,20 @@ fn fitted_screen_note(r: &Report) -> String {
     if !r.config.fitted_screen {
         return String::new();
     }
-    let others = if r.not_admitted.is_empty() && r.candidates.iter().any(|c| !c.admitted(r.config.plausible_p)) {
-        "the others show `p adj.` 1 and fail (d)"
-    } else {
-        "the others are listed below as not admitted, neither checked again nor evaluated (or, where an admitted \
-         one nests them, evaluated for (e) and shown with `p adj.` 1)"
+    let unadmitted_candidate = r.candidates.iter().any(|c| !c.admitted(r.config.plausible_p));
+    let others = match (r.not_admitted.is_empty(), unadmitted_candidate) {
+        // A report written before 2026-12-06 kept every unadmitted extension among the candidates.
+        (true, true) => "; the others show `p adj.` 1 and fail (d)",
+        (true, false) => "",
+        (false, _) => {
+            "; the others are listed below as not admitted, neither checked again nor evaluated (or, where an \
+             admitted one nests them, evaluated for (e) and shown with `p adj.` 1)"
+        }
     };
     format!(
         " With the fitted screen every extension no check flagged was fitted too: it is tested (in the Holm family \
          of (a) and (b)) and passes (d) only where its fitted model raises the check objects' log-likelihood over \
-         the reference's with a one-sided sign-flip p below {}; {others}.",
+         the reference's with a one-sided sign-flip p below {}{others}.",
         r.config.plausible_p
     )
 }
