@@ -936,6 +936,7 @@ mod tests {
         );
         assert!(!section.contains("| extension |") && !section.contains("uncertain by"), "{section}");
     }
+
     /// The table of the parameters each fit kept marks a fit that kept its
     /// last step: it may have stopped while still improving.
     #[test]

@@ -13,6 +13,7 @@ use crate::common::{failed, ok, s, sefi, temp};
 use autodiff::nn::ParamStore;
 use serde_json::Value;
 use ssm::criticism::diagnose::{beats_reseeded, Report};
+use ssm::models::extended::RefitScope;
 use ssm::training::{Checkpoint, CHECKPOINT_FILE};
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
@@ -478,12 +479,8 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
     assert!(screened.config.fitted_screen && screened.not_fitted.is_empty());
     // The data exercise a screen that turns extensions away, in one scope all of them.
     assert!(!screened.not_admitted.is_empty(), "nothing turned away");
-    let turned_away =
-        |r: &Option<ssm::criticism::diagnose::ReferenceReport>| r.as_ref().is_some_and(|r| r.reseeded.is_none());
-    assert!(
-        turned_away(&screened.reference) || turned_away(&screened.dynamics_reference),
-        "no scope left without a candidate"
-    );
+    let without_reseeded = |scope| screened.reference_in(scope).is_some_and(|r| r.reseeded.is_none());
+    assert!(RefitScope::ALL.into_iter().any(without_reseeded), "no scope left without a candidate");
     let mut fitted: Vec<&str> = screened.candidates.iter().map(|c| c.cause.as_str()).collect();
     fitted.extend(screened.not_admitted.iter().map(|n| n.cause.as_str()));
     fitted.sort_unstable();
@@ -501,10 +498,10 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
         let full = every.candidates.iter().find(|f| f.cause == c.cause).unwrap();
         assert_eq!(c.object_gains, full.object_gains, "{}: the fit-all diagnosis's gains", c.cause);
     }
-    for (reference, scope) in [(&screened.reference, "all"), (&screened.dynamics_reference, "dynamics")] {
-        let in_scope = screened.candidates.iter().any(|c| serde_json::to_value(c.refit_scope).unwrap() == scope);
-        let reseeded = reference.as_ref().is_some_and(|r| r.reseeded.is_some());
-        assert_eq!(reseeded, in_scope, "the reseeded refit of scope {scope}");
+    for scope in RefitScope::ALL {
+        let in_scope = screened.candidates.iter().any(|c| c.refit_scope == scope);
+        let reseeded = screened.reference_in(scope).is_some_and(|r| r.reseeded.is_some());
+        assert_eq!(reseeded, in_scope, "the reseeded refit of scope {scope:?}");
     }
     assert_eq!(screened.decided(true).0, screened.cause, "decided again from the report");
     for expected in screened.not_admitted.iter().map(|n| n.cause.as_str()).filter(|&id| id != screened.cause) {
