@@ -4,7 +4,8 @@
 //! the quick diagnosis, and tabulates the share of seeds on which the cause is
 //! named, the share of false causes (on the controls, any catalogue cause) and
 //! the error of the learned magnitude. Every finished diagnosis keeps its
-//! `report.json` (its training runs are removed), so an interrupted study resumes
+//! `report.json` and each fit's evaluation log (the rest of its training runs
+//! is removed), so an interrupted study resumes
 //! where it stopped and a study's state is small enough to commit. Several
 //! processes can share a study's directory (each claims the cell it diagnoses);
 //! each writes the tables of every finished cell there.
@@ -18,6 +19,7 @@ use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, TRAIN
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 use ssm::stats::wilson_interval;
+use ssm::training::EVAL_LOG;
 
 use crate::cluster::Cluster;
 use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
@@ -502,6 +504,33 @@ fn cell_dir(out: &Path, e: &StudyEffect, strength: f64, seed: u64) -> PathBuf {
     out.join(&e.id).join(format!("x{strength}")).join(format!("seed{seed}"))
 }
 
+/// Removes a finished cell's training runs except each fit's evaluation log
+/// ([`EVAL_LOG`]: its check-part likelihood every few steps, a few hundred
+/// bytes, which shows how the fit climbed and where it was kept). The
+/// checkpoints, parameters and step logs only served to resume an interrupted
+/// diagnosis; the report and these logs are what the study keeps. A file that
+/// cannot be removed is left: the cell's report is already written.
+fn prune_training_runs(cell: &Path) {
+    fn prune(dir: &Path) {
+        let Ok(entries) = std::fs::read_dir(dir) else { return };
+        for entry in entries.flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                prune(&path);
+                // Empty once nothing in it was an evaluation log.
+                let _ = std::fs::remove_dir(&path);
+            } else if path.file_name().is_none_or(|name| name != EVAL_LOG) {
+                let _ = std::fs::remove_file(&path);
+            }
+        }
+    }
+    for run in TRAINING_RUN_DIRS {
+        let dir = cell.join(run);
+        prune(&dir);
+        let _ = std::fs::remove_dir(&dir);
+    }
+}
+
 /// The diagnosis of one effect, strength and seed: read back if already done,
 /// else run (or, with `table_only`, `None`).
 fn run_cell(
@@ -538,11 +567,7 @@ fn run_cell(
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
-            // The report is what the study keeps: the training runs (checkpoints,
-            // parameters) only served to resume an interrupted diagnosis.
-            for run in TRAINING_RUN_DIRS {
-                let _ = std::fs::remove_dir_all(dir.join(run));
-            }
+            prune_training_runs(&dir);
             report
         }
     };
@@ -808,6 +833,36 @@ mod tests {
         let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
         std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    /// A finished cell keeps each fit's evaluation log and nothing else of its
+    /// training runs; the report and files outside the runs stay.
+    #[test]
+    fn a_finished_cell_keeps_only_its_fits_evaluation_logs() {
+        let cell = std::env::temp_dir().join(format!("sefi-power-prune-{}", std::process::id()));
+        let runs = ["base", "reference", "candidates/latency", "candidates/clutter", "reference-dynamics"];
+        for run in runs {
+            std::fs::create_dir_all(cell.join(run)).unwrap();
+            for file in ["checkpoint.bin", "params.bin", "train.csv", "skipped.csv", EVAL_LOG] {
+                std::fs::write(cell.join(run).join(file), run).unwrap();
+            }
+        }
+        // A run stopped before its first evaluation has no log: its directory goes.
+        std::fs::create_dir_all(cell.join("reference-reseeded")).unwrap();
+        std::fs::write(cell.join("reference-reseeded/checkpoint.bin"), "x").unwrap();
+        std::fs::write(cell.join("report.json"), "{}").unwrap();
+        prune_training_runs(&cell);
+        for run in runs {
+            let left: Vec<String> = std::fs::read_dir(cell.join(run))
+                .unwrap()
+                .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+                .collect();
+            assert_eq!(left, [EVAL_LOG], "{run}");
+            assert_eq!(std::fs::read_to_string(cell.join(run).join(EVAL_LOG)).unwrap(), run);
+        }
+        assert!(!cell.join("reference-reseeded").exists());
+        assert!(cell.join("report.json").is_file());
+        std::fs::remove_dir_all(&cell).unwrap();
     }
 
     /// A process that ran one effect at one strength writes the tables of every
