@@ -55,6 +55,11 @@ pub struct DiagnoseArgs {
     /// likelihood rather than a summary statistic, at the cost of fitting every extension.
     #[arg(long, conflicts_with_all = ["fit_all", "likelihood_screen"])]
     fitted_screen: bool,
+    /// With --fitted-screen: pause each extension the screen fits at the first evaluation after this share of its
+    /// steps, and continue it only where its best check-part evaluation is above the base's (0: fit each to its end)
+    /// [default: 1/3].
+    #[arg(long, requires = "fitted_screen")]
+    screen_futility: Option<f64>,
     /// Fit a nesting extension (persistent_flip) from the base, as every other, instead of where its nested
     /// extension's fit (heading_flip) ended (the base's parameters and the fraction from that fit, the
     /// persistence from the checks).
@@ -153,6 +158,7 @@ impl DiagnoseArgs {
                 *target = v;
             }
         }
+        set(&mut c.screen_futility, self.screen_futility);
         set(&mut c.base_steps, self.base_steps);
         set(&mut c.candidate_steps, self.candidate_steps);
         set(&mut c.particles, self.particles);
@@ -511,18 +517,27 @@ fn not_admitted_table(s: &mut String, r: &Report) {
     if r.not_admitted.is_empty() {
         return;
     }
+    let stop = if r.not_admitted.iter().any(|n| n.stopped_at.is_some()) {
+        " A fit stopped by the futility stop (at the first evaluation after a share of its steps, its best \
+         check-part evaluation was not above the base's) was not tested."
+    } else {
+        ""
+    };
     let _ = writeln!(
         s,
         "\nFitted and not admitted by the fitted screen (no check flagged them, and the fitted model did not raise \
          the check objects' log-likelihood over the reference's with a one-sided sign-flip p below {}): neither \
-         checked again nor evaluated.\n",
+         checked again nor evaluated.{stop}\n",
         r.config.plausible_p
     );
     let _ = writeln!(s, "| extension | check-part gain over the reference (nats/unit) | p | learned |");
     let _ = writeln!(s, "|---|---|---|---|");
     for n in &r.not_admitted {
-        let _ =
-            writeln!(s, "| {} | {:+.4} | {} | {} |", n.cause, n.check_part_gain, fmt(n.check_part_p), n.description);
+        let (gain, p) = match n.stopped_at {
+            Some(step) => (format!("stopped at step {step}"), "-".to_string()),
+            None => (format!("{:+.4}", n.check_part_gain), fmt(n.check_part_p)),
+        };
+        let _ = writeln!(s, "| {} | {gain} | {p} | {} |", n.cause, n.description);
     }
 }
 
@@ -542,10 +557,19 @@ fn fitted_screen_note(r: &Report) -> String {
              admitted one nests them, evaluated for (e) and shown with `p adj.` 1)"
         }
     };
+    let futility = if r.config.screen_futility > 0.0 {
+        format!(
+            " Each was paused after {:.0}% of its steps and continued only where its best check-part evaluation had \
+             risen above the base's (the futility stop; not applied to an extension another nests).",
+            100.0 * r.config.screen_futility
+        )
+    } else {
+        String::new()
+    };
     format!(
         " With the fitted screen every extension no check flagged was fitted too: it is tested (in the Holm family \
          of (a) and (b)) and passes (d) only where its fitted model raises the check objects' log-likelihood over \
-         the reference's with a one-sided sign-flip p below {}{others}.",
+         the reference's with a one-sided sign-flip p below {}{others}.{futility}",
         r.config.plausible_p
     )
 }
@@ -669,7 +693,10 @@ fn fits_kept(r: &Report) -> String {
         }
     }
     fits.extend(r.candidates.iter().map(|c| (c.cause.clone(), c.kept.as_ref(), refit_steps)));
-    fits.extend(r.not_admitted.iter().map(|n| (format!("{} (not admitted)", n.cause), n.kept.as_ref(), refit_steps)));
+    fits.extend(r.not_admitted.iter().map(|n| match n.stopped_at {
+        Some(step) => (format!("{} (stopped at step {step})", n.cause), n.kept.as_ref(), step),
+        None => (format!("{} (not admitted)", n.cause), n.kept.as_ref(), refit_steps),
+    }));
     if fits.iter().all(|(_, kept, _)| kept.is_none()) {
         return String::new();
     }

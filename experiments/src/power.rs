@@ -66,6 +66,10 @@ pub struct PowerArgs {
     /// fitted model's likelihood on the check objects. Use a fresh `--out` for it.
     #[arg(long, conflicts_with = "likelihood_screen")]
     fitted_screen: bool,
+    /// With --fitted-screen: the futility stop's share of a fit's steps (`sefi diagnose --screen-futility`; 0: every
+    /// screened extension fitted to its end, as the studies before 2026-12-06's fortieth session) [default: 1/3].
+    #[arg(long, requires = "fitted_screen")]
+    screen_futility: Option<f64>,
     /// Every diagnosis fits a nesting extension from the base (`sefi diagnose
     /// --no-nesting-from-nested`), as the studies before 2026-11-30's
     /// twenty-eighth session did: their directories' tables need it.
@@ -177,6 +181,9 @@ struct StudySetting {
     /// Whether each diagnosis runs the fitted screen (`sefi diagnose
     /// --fitted-screen`).
     fitted_screen: bool,
+    /// The fitted screen's futility stop (`sefi diagnose --screen-futility`;
+    /// 0: none); read as 0 without the fitted screen, where it does nothing.
+    screen_futility: f64,
     /// Whether a nesting extension's fit starts where its nested one's ended
     /// (the default; `sefi diagnose --no-nesting-from-nested` turns it off).
     nesting_from_nested: bool,
@@ -221,6 +228,7 @@ impl StudySetting {
             refit_base_lr: config.refit_base_lr,
             likelihood_screen: config.likelihood_screen,
             fitted_screen: config.fitted_screen,
+            screen_futility: if config.fitted_screen { config.screen_futility } else { 0.0 },
             nesting_from_nested: config.nesting_from_nested,
             average_tail: config.average_tail,
             scoped_refits: config.scoped_refits,
@@ -236,6 +244,7 @@ impl StudySetting {
             refit_base_lr: self.refit_base_lr,
             likelihood_screen: self.likelihood_screen,
             fitted_screen: self.fitted_screen,
+            screen_futility: self.screen_futility,
             nesting_from_nested: self.nesting_from_nested,
             average_tail: self.average_tail,
             scoped_refits: self.scoped_refits,
@@ -260,6 +269,9 @@ impl std::fmt::Display for StudySetting {
         }
         if self.fitted_screen {
             write!(f, ", fitted screen on")?;
+            if self.screen_futility > 0.0 {
+                write!(f, " (futility stop at {:.0}% of a fit)", 100.0 * self.screen_futility)?;
+            }
         }
         if !self.nesting_from_nested {
             write!(f, ", nesting fits from the base")?;
@@ -313,8 +325,15 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
         nesting_from_nested: !args.no_nesting_from_nested,
         scoped_refits: !args.no_scoped_refits,
         set_aside_unmeasured: !args.keep_unmeasured,
+        screen_futility: match args.fitted_screen {
+            true => args.screen_futility.unwrap_or(DiagnoseConfig::quick().screen_futility),
+            false => 0.0,
+        },
         ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
     };
+    setting.diagnose_config(0).validate().map_err(|e| {
+        format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
+    })?;
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -590,8 +609,8 @@ fn run_cell(
     if found != setting {
         return Err(format!(
             "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr, --likelihood-screen, --fitted-screen, --no-nesting-from-nested, --average-tail, \
-             --no-scoped-refits or --keep-unmeasured? use another --out)",
+             --refit-base-lr, --likelihood-screen, --fitted-screen, --screen-futility, --no-nesting-from-nested, \
+             --average-tail, --no-scoped-refits or --keep-unmeasured? use another --out)",
             report_path.display(),
         ));
     }
@@ -863,6 +882,28 @@ mod tests {
         assert!(!cell.join("reference-reseeded").exists());
         assert!(cell.join("report.json").is_file());
         std::fs::remove_dir_all(&cell).unwrap();
+    }
+
+    /// A fitted-screen study's reports record the futility stop they ran with:
+    /// those of the study before it (every screened fit run to its end) are
+    /// read back by a study without the stop and refused by one with it.
+    #[test]
+    fn a_fitted_screen_report_without_the_futility_stop_is_refused_by_a_study_with_it() {
+        let out = std::env::temp_dir().join(format!("sefi-power-futility-{}", std::process::id()));
+        let cell = out.join("none-points").join("x1").join("seed0");
+        std::fs::create_dir_all(&cell).unwrap();
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../results/power-study-fitted-screen/none-points/x1/seed0/report.json");
+        std::fs::copy(&committed, cell.join("report.json")).unwrap();
+        let effect = StudyEffect::of("none-points").unwrap();
+        let today = StudySetting::new(None, None, None).unwrap();
+        let whole = StudySetting { fitted_screen: true, screen_futility: 0.0, ..today };
+        assert!(run_cell(&out, &effect, 1.0, 0, whole, true).unwrap().is_some());
+        let stopped = StudySetting { screen_futility: DiagnoseConfig::quick().screen_futility, ..whole };
+        let err = run_cell(&out, &effect, 1.0, 0, stopped, true).err().expect("a report without the stop");
+        assert!(err.contains("futility stop at 33% of a fit") && err.contains("--screen-futility"), "{err}");
+        assert_eq!(stopped.diagnose_config(2).screen_futility, 1.0 / 3.0);
+        std::fs::remove_dir_all(&out).unwrap();
     }
 
     /// A process that ran one effect at one strength writes the tables of every

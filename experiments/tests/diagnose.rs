@@ -14,7 +14,7 @@ use autodiff::nn::ParamStore;
 use serde_json::Value;
 use ssm::criticism::diagnose::{beats_reseeded, Report};
 use ssm::models::extended::RefitScope;
-use ssm::training::{Checkpoint, CHECKPOINT_FILE};
+use ssm::training::{Checkpoint, CHECKPOINT_FILE, EVAL_LOG};
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
 /// `generate` arguments such as `--boxes --scenes 32`), runs `diagnose --quick`
@@ -510,5 +510,83 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
     }
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(md.contains("Fitted and not admitted by the fitted screen"), "{md}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The fitted screen's futility stop (`--screen-futility`): a screened
+/// extension whose best check-part evaluation by the stop is not above the
+/// base's is stopped there (its checkpoint at that step, listed as not
+/// admitted with the step, not tested); every other fit is the same run as
+/// without the stop, so each candidate's per-object gains are the unstopped
+/// diagnosis's to the bit; the reference in the dynamics scope is fitted only
+/// where an extension of that scope went on; and a stop never admits what the
+/// unstopped screen turned away.
+#[test]
+fn the_futility_stop_ends_only_fits_that_have_not_risen_above_the_base() {
+    let dir = temp("diagnose", "screen-futility");
+    let data = dir.join("data");
+    ok(&sefi(&["generate", "--hidden", "heavy_tailed_accel", "--scenes", "4", "--out", s(&data), "--seed", "2"]));
+    let run = |name: &str, futility: &str| -> (Report, std::path::PathBuf) {
+        let out = dir.join(name);
+        let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "2"];
+        command.extend(["--base-steps", "40", "--candidate-steps", "12", "--keep-best-every", "2"]);
+        command.extend(["--particles", "32", "--eval-particles", "32", "--keep-unmeasured", "--fitted-screen"]);
+        command.extend(["--screen-futility", futility]);
+        ok(&sefi(&command));
+        let text = std::fs::read_to_string(out.join("report.json")).unwrap();
+        (serde_json::from_str(&text).unwrap(), out)
+    };
+    let (whole, _) = run("whole", "0");
+    let (stopped, out) = run("stopped", "0.3");
+    // 30% of 12 steps is 3.6: the first evaluation after it is at step 4.
+    let stop_step = 4;
+    let base_value = stopped.base_kept.as_ref().unwrap().value;
+    assert_eq!(Some(base_value), whole.base_kept.as_ref().map(|k| k.value), "the same base");
+    let stops: Vec<&str> =
+        stopped.not_admitted.iter().filter(|n| n.stopped_at.is_some()).map(|n| n.cause.as_str()).collect();
+    assert!(!stops.is_empty(), "the data exercise a stop");
+    let evaluations = |cause: &str| -> Vec<(usize, f64)> {
+        let text = std::fs::read_to_string(out.join("candidates").join(cause).join(EVAL_LOG)).unwrap();
+        text.lines()
+            .skip(1)
+            .map(|l| l.split(',').collect::<Vec<_>>())
+            .map(|f| (f[0].parse().unwrap(), f[1].parse().unwrap()))
+            .collect()
+    };
+    let best_by_stop = |cause: &str| {
+        evaluations(cause).iter().filter(|e| e.0 <= stop_step).map(|e| e.1).fold(f64::NEG_INFINITY, f64::max)
+    };
+    for n in &stopped.not_admitted {
+        match n.stopped_at {
+            Some(step) => {
+                assert_eq!(step, stop_step, "{}", n.cause);
+                assert!(n.check_part_p.is_nan() && n.check_part_gain.is_nan(), "{n:?}: not tested");
+                assert!(best_by_stop(&n.cause) <= base_value, "{}: stopped above the base", n.cause);
+                assert_eq!(evaluations(&n.cause).last().unwrap().0, stop_step, "{}: fitted past the stop", n.cause);
+                let why = stopped.why_not(&n.cause).unwrap();
+                assert!(why.contains(&format!("stopped at step {stop_step}")), "{why}");
+                // What the stop turned away, the unstopped screen did not admit either here.
+                let full = whole.not_admitted.iter().find(|w| w.cause == n.cause);
+                assert!(full.is_some(), "{}: admitted without the stop", n.cause);
+            }
+            None => assert!(best_by_stop(&n.cause) > base_value, "{}: went on from below the base", n.cause),
+        }
+    }
+    for c in &stopped.candidates {
+        if c.flagged_by.is_empty() {
+            assert!(best_by_stop(&c.cause) > base_value, "{}: went on from below the base", c.cause);
+        }
+        let full = whole.candidates.iter().find(|f| f.cause == c.cause).expect("a candidate without the stop too");
+        assert_eq!(c.object_gains, full.object_gains, "{}: the unstopped diagnosis's gains", c.cause);
+        assert_eq!(c.kept, full.kept, "{}: the same fit", c.cause);
+    }
+    let went_on_in = |scope: RefitScope| {
+        stopped.candidates.iter().any(|c| c.refit_scope == scope)
+            || stopped.not_admitted.iter().any(|n| n.refit_scope == scope && n.stopped_at.is_none())
+    };
+    assert_eq!(stopped.reference_in(RefitScope::Dynamics).is_some(), went_on_in(RefitScope::Dynamics));
+    assert_eq!(stopped.cause, whole.cause, "the same outcome");
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(md.contains(&format!("stopped at step {stop_step}")) && md.contains("futility stop"), "{md}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

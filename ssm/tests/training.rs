@@ -12,8 +12,8 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::models::linear_gaussian::kalman::{Lgssm, LgssmTheta};
 use ssm::training::{
-    eval_seed, non_finite, train, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig, TrainError,
-    TrainEvent, CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, SKIP_LOG, TRAIN_LOG, TRAIN_LOG_HEADER,
+    eval_seed, non_finite, train, train_until, BatchEstimate, Checkpoint, EstimateError, Objective, TrainConfig,
+    TrainError, TrainEvent, CHECKPOINT_FILE, EVAL_LOG, PARAMS_FILE, SKIP_LOG, TRAIN_LOG, TRAIN_LOG_HEADER,
 };
 
 /// The data's parameters: `(phi, ln s_v, ln s_w)`.
@@ -673,6 +673,44 @@ fn keep_best_returns_the_best_evaluation_and_survives_a_resume() {
     let dir = tempfile::tempdir().unwrap();
     let err = train(&mut wandering(None), store(START), &wrong, dir.path(), false, &mut quiet()).unwrap_err();
     assert!(err.to_string().contains("val_mll"), "{err}");
+}
+
+/// A run paused by `train_until` returns its best evaluation so far and, resumed,
+/// ends exactly where the uninterrupted run ends: the pause is between two
+/// checkpoints, and a second call at or before the checkpoint takes no step.
+#[test]
+fn a_paused_run_keeps_its_best_so_far_and_resumes_to_the_uninterrupted_run() {
+    let config = TrainConfig { eval_every: 2, epochs: 10, keep_best: Some("test_mll".into()), ..resume_config() };
+    let wandering = |calls| Wandering { inner: LgssmObjective::new(3, 40, 2), calls, turn_at: 13, crash_at: None };
+    let whole = tempfile::tempdir().unwrap();
+    let full = train(&mut wandering(0), store(START), &config, whole.path(), false, &mut quiet()).unwrap();
+    assert_eq!(full.paused_at, None);
+    let evals: Vec<(usize, f64)> =
+        rows(&whole.path().join(EVAL_LOG)).iter().map(|r| (r[0].parse().unwrap(), r[1].parse().unwrap())).collect();
+
+    // Paused after step 8 (an evaluation, between the checkpoints at 5 and 10).
+    let dir = tempfile::tempdir().unwrap();
+    let paused =
+        train_until(&mut wandering(0), store(START), &config, dir.path(), false, Some(8), &mut quiet()).unwrap();
+    assert_eq!((paused.paused_at, paused.steps_run, paused.steps), (Some(8), 8, 30));
+    let best_so_far = evals.iter().filter(|e| e.0 <= 8).max_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
+    let kept = paused.kept.clone().unwrap();
+    assert_eq!((kept.step, kept.value, kept.last), (best_so_far.0, best_so_far.1, evals[4].1));
+    assert_eq!(Checkpoint::load(&dir.path().join(CHECKPOINT_FILE)).unwrap().step, 8);
+    // Asked again to pause there (or before), it takes no step.
+    let again = train_until(&mut wandering(8), store(START), &config, dir.path(), true, Some(4), &mut quiet()).unwrap();
+    assert_eq!((again.paused_at, again.steps_run, again.kept), (Some(8), 0, paused.kept));
+
+    // Resumed to the end: the uninterrupted run, to the bit.
+    let resumed = train(&mut wandering(8), store(START), &config, dir.path(), true, &mut quiet()).unwrap();
+    assert_eq!((resumed.paused_at, resumed.steps_run), (None, 22));
+    assert_eq!(bits(&resumed.params), bits(&full.params));
+    assert_eq!(resumed.kept, full.kept);
+    let read = |d: &Path| std::fs::read_to_string(d.join(EVAL_LOG)).unwrap();
+    assert_eq!(read(whole.path()), read(dir.path()));
+    // A finished run asked to pause takes no step and says it finished.
+    let done = train_until(&mut wandering(30), store(START), &config, dir.path(), true, Some(8), &mut quiet()).unwrap();
+    assert_eq!((done.paused_at, done.steps_run, done.kept), (None, 0, full.kept));
 }
 
 #[test]

@@ -218,7 +218,7 @@ pub enum TrainEvent {
     },
 }
 
-/// What a finished training run produced.
+/// What a training run produced (finished, or paused by [`train_until`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrainOutcome {
     /// The trained parameters: the last ones (the mean of the tail's iterates
@@ -239,6 +239,9 @@ pub struct TrainOutcome {
     /// With [`TrainConfig::keep_best`]: the evaluation whose parameters
     /// [`TrainOutcome::params`] are, and the last one.
     pub kept: Option<KeptBest>,
+    /// The step the run paused after ([`train_until`]), before its end; `None`
+    /// for a finished run.
+    pub paused_at: Option<usize>,
 }
 
 /// Which parameters a run with [`TrainConfig::keep_best`] returned.
@@ -510,6 +513,26 @@ pub fn train(
     resume: bool,
     on_event: &mut dyn FnMut(&TrainEvent),
 ) -> Result<TrainOutcome, TrainError> {
+    train_until(objective, initial, config, out_dir, resume, None, on_event)
+}
+
+/// [`train`], paused after step `until` when that comes before the run's end:
+/// the run checkpoints there and returns what it would return if it ended
+/// then (the best evaluation so far with [`TrainConfig::keep_best`], among
+/// those at or before `until`), with [`TrainOutcome::paused_at`] set. A later
+/// call with `resume` continues it from there exactly as if it had not paused:
+/// the schedule is the whole run's. A run whose checkpoint is already at or past
+/// `until` takes no step and is returned as its checkpoint left it (paused
+/// there, or finished).
+pub fn train_until(
+    objective: &mut (impl Objective + ?Sized),
+    initial: ParamStore<f64>,
+    config: &TrainConfig,
+    out_dir: &Path,
+    resume: bool,
+    until: Option<usize>,
+    on_event: &mut dyn FnMut(&TrainEvent),
+) -> Result<TrainOutcome, TrainError> {
     config.validate()?;
     let batches = objective.batches();
     if batches == 0 && config.epochs > 0 {
@@ -623,9 +646,11 @@ pub fn train(
         }
         on_event(&run.checkpoint(0)?);
     }
+    // The last step this call takes: the run's last, or the pause.
+    let stop = until.map_or(total, |until| until.min(total)).max(done);
     let mut order = Vec::new();
     let mut order_epoch = usize::MAX;
-    for step in done + 1..=total {
+    for step in done + 1..=stop {
         let epoch = (step - 1) / batches;
         if epoch != order_epoch {
             order = epoch_order(config.seed, epoch, batches, config.shuffle);
@@ -640,6 +665,10 @@ pub fn train(
         if config.checkpoint_due(step, total) {
             on_event(&run.checkpoint(step)?);
         }
+    }
+    if stop > done && !config.checkpoint_due(stop, total) {
+        // A pause between checkpoints: the resumed run starts here.
+        on_event(&run.checkpoint(stop)?);
     }
     let final_eval = run.final_eval();
     let (seconds, skipped_steps) = (run.seconds(), run.skipped);
@@ -668,7 +697,17 @@ pub fn train(
             (params, None)
         }
     };
-    Ok(TrainOutcome { final_eval, seconds, steps: total, skipped_steps, steps_run: total - done, params, kept })
+    let paused_at = (stop < total).then_some(stop);
+    Ok(TrainOutcome {
+        final_eval,
+        seconds,
+        steps: total,
+        skipped_steps,
+        steps_run: stop - done,
+        params,
+        kept,
+        paused_at,
+    })
 }
 
 /// Why an estimate is not finite, in words: the log-likelihood's value and the

@@ -116,7 +116,7 @@ use crate::models::vehicle::NeuralPolicy;
 use crate::objective::{ObjectiveConfig, SceneObjective};
 use crate::reduce::Collective;
 use crate::setting::SettingError;
-use crate::training::{train, KeptBest, TrainConfig, TrainEvent, CHECKPOINT_FILE};
+use crate::training::{train_until, KeptBest, TrainConfig, TrainEvent, CHECKPOINT_FILE};
 
 /// The outcome when no extension qualifies but some check fails at the
 /// family-wise level: the model is wrong in a way the catalogue does not cover.
@@ -254,6 +254,22 @@ pub struct DiagnoseConfig {
     /// `false`.
     #[serde(default)]
     pub fitted_screen: bool,
+    /// The fitted screen's futility stop, as a share of a refit's steps (0:
+    /// none). An extension the fitted screen fits (no check flagged it) is
+    /// paused at the first evaluation at or after this share of its steps
+    /// ([`DiagnoseConfig::keep_best_every`]); unless its best evaluation on the
+    /// check part so far is above the base's (its reference's start: the same
+    /// parameters, filter and seed), it is not continued and not admitted
+    /// ([`NotAdmitted::stopped_at`]). Otherwise it continues to the end, the
+    /// same run as without the stop, and the screen decides as before. An
+    /// extension that another nests (`heading_flip`) is always fitted in full,
+    /// since rule (e) may compare them; and the reference in the dynamics scope
+    /// is fitted only where an extension of that scope was not stopped. A stop
+    /// can only turn an extension away, never admit one, so it saves the
+    /// screen's fits of extensions that gain nothing without adding a false
+    /// cause. 1/3 by default; a report written before it reads 0.
+    #[serde(default)]
+    pub screen_futility: f64,
     /// Start a nesting extension's fit (`persistent_flip`) where its nested
     /// extension's fit (`heading_flip`) ended, when both are fitted: the base's
     /// parameters as the nested fit left them and the values the two share (the
@@ -345,6 +361,7 @@ impl Default for DiagnoseConfig {
             fit_all: false,
             likelihood_screen: false,
             fitted_screen: false,
+            screen_futility: 1.0 / 3.0,
             nesting_from_nested: true,
             scoped_refits: true,
             set_aside_unmeasured: true,
@@ -423,6 +440,14 @@ impl DiagnoseConfig {
         SettingError::check(g.is_finite() && g >= 0.0, "min_gain", g, "a non-negative number of nats per unit")?;
         let t = self.average_tail;
         SettingError::check((0.0..=1.0).contains(&t), "average_tail", t, "in [0, 1]")?;
+        let u = self.screen_futility;
+        SettingError::check((0.0..1.0).contains(&u), "screen_futility", u, "in [0, 1)")?;
+        SettingError::check(
+            !(self.fitted_screen && u > 0.0) || self.keep_best_every > 0,
+            "keep_best_every",
+            self.keep_best_every,
+            "at least 1 for the fitted screen's futility stop (it reads the fits' evaluations); or screen_futility 0",
+        )?;
         let screens = [self.fit_all, self.likelihood_screen, self.fitted_screen].into_iter().filter(|&on| on).count();
         SettingError::check(
             screens <= 1,
@@ -544,6 +569,13 @@ pub struct NotAdmitted {
     /// The evaluation on the check part whose parameters the fit kept.
     #[serde(default)]
     pub kept: Option<KeptBest>,
+    /// The step its fit was stopped at by the futility stop
+    /// ([`DiagnoseConfig::screen_futility`]): its best evaluation on the check
+    /// part by then was not above the base's, so it was not continued and
+    /// not tested (`check_part_gain` and `check_part_p` NaN). `None` for a fit
+    /// run to its end.
+    #[serde(default)]
+    pub stopped_at: Option<usize>,
 }
 
 /// One fitted extension.
@@ -1300,7 +1332,13 @@ impl Report {
                     ),
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
                 },
-                (None, _, Some(n)) => not_admitted_phrase(expected, n.check_part_gain, Some(n.check_part_p)),
+                (None, _, Some(n)) => match n.stopped_at {
+                    Some(step) => format!(
+                        "`{expected}` fitted, stopped at step {step} by the fitted screen's futility stop: its \
+                         check-part evaluation had not risen above the base's"
+                    ),
+                    None => not_admitted_phrase(expected, n.check_part_gain, Some(n.check_part_p)),
+                },
                 (None, _, None) if expected != NO_CAUSE && expected != UNEXPLAINED => {
                     match self.likelihood_screen.iter().find(|s| s.cause == expected) {
                         Some(s) => format!(
@@ -1793,18 +1831,62 @@ fn run(
             plausible.push((extension, flagged_by, screened_in));
         }
     }
-    // The references the candidates are compared with: per refit scope that
-    // has a candidate, the base refitted alone within that scope exactly as
-    // its candidates are refitted (when any is), else the base.
+    // Every plausible extension is fitted, in catalogue order (a nested
+    // extension before its nesting one). One the fitted screen fits is paused
+    // at the futility stop and continued only where it has risen above the base.
     let scope_of = |extension: Extension| if config.scoped_refits { extension.refit_scope() } else { RefitScope::All };
     let refit_schedule = FitSchedule::refit(config);
-    let screened_any = plausible.iter().any(|&(_, _, screened_in)| screened_in);
+    let base_on_check_part = base.kept.as_ref().map(|kept| kept.value);
+    let kinds_extensions = Extension::for_kind(kind);
+    let mut fitted: Vec<(Extension, Vec<String>, bool, Fitted)> = Vec::new();
+    for (extension, flagged_by, screened_in) in plausible {
+        let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
+        let nested_fit = extension.nests().and_then(|nested| fitted.iter().find(|f| f.0 == nested));
+        let start = match nested_fit {
+            Some(nested) if config.nesting_from_nested => {
+                start_from_nested(extension, start_of(extension), &nested.3.params)?
+            }
+            _ => start_of(extension),
+        };
+        let held = if config.refit { scope_of(extension).held(&start) } else { Vec::new() };
+        let nested_by_another = kinds_extensions.iter().any(|e| e.nests() == Some(extension));
+        let futility = match (config.fitted_screen && screened_in && !nested_by_another, base_on_check_part) {
+            (true, Some(bar)) => refit_schedule.at_futility_stop(config).map(|paused| (paused, bar)),
+            _ => None,
+        };
+        let run = match futility {
+            Some((paused, bar)) => {
+                let run = fit(parts, Some(extension), start.clone(), paused, &held, config, &dir, comm, progress)?;
+                // A run that paused here and has not risen above the base stays
+                // stopped; one already past the stop (resumed) was continued.
+                let futile = run.paused_at == paused.pause_at && run.kept.as_ref().is_none_or(|k| k.value <= bar);
+                if futile {
+                    run
+                } else {
+                    fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?
+                }
+            }
+            None => fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?,
+        };
+        fitted.push((extension, flagged_by, screened_in, run));
+    }
+    // The references the candidates are compared with: per refit scope that
+    // has a candidate, the base refitted alone within that scope exactly as
+    // its candidates are refitted (when any is), else the base. The scope of
+    // every parameter keeps its reference (its checks decide `unexplained`)
+    // even when the futility stop ended all of its extensions; another scope
+    // has one only where an extension of it was not stopped.
+    let stopped = |f: &(Extension, Vec<String>, bool, Fitted)| f.3.paused_at.is_some();
+    let screened_any = fitted.iter().any(|f| f.2 && !stopped(f));
     let mut references: Vec<Reference> = Vec::new();
     let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
     if config.refit {
-        for scope in RefitScope::ALL.into_iter().filter(|&scope| plausible.iter().any(|p| scope_of(p.0) == scope)) {
-            let screened = plausible.iter().any(|&(e, _, screened_in)| screened_in && scope_of(e) == scope);
-            references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
+        for scope in RefitScope::ALL {
+            let in_scope = || fitted.iter().filter(|f| scope_of(f.0) == scope);
+            if in_scope().any(|f| !stopped(f) || scope == RefitScope::All) {
+                let screened = in_scope().any(|f| f.2 && !stopped(f));
+                references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
+            }
         }
     }
     if references.is_empty() {
@@ -1825,23 +1907,14 @@ fn run(
             },
         });
     }
-    // Every plausible extension is fitted; one the fitted screen fitted is
-    // admitted by its check-part likelihood over its reference's.
+    // One the fitted screen fitted to its end is admitted by its check-part
+    // likelihood over its reference's; one it stopped is not.
     let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
     let mut trained: Vec<Trained> = Vec::new();
-    for (slot, (extension, flagged_by, screened_in)) in plausible.into_iter().enumerate() {
-        let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
-        // `plausible` is in catalogue order, a nested extension before its nesting one.
-        let nested_fit = extension.nests().and_then(|nested| trained.iter().find(|t| t.extension == nested));
-        let start = match nested_fit {
-            Some(nested) if config.nesting_from_nested => {
-                start_from_nested(extension, start_of(extension), &nested.run.params)?
-            }
-            _ => start_of(extension),
-        };
-        let held = if config.refit { scope_of(extension).held(&start) } else { Vec::new() };
-        let run = fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?;
+    for (slot, (extension, flagged_by, screened_in, run)) in fitted.into_iter().enumerate() {
         let (check_part_gain, check_part_p) = match &reference_of(extension).on_check {
+            // Stopped: no test, and a p that no level admits.
+            _ if run.paused_at.is_some() => (None, Some(f64::NAN)),
             Some(reference_ll) if screened_in => {
                 progress(&Stage::Evaluating { model: format!("{} (check part)", extension.id()) });
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
@@ -1869,12 +1942,14 @@ fn run(
                 cause: extension.id().into(),
                 check_part_gain: check_part_gain.unwrap_or(f64::NAN),
                 check_part_p: check_part_p.unwrap_or(f64::NAN),
-                refit_scope: reference_of(extension).scope,
+                // A stopped extension was compared with nothing: its own scope.
+                refit_scope: if run.paused_at.is_some() { scope_of(extension) } else { reference_of(extension).scope },
                 params: natural_params(extension, raw)?,
                 description: extension.describe(raw)?,
                 skipped_steps: run.skipped,
                 train_seconds: run.seconds,
                 kept: run.kept,
+                stopped_at: run.paused_at,
             });
             continue;
         }
@@ -2124,28 +2199,47 @@ struct Fitted {
     skipped: usize,
     seconds: f64,
     kept: Option<KeptBest>,
+    /// The step the fit paused after ([`FitSchedule::pause_at`]); `None` once it ended.
+    paused_at: Option<usize>,
 }
 
 /// How long and how fast one fit trains: `steps` at learning rate `lr` decaying
-/// to a tenth, the base's parameters at `base_rate_factor` times it, if set.
+/// to a tenth, the base's parameters at `base_rate_factor` times it, if set;
+/// paused after step `pause_at`, if set, to be resumed later on the same
+/// schedule.
 #[derive(Clone, Copy, Debug)]
 struct FitSchedule {
     steps: usize,
     lr: f64,
     base_rate_factor: Option<f64>,
+    pause_at: Option<usize>,
 }
 
 impl FitSchedule {
     /// The base fit's, from scratch.
     fn base(config: &DiagnoseConfig) -> Self {
-        FitSchedule { steps: config.base_steps, lr: config.lr, base_rate_factor: None }
+        FitSchedule { steps: config.base_steps, lr: config.lr, base_rate_factor: None, pause_at: None }
     }
 
     /// Every refit's (the references' and the candidates'): the base's parameters
     /// at [`DiagnoseConfig::refit_base_lr`], an extension's at the candidate rate.
     fn refit(config: &DiagnoseConfig) -> Self {
         let lr = config.candidate_lr;
-        FitSchedule { steps: config.candidate_steps, lr, base_rate_factor: config.refit_base_lr.map(|base| base / lr) }
+        let base_rate_factor = config.refit_base_lr.map(|base| base / lr);
+        FitSchedule { steps: config.candidate_steps, lr, base_rate_factor, pause_at: None }
+    }
+
+    /// The refit's, paused at the fitted screen's futility stop
+    /// ([`DiagnoseConfig::screen_futility`]): the first evaluation at or after
+    /// that share of its steps. `None` without the stop or where that is the end.
+    fn at_futility_stop(self, config: &DiagnoseConfig) -> Option<Self> {
+        let every = config.keep_best_every;
+        if config.screen_futility <= 0.0 || every == 0 {
+            return None;
+        }
+        let share = (config.screen_futility * self.steps as f64).ceil() as usize;
+        let step = share.div_ceil(every).max(1) * every;
+        (step < self.steps).then_some(FitSchedule { pause_at: Some(step), ..self })
     }
 }
 
@@ -2230,9 +2324,15 @@ fn fit(
         TrainEvent::Step { step, .. } => progress(&Stage::Training { model: model.clone(), step: *step, total }),
         _ => {}
     };
-    let outcome = train(&mut objective, initial, &train_config, dir, resume, &mut on_event)
+    let outcome = train_until(&mut objective, initial, &train_config, dir, resume, schedule.pause_at, &mut on_event)
         .map_err(|e| format!("training the {model} model in {}: {e}", dir.display()))?;
-    Ok(Fitted { params: outcome.params, skipped: outcome.skipped_steps, seconds: outcome.seconds, kept: outcome.kept })
+    Ok(Fitted {
+        params: outcome.params,
+        skipped: outcome.skipped_steps,
+        seconds: outcome.seconds,
+        kept: outcome.kept,
+        paused_at: outcome.paused_at,
+    })
 }
 
 /// Checks `params` (with `extension`) on `data` (see [`posterior_predictive_checks`]).
@@ -2681,6 +2781,35 @@ mod tests {
     /// excludes `fit_all` and the likelihood screen.
     /// The fitted screen evaluates what it admits, and an extension it did
     /// not admit only where an admitted one nests it (rule (e) needs both).
+    /// The futility stop falls on the first evaluation at or after its share
+    /// of a refit's steps, and not at all where that is the end, without
+    /// evaluations or with a share of 0.
+    #[test]
+    fn the_futility_stop_falls_on_an_evaluation_before_the_end() {
+        let stop = |futility: f64, steps: usize, every: usize| {
+            let config = DiagnoseConfig {
+                screen_futility: futility,
+                candidate_steps: steps,
+                keep_best_every: every,
+                ..DiagnoseConfig::quick()
+            };
+            FitSchedule::refit(&config).at_futility_stop(&config).and_then(|s| s.pause_at)
+        };
+        assert_eq!(DiagnoseConfig::quick().screen_futility, 1.0 / 3.0);
+        assert_eq!(stop(1.0 / 3.0, 150, 25), Some(50));
+        assert_eq!(stop(1.0 / 3.0, 300, 25), Some(100));
+        assert_eq!(stop(0.3, 12, 2), Some(4));
+        assert_eq!(stop(0.01, 150, 25), Some(25));
+        assert_eq!(stop(0.9, 150, 25), None);
+        assert_eq!(stop(0.0, 150, 25), None);
+        assert_eq!(stop(1.0 / 3.0, 150, 0), None);
+        let bad = DiagnoseConfig { screen_futility: 1.0, ..DiagnoseConfig::quick() };
+        assert!(bad.validate().unwrap_err().to_string().contains("screen_futility"));
+        let blind = DiagnoseConfig { fitted_screen: true, keep_best_every: 0, ..DiagnoseConfig::quick() };
+        assert!(blind.validate().unwrap_err().to_string().contains("keep_best_every"));
+        assert!(DiagnoseConfig { screen_futility: 0.0, ..blind }.validate().is_ok());
+    }
+
     #[test]
     fn the_fitted_screen_evaluates_what_it_admits_and_what_that_nests() {
         use Extension::{HeadingFlip, Latency, PersistentFlip};
