@@ -1609,6 +1609,8 @@ struct Parts<'a> {
 struct Trained {
     extension: Extension,
     flagged_by: Vec<String>,
+    /// Whether a screen (not a check) made it plausible.
+    screened_in: bool,
     check_part_gain: Option<f64>,
     check_part_p: Option<f64>,
     run: Fitted,
@@ -1836,21 +1838,22 @@ fn run(
     // at the futility stop and continued only where it has risen above the base.
     let scope_of = |extension: Extension| if config.scoped_refits { extension.refit_scope() } else { RefitScope::All };
     let refit_schedule = FitSchedule::refit(config);
-    let base_on_check_part = base.kept.as_ref().map(|kept| kept.value);
-    let kinds_extensions = Extension::for_kind(kind);
-    let mut fitted: Vec<(Extension, Vec<String>, bool, Fitted)> = Vec::new();
+    // The bar of the futility stop: the base's best check-part evaluation.
+    let futility_bar = base.kept.as_ref().map(|kept| kept.value);
+    let catalogue = Extension::for_kind(kind);
+    let mut trained: Vec<Trained> = Vec::new();
     for (extension, flagged_by, screened_in) in plausible {
         let dir = out_dir.join(TRAINING_RUN_DIRS[3]).join(extension.id());
-        let nested_fit = extension.nests().and_then(|nested| fitted.iter().find(|f| f.0 == nested));
+        let nested_fit = extension.nests().and_then(|nested| trained.iter().find(|t| t.extension == nested));
         let start = match nested_fit {
             Some(nested) if config.nesting_from_nested => {
-                start_from_nested(extension, start_of(extension), &nested.3.params)?
+                start_from_nested(extension, start_of(extension), &nested.run.params)?
             }
             _ => start_of(extension),
         };
         let held = if config.refit { scope_of(extension).held(&start) } else { Vec::new() };
-        let nested_by_another = kinds_extensions.iter().any(|e| e.nests() == Some(extension));
-        let futility = match (config.fitted_screen && screened_in && !nested_by_another, base_on_check_part) {
+        let nested_by_another = catalogue.iter().any(|e| e.nests() == Some(extension));
+        let futility = match (config.fitted_screen && screened_in && !nested_by_another, futility_bar) {
             (true, Some(bar)) => refit_schedule.at_futility_stop(config).map(|paused| (paused, bar)),
             _ => None,
         };
@@ -1868,7 +1871,7 @@ fn run(
             }
             None => fit(parts, Some(extension), start, refit_schedule, &held, config, &dir, comm, progress)?,
         };
-        fitted.push((extension, flagged_by, screened_in, run));
+        trained.push(Trained { extension, flagged_by, screened_in, check_part_gain: None, check_part_p: None, run });
     }
     // The references the candidates are compared with: per refit scope that
     // has a candidate, the base refitted alone within that scope exactly as
@@ -1876,15 +1879,15 @@ fn run(
     // every parameter keeps its reference (its checks decide `unexplained`)
     // even when the futility stop ended all of its extensions; another scope
     // has one only where an extension of it was not stopped.
-    let stopped = |f: &(Extension, Vec<String>, bool, Fitted)| f.3.paused_at.is_some();
-    let screened_any = fitted.iter().any(|f| f.2 && !stopped(f));
+    let stopped = |t: &Trained| t.run.paused_at.is_some();
+    let screened_any = trained.iter().any(|t| t.screened_in && !stopped(t));
     let mut references: Vec<Reference> = Vec::new();
     let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
     if config.refit {
         for scope in RefitScope::ALL {
-            let in_scope = || fitted.iter().filter(|f| scope_of(f.0) == scope);
-            if in_scope().any(|f| !stopped(f) || scope == RefitScope::All) {
-                let screened = in_scope().any(|f| f.2 && !stopped(f));
+            let in_scope = || trained.iter().filter(|t| scope_of(t.extension) == scope);
+            if in_scope().any(|t| !stopped(t) || scope == RefitScope::All) {
+                let screened = in_scope().any(|t| t.screened_in && !stopped(t));
                 references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
             }
         }
@@ -1910,12 +1913,12 @@ fn run(
     // One the fitted screen fitted to its end is admitted by its check-part
     // likelihood over its reference's; one it stopped is not.
     let reference_of = |extension: Extension| Reference::of_scope(&references, scope_of(extension));
-    let mut trained: Vec<Trained> = Vec::new();
-    for (slot, (extension, flagged_by, screened_in, run)) in fitted.into_iter().enumerate() {
-        let (check_part_gain, check_part_p) = match &reference_of(extension).on_check {
+    for (slot, t) in trained.iter_mut().enumerate() {
+        let (extension, run) = (t.extension, &t.run);
+        (t.check_part_gain, t.check_part_p) = match &reference_of(extension).on_check {
             // Stopped: no test, and a p that no level admits.
             _ if run.paused_at.is_some() => (None, Some(f64::NAN)),
-            Some(reference_ll) if screened_in => {
+            Some(reference_ll) if t.screened_in => {
                 progress(&Stage::Evaluating { model: format!("{} (check part)", extension.id()) });
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
                 let d = differences(&on_check.object_ll, &reference_ll.object_ll);
@@ -1925,7 +1928,6 @@ fn run(
             }
             _ => (None, None),
         };
-        trained.push(Trained { extension, flagged_by, check_part_gain, check_part_p, run });
     }
     // The candidates, checked again and evaluated: every admitted extension,
     // and one an admitted candidate nests (rule (e) compares them); the
@@ -1935,7 +1937,7 @@ fn run(
     let mut fits: Vec<Fit> = Vec::new();
     let mut not_admitted: Vec<NotAdmitted> = Vec::new();
     for (t, evaluated) in trained.into_iter().zip(evaluated) {
-        let Trained { extension, flagged_by, check_part_gain, check_part_p, run } = t;
+        let Trained { extension, flagged_by, check_part_gain, check_part_p, run, .. } = t;
         if !evaluated {
             let raw = learned(&run.params, extension);
             not_admitted.push(NotAdmitted {
