@@ -49,7 +49,16 @@ def same_object_gains(new, c_new, old, c_old):
     lean screen (and so this one) judges that over the models it compares."""
     by_key = lambda r, c: dict(zip(map(str, r["eval_object_keys"]), c["object_gains"]))
     a, b = by_key(new, c_new), by_key(old, c_old)
-    return all(a[k] == b[k] for k in a.keys() & b.keys())
+    return all(a[k] == b[k] for k in (a.keys() & b.keys()) - refined_in_one(new, old))
+
+
+def refined_in_one(new, old):
+    """The objects one diagnosis refiltered with more particles and the other did
+    not: an object is refined where some model it compares measures it
+    imprecisely, and the models compared differ (a stopped extension is not
+    evaluated, nor the dynamics reference where it is not fitted)."""
+    refined = lambda r: {str([o["scene"], o["id"]]) for o in r.get("eval_imprecise", [])}
+    return refined(new) ^ refined(old)
 
 
 def admitted_before(r, plausible_p):
@@ -74,6 +83,7 @@ def main():
         both = [c for c in new["candidates"] if c["cause"] in before]
         equal = all(same_object_gains(new, c, old, before[c["cause"]]) for c in both)
         kept_apart = len(set(map(str, new["eval_object_keys"])) ^ set(map(str, old["eval_object_keys"])))
+        refined_apart = len(refined_in_one(new, old))
         stopped = [n for n in new.get("not_admitted", []) if n.get("stopped_at") is not None]
         lost = sorted(admitted_before(old, old["config"]["plausible_p"]) & {n["cause"] for n in stopped})
         stops += len(stopped)
@@ -90,6 +100,7 @@ def main():
         group.append((old["cause"], new["cause"], equal, len(stopped), n_screened, lost, s_new / s_old, u_new / u_old))
         stopped_ids = ", ".join(f"{n['cause']} ({n['stopped_at']})" for n in stopped) or "-"
         equal_text = ("yes" if equal else "NO") + (f" ({kept_apart} object set aside in one only)" if kept_apart else "")
+        equal_text += f" ({refined_apart} object refined in one only)" if refined_apart else ""
         print(f"| {cell} | {where} | {old['cause']} → {new['cause']} | {equal_text} | "
               f"{stopped_ids} | {', '.join(lost) or '-'} | "
               f"{dyn} | {s_old} → {s_new} | {s_new / s_old:.2f} | {u_old:.2f} → {u_new:.2f} | {u_new / u_old:.2f} |")
