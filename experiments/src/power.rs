@@ -778,6 +778,16 @@ mod tests {
     use super::*;
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
+    /// Copies the reports of `cells` (`effect/xS/seedN`) of the committed study
+    /// `results/<study>` into the same cells under `out`.
+    fn copy_committed_cells(out: &Path, study: &str, cells: &[&str]) {
+        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results").join(study);
+        for cell in cells {
+            std::fs::create_dir_all(out.join(cell)).unwrap();
+            std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
+        }
+    }
+
     /// The setting of the committed studies, run before a nesting extension's
     /// fit started from its nested one's, before refits had scopes and before
     /// unmeasured objects were set aside.
@@ -799,12 +809,8 @@ mod tests {
     #[test]
     fn a_report_of_another_data_size_or_refit_rate_is_refused() {
         let out = std::env::temp_dir().join(format!("sefi-power-scenes-{}", std::process::id()));
-        let cell = out.join("heavy_tailed_accel").join("x1").join("seed0");
-        std::fs::create_dir_all(&cell).unwrap();
         // A report of the committed study: 16 scenes of 6 objects.
-        let committed = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../results/power-study/heavy_tailed_accel/x1/seed0/report.json");
-        std::fs::copy(&committed, cell.join("report.json")).unwrap();
+        copy_committed_cells(&out, "power-study", &["heavy_tailed_accel/x1/seed0"]);
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
         let setting = before_nesting();
         let lr = setting.candidate_lr;
@@ -890,11 +896,7 @@ mod tests {
     #[test]
     fn a_fitted_screen_report_without_the_futility_stop_is_refused_by_a_study_with_it() {
         let out = std::env::temp_dir().join(format!("sefi-power-futility-{}", std::process::id()));
-        let cell = out.join("none-points").join("x1").join("seed0");
-        std::fs::create_dir_all(&cell).unwrap();
-        let committed = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../results/power-study-fitted-screen/none-points/x1/seed0/report.json");
-        std::fs::copy(&committed, cell.join("report.json")).unwrap();
+        copy_committed_cells(&out, "power-study-fitted-screen", &["none-points/x1/seed0"]);
         let effect = StudyEffect::of("none-points").unwrap();
         let today = StudySetting::new(None, None, None).unwrap();
         let whole = StudySetting { fitted_screen: true, screen_futility: 0.0, ..today };
@@ -912,11 +914,8 @@ mod tests {
     #[test]
     fn the_tables_cover_every_finished_cell_of_the_study() {
         let out = std::env::temp_dir().join(format!("sefi-power-tables-{}", std::process::id()));
-        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study");
-        for cell in ["latency/x1/seed0", "latency/x2/seed1", "heavy_tailed_accel/x1/seed0", "none-points/x1/seed0"] {
-            std::fs::create_dir_all(out.join(cell)).unwrap();
-            std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
-        }
+        let cells = ["latency/x1/seed0", "latency/x2/seed1", "heavy_tailed_accel/x1/seed0", "none-points/x1/seed0"];
+        copy_committed_cells(&out, "power-study", &cells);
         // Neither an unknown effect's directory nor a cell without its report counts.
         std::fs::create_dir_all(out.join("not_an_effect/x1/seed0")).unwrap();
         std::fs::create_dir_all(out.join("clutter/x1/seed0")).unwrap();
@@ -952,7 +951,6 @@ mod tests {
     #[test]
     fn each_missed_cell_says_why() {
         let out = std::env::temp_dir().join(format!("sefi-power-why-{}", std::process::id()));
-        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-eval-crn");
         let cells = [
             "heavy_tailed_accel/x1/seed0",
             "heavy_tailed_accel/x1/seed2",
@@ -960,10 +958,7 @@ mod tests {
             "latency/x1/seed0",
             "none-points/x1/seed3",
         ];
-        for cell in cells {
-            std::fs::create_dir_all(out.join(cell)).unwrap();
-            std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
-        }
+        copy_committed_cells(&out, "power-study-eval-crn", &cells);
         let effects = study_effects(["heavy_tailed_accel", "latency", "none-points"], None).unwrap();
         let table = write_study_tables(&out, &effects, &[1.0], 5, None, before_nesting()).unwrap();
         let mut reader = csv::Reader::from_path(out.join("power.csv")).unwrap();
@@ -1057,9 +1052,7 @@ mod tests {
     fn the_flip_chain_reports_the_error_of_its_fraction_and_its_persistence() {
         let out = std::env::temp_dir().join(format!("sefi-power-chain-{}", std::process::id()));
         let cell = "persistent_flip/x1/seed0";
-        let committed = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/power-study-persistent-flip");
-        std::fs::create_dir_all(out.join(cell)).unwrap();
-        std::fs::copy(committed.join(cell).join("report.json"), out.join(cell).join("report.json")).unwrap();
+        copy_committed_cells(&out, "power-study-persistent-flip", &[cell]);
         let effect = StudyEffect::of("persistent_flip").unwrap();
         let read = run_cell(&out, &effect, 1.0, 0, before_nesting(), true).unwrap().unwrap();
         assert!(read.named);

@@ -1616,6 +1616,13 @@ struct Trained {
     run: Fitted,
 }
 
+impl Trained {
+    /// Whether the futility stop ended its fit ([`DiagnoseConfig::screen_futility`]).
+    fn stopped(&self) -> bool {
+        self.run.paused_at.is_some()
+    }
+}
+
 /// The values of `extension`'s own parameter in `params`, a store its fit
 /// made (which always holds it).
 fn learned(params: &ParamStore<f64>, extension: Extension) -> &[f64] {
@@ -1879,15 +1886,14 @@ fn run(
     // every parameter keeps its reference (its checks decide `unexplained`)
     // even when the futility stop ended all of its extensions; another scope
     // has one only where an extension of it was not stopped.
-    let stopped = |t: &Trained| t.run.paused_at.is_some();
-    let screened_any = trained.iter().any(|t| t.screened_in && !stopped(t));
+    let screened_any = trained.iter().any(|t| t.screened_in && !t.stopped());
     let mut references: Vec<Reference> = Vec::new();
     let fitting = ReferenceFit { parts, base: &base.params, schedule: refit_schedule, defs: &defs, config };
     if config.refit {
         for scope in RefitScope::ALL {
             let in_scope = || trained.iter().filter(|t| scope_of(t.extension) == scope);
-            if in_scope().any(|t| !stopped(t) || scope == RefitScope::All) {
-                let screened = in_scope().any(|t| t.screened_in && !stopped(t));
+            if in_scope().any(|t| !t.stopped() || scope == RefitScope::All) {
+                let screened = in_scope().any(|t| t.screened_in && !t.stopped());
                 references.push(fitting.fit(scope, screened, out_dir, comm, progress)?);
             }
         }
@@ -1917,7 +1923,7 @@ fn run(
         let (extension, run) = (t.extension, &t.run);
         (t.check_part_gain, t.check_part_p) = match &reference_of(extension).on_check {
             // Stopped: no test, and a p that no level admits.
-            _ if run.paused_at.is_some() => (None, Some(f64::NAN)),
+            _ if t.stopped() => (None, Some(f64::NAN)),
             Some(reference_ll) if t.screened_in => {
                 progress(&Stage::Evaluating { model: format!("{} (check part)", extension.id()) });
                 let on_check = eval_likelihoods(parts.check, &run.params, Some(extension), config)?;
@@ -1937,6 +1943,7 @@ fn run(
     let mut fits: Vec<Fit> = Vec::new();
     let mut not_admitted: Vec<NotAdmitted> = Vec::new();
     for (t, evaluated) in trained.into_iter().zip(evaluated) {
+        let stopped = t.stopped();
         let Trained { extension, flagged_by, check_part_gain, check_part_p, run, .. } = t;
         if !evaluated {
             let raw = learned(&run.params, extension);
@@ -1945,7 +1952,7 @@ fn run(
                 check_part_gain: check_part_gain.unwrap_or(f64::NAN),
                 check_part_p: check_part_p.unwrap_or(f64::NAN),
                 // A stopped extension was compared with nothing: its own scope.
-                refit_scope: if run.paused_at.is_some() { scope_of(extension) } else { reference_of(extension).scope },
+                refit_scope: if stopped { scope_of(extension) } else { reference_of(extension).scope },
                 params: natural_params(extension, raw)?,
                 description: extension.describe(raw)?,
                 skipped_steps: run.skipped,
@@ -2779,10 +2786,6 @@ mod tests {
         assert_eq!(whole, crate::criticism::checks::holm(&p), "without the screen, Holm over every candidate");
     }
 
-    /// The fitted screen is one way of fitting what no check flagged: it
-    /// excludes `fit_all` and the likelihood screen.
-    /// The fitted screen evaluates what it admits, and an extension it did
-    /// not admit only where an admitted one nests it (rule (e) needs both).
     /// The futility stop falls on the first evaluation at or after its share
     /// of a refit's steps, and not at all where that is the end, without
     /// evaluations or with a share of 0.
@@ -2812,6 +2815,10 @@ mod tests {
         assert!(DiagnoseConfig { screen_futility: 0.0, ..blind }.validate().is_ok());
     }
 
+    /// The fitted screen evaluates what it admits, and an extension it did
+    /// not admit only where an admitted one nests it (rule (e) needs both).
+    /// It is one way of fitting what no check flagged: it excludes `fit_all`
+    /// and the likelihood screen.
     #[test]
     fn the_fitted_screen_evaluates_what_it_admits_and_what_that_nests() {
         use Extension::{HeadingFlip, Latency, PersistentFlip};
