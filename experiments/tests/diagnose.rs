@@ -520,15 +520,38 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
 /// without the stop, so each candidate's per-object gains are the unstopped
 /// diagnosis's to the bit; the reference in the dynamics scope is fitted only
 /// where an extension of that scope went on; and a stop never admits what the
-/// unstopped screen turned away.
+/// unstopped screen turned away. Two data sets exercise both sides of the
+/// dynamics rule: the mixture's (its heavy-tail extension is flagged, so it
+/// goes on) and a sensor lag's (the screened heavy-tail extension is stopped,
+/// so no dynamics reference is fitted).
 #[test]
 fn the_futility_stop_ends_only_fits_that_have_not_risen_above_the_base() {
-    let dir = temp("diagnose", "screen-futility");
+    let mixture = futility_stop_on("heavy_tailed_accel", "2");
+    let lag = futility_stop_on("latency", "3");
+    assert!(mixture.dynamics_reference && !mixture.dynamics_stopped, "the mixture's data: {mixture:?}");
+    assert!(!lag.dynamics_reference && lag.dynamics_stopped, "the lag's data: {lag:?}");
+}
+
+/// What one data set showed of the dynamics scope under the futility stop.
+#[derive(Debug)]
+struct DynamicsUnderTheStop {
+    /// The stopped diagnosis fitted a reference in the dynamics scope.
+    dynamics_reference: bool,
+    /// An extension of the dynamics was stopped.
+    dynamics_stopped: bool,
+}
+
+/// Diagnoses generated data (4 scenes of `effect`, seed `seed`) with the
+/// fitted screen with and without the futility stop, asserts what
+/// `the_futility_stop_ends_only_fits_that_have_not_risen_above_the_base`
+/// states, and says what happened in the dynamics scope.
+fn futility_stop_on(effect: &str, seed: &str) -> DynamicsUnderTheStop {
+    let dir = temp("diagnose", &format!("screen-futility-{effect}-{seed}"));
     let data = dir.join("data");
-    ok(&sefi(&["generate", "--hidden", "heavy_tailed_accel", "--scenes", "4", "--out", s(&data), "--seed", "2"]));
+    ok(&sefi(&["generate", "--hidden", effect, "--scenes", "4", "--out", s(&data), "--seed", seed]));
     let run = |name: &str, futility: &str| -> (Report, std::path::PathBuf) {
         let out = dir.join(name);
-        let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "2"];
+        let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", seed];
         command.extend(["--base-steps", "40", "--candidate-steps", "12", "--keep-best-every", "2"]);
         command.extend(["--particles", "32", "--eval-particles", "32", "--keep-unmeasured", "--fitted-screen"]);
         command.extend(["--screen-futility", futility]);
@@ -584,9 +607,14 @@ fn the_futility_stop_ends_only_fits_that_have_not_risen_above_the_base() {
         stopped.candidates.iter().any(|c| c.refit_scope == scope)
             || stopped.not_admitted.iter().any(|n| n.refit_scope == scope && n.stopped_at.is_none())
     };
-    assert_eq!(stopped.reference_in(RefitScope::Dynamics).is_some(), went_on_in(RefitScope::Dynamics));
+    let dynamics_reference = stopped.reference_in(RefitScope::Dynamics).is_some();
+    assert_eq!(dynamics_reference, went_on_in(RefitScope::Dynamics), "{effect}: the dynamics reference");
+    assert!(whole.reference_in(RefitScope::Dynamics).is_some(), "{effect}: without the stop every extension goes on");
     assert_eq!(stopped.cause, whole.cause, "the same outcome");
     let md = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(md.contains(&format!("stopped at step {stop_step}")) && md.contains("futility stop"), "{md}");
     std::fs::remove_dir_all(&dir).unwrap();
+    let dynamics_stopped =
+        stopped.not_admitted.iter().any(|n| n.refit_scope == RefitScope::Dynamics && n.stopped_at.is_some());
+    DynamicsUnderTheStop { dynamics_reference, dynamics_stopped }
 }
