@@ -24,6 +24,8 @@ import json
 import math
 import os
 
+from compare import fit_steps
+
 STUDY = "results/power-study-futility"
 BOTH = [STUDY, "results/power-study-fitted-screen"]
 REFERENCE_DIR = {"all": "reference", "dynamics": "reference-dynamics"}
@@ -67,10 +69,7 @@ def reference_bar():
     for cell, r in cells(STUDY):
         config = r["config"]
         k, steps = stop_step(config), config["candidate_steps"]
-        total += config["base_steps"] + steps * (len(r["candidates"]) + len(r["not_admitted"]))
-        for key in ("reference", "dynamics_reference"):
-            if r.get(key):
-                total += steps * (2 if r[key].get("reseeded") else 1)
+        total += fit_steps(r)
         fits = [(c, True) for c in r["candidates"]] + [(n, False) for n in r["not_admitted"]]
         for fit, admitted in fits:
             screened = not fit.get("flagged_by") and fit["cause"] != "heading_flip"
