@@ -10,9 +10,9 @@ use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, gains_by_group, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
+    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
 };
-use ssm::data::{Dataset, KITTI_SCENE_ID_BASE};
+use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
 
 use crate::cluster::Cluster;
@@ -285,26 +285,18 @@ pub fn write_report(out: &Path, report: &Report, data: &Path) -> Result<(), Stri
 }
 
 /// The held-out gain of the cause (or, without one, of the candidate with the
-/// largest gain) split by part of the evaluation data: by KITTI sequence (the
-/// importer's scene ids are [`KITTI_SCENE_ID_BASE`] × sequence + first frame)
-/// when that gives more than one group, else by scene. A Markdown section, empty
-/// when the report has no per-object record.
+/// largest gain) split by part of the evaluation data ([`Report::gains_by_part`]:
+/// by KITTI sequence, else by scene). A Markdown section, empty when the report
+/// has no per-object record.
 fn gains_by_part(r: &Report) -> String {
     let best = r.candidates.iter().find(|c| c.cause == r.cause);
     let Some(candidate) = best.or_else(|| r.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain))) else {
         return String::new();
     };
-    if r.eval_object_keys.len() != candidate.object_gains.len() || r.eval_object_units.len() != r.eval_object_keys.len()
-    {
+    let Some(groups) = r.gains_by_part(candidate) else {
         return String::new();
-    }
-    let mut sequences: Vec<i64> = r.eval_object_keys.iter().map(|o| o.0 / KITTI_SCENE_ID_BASE).collect();
-    sequences.sort_unstable();
-    sequences.dedup();
-    let kitti = sequences.len() > 1;
-    let (label, group): (&str, fn(i64) -> i64) =
-        if kitti { ("KITTI sequence", |scene| scene / KITTI_SCENE_ID_BASE) } else { ("scene", |scene| scene) };
-    let groups = gains_by_group(&candidate.object_gains, &r.eval_object_keys, &r.eval_object_units, group);
+    };
+    let label = r.eval_part().label();
     let mut s = String::new();
     let _ = writeln!(s, "## Held-out gain of `{}` by {label}\n", candidate.cause);
     let _ = writeln!(

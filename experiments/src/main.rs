@@ -16,6 +16,7 @@ mod plot;
 mod power;
 mod reproduce;
 mod score_check;
+mod stability;
 mod table;
 mod train;
 
@@ -102,6 +103,9 @@ enum Command {
     /// How often `diagnose` names a hidden effect: effects x strengths x seeds of generated data (the criticism's
     /// power and false-cause rate).
     PowerStudy(power::PowerArgs),
+    /// Whether a diagnosis's finding hinges on its held-out set: several diagnoses' outcomes, candidates and
+    /// gains by part (KITTI sequence or scene) side by side, with a forest plot.
+    Stability(stability::StabilityArgs),
 }
 
 fn main() -> ExitCode {
@@ -149,6 +153,7 @@ fn main() -> ExitCode {
         Command::ScoreAt(args) => calibrate::run_score_at(&args),
         Command::Precision(args) => calibrate::run_precision(&args),
         Command::PowerStudy(args) => power::run(&args),
+        Command::Stability(args) => stability::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

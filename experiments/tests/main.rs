@@ -10,4 +10,5 @@ mod diagnose;
 mod eval;
 mod experiment_c;
 mod generate;
+mod stability;
 mod train;

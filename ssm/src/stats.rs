@@ -128,6 +128,14 @@ pub fn nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Resul
     Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
 }
 
+/// [`nan_from_null`] for a list of pairs of numbers (a check's per-draw
+/// statistics, NaN where a draw had nothing to measure).
+pub fn pairs_nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<Vec<(f64, f64)>, D::Error> {
+    use serde::Deserialize;
+    let pairs = Vec::<(Option<f64>, Option<f64>)>::deserialize(deserializer)?;
+    Ok(pairs.into_iter().map(|(a, b)| (a.unwrap_or(f64::NAN), b.unwrap_or(f64::NAN))).collect())
+}
+
 /// NaN: the serde default of a number a report written before it existed lacks
 /// (`#[serde(default = "crate::stats::nan")]`).
 pub fn nan() -> f64 {

@@ -106,7 +106,7 @@ use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
 use super::checks::{calibrate, checks_for, format_z, holm_within, CheckDef, CheckResult};
-use crate::data::{Dataset, ObservationKind};
+use crate::data::{Dataset, ObservationKind, KITTI_SCENE_ID_BASE};
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::{stream_seed, FilterConfig, FilterPurpose, Sampling, Tempering};
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension, RefitScope};
@@ -525,16 +525,21 @@ pub struct CheckReport {
     /// The extension it can reveal, if any.
     pub suggests: Option<String>,
     /// Its z-score on the base model (`before.z`).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub z: f64,
     /// Its Holm-adjusted p-value on the base model (`before.p_adjusted`).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
     /// Calibrated on the base model.
     pub before: CheckResult,
     /// Calibrated on the chosen extension (none without a cause).
     pub after: Option<CheckResult>,
-    /// Per draw, the statistic on measured and on replicated data (base model).
+    /// Per draw, the statistic on measured and on replicated data (base model;
+    /// NaN where a draw had nothing to measure).
+    #[serde(deserialize_with = "crate::stats::pairs_nan_from_null")]
     pub draws_before: Vec<(f64, f64)>,
     /// The same on the extended model.
+    #[serde(deserialize_with = "crate::stats::pairs_nan_from_null")]
     pub draws_after: Vec<(f64, f64)>,
 }
 
@@ -1188,7 +1193,57 @@ impl ReseededReport {
     }
 }
 
+/// The parts a held-out gain is split into ([`Report::gains_by_part`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EvalPart {
+    /// KITTI sequences: the importer's scene ids are
+    /// [`KITTI_SCENE_ID_BASE`] × sequence + first frame.
+    KittiSequence,
+    /// Scenes.
+    Scene,
+}
+
+impl EvalPart {
+    /// The part's name in a table's header.
+    pub fn label(self) -> &'static str {
+        match self {
+            EvalPart::KittiSequence => "KITTI sequence",
+            EvalPart::Scene => "scene",
+        }
+    }
+}
+
 impl Report {
+    /// How this report's evaluation objects are split into parts: by KITTI
+    /// sequence when their scene ids span more than one, else by scene.
+    pub fn eval_part(&self) -> EvalPart {
+        let first = self.eval_object_keys.first().map(|o| o.0 / KITTI_SCENE_ID_BASE);
+        if self.eval_object_keys.iter().any(|o| Some(o.0 / KITTI_SCENE_ID_BASE) != first) {
+            EvalPart::KittiSequence
+        } else {
+            EvalPart::Scene
+        }
+    }
+
+    /// Candidate `c`'s held-out gain split by [`Report::eval_part`] (groups in
+    /// ascending order, each labelled by its sequence or scene): whether the
+    /// gain is carried by the whole evaluation part or by one of its parts.
+    /// `None` when the report has no per-object record that matches its
+    /// evaluation objects (reports written before it was kept).
+    pub fn gains_by_part(&self, c: &CandidateReport) -> Option<Vec<GroupGain>> {
+        let (keys, units) = (&self.eval_object_keys, &self.eval_object_units);
+        if keys.is_empty() || keys.len() != c.object_gains.len() || units.len() != keys.len() {
+            return None;
+        }
+        Some(match self.eval_part() {
+            EvalPart::KittiSequence => {
+                gains_by_group(&c.object_gains, keys, units, |scene| scene / KITTI_SCENE_ID_BASE)
+            }
+            EvalPart::Scene => gains_by_group(&c.object_gains, keys, units, |scene| scene),
+        })
+    }
+
     /// The bar of [`DiagnoseConfig::set_aside_unmeasured`] on this report's
     /// evaluation part, its objects set aside included.
     pub fn unmeasured_bar(&self) -> f64 {
@@ -2610,6 +2665,34 @@ mod tests {
         assert_eq!(cand.failed_gain_rule(bar, None, bar, level), Some(FailedRule::Level));
         assert!(!cand.passes_gain_rules(bar, None, bar, level));
         assert_eq!(FailedRule::Checks.to_string(), "(d) no flagging check improved");
+    }
+
+    /// A check none of whose draws had anything to measure (KITTI's
+    /// `initial_lag` when no object moves fast enough) is written with `null`s
+    /// and read back with NaNs: every KITTI report before 2026-12-07 could not
+    /// be read again.
+    #[test]
+    fn a_check_with_undefined_draws_reads_back() {
+        let undefined =
+            CheckResult { measured: f64::NAN, replicated: f64::NAN, draws: 0, ..check_with_z("initial_lag", 0.0) };
+        let check = CheckReport {
+            name: "initial_lag".into(),
+            description: String::new(),
+            suggests: Some("latency".into()),
+            z: f64::NAN,
+            p: 1.0,
+            before: undefined.clone(),
+            after: Some(undefined),
+            draws_before: vec![(f64::NAN, 0.5), (f64::NAN, f64::NAN)],
+            draws_after: vec![(1.0, f64::NAN)],
+        };
+        let json = serde_json::to_string(&check).unwrap();
+        assert!(json.contains("[null,0.5]"), "{json}");
+        let back: CheckReport = serde_json::from_str(&json).unwrap();
+        assert!(back.z.is_nan() && back.before.measured.is_nan() && back.after.unwrap().replicated.is_nan());
+        let (b, a) = (&back.draws_before, &back.draws_after);
+        assert!(b[0].0.is_nan() && b[0].1 == 0.5 && b[1].0.is_nan() && b[1].1.is_nan());
+        assert!(a[0].0 == 1.0 && a[0].1.is_nan());
     }
 
     fn check_with_z(name: &str, z: f64) -> CheckResult {
