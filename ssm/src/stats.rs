@@ -128,6 +128,13 @@ pub fn nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Resul
     Ok(Option::<f64>::deserialize(deserializer)?.unwrap_or(f64::NAN))
 }
 
+/// [`nan_from_null`] for a list of numbers (per-object gains and Monte Carlo
+/// sds, NaN where one run left an sd undefined).
+pub fn vec_nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<Vec<f64>, D::Error> {
+    use serde::Deserialize;
+    Ok(Vec::<Option<f64>>::deserialize(deserializer)?.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect())
+}
+
 /// [`nan_from_null`] for a list of pairs of numbers (a check's per-draw
 /// statistics, NaN where a draw had nothing to measure).
 pub fn pairs_nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) -> Result<Vec<(f64, f64)>, D::Error> {

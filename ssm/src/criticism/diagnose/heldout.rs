@@ -181,8 +181,10 @@ pub struct GroupGain {
     pub units: usize,
     /// The gain over the group's objects (nats per observed unit) and its
     /// standard error, as [`paired_gain`] computes them.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain: f64,
     /// See `gain`.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_se: f64,
     /// The share of the group's objects whose gain is positive.
     pub positive: f64,

@@ -615,10 +615,11 @@ pub struct CandidateReport {
     #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p_adjusted: f64,
     /// Per evaluated object, its log-likelihood gain (nats).
+    #[serde(deserialize_with = "crate::stats::vec_nan_from_null")]
     pub object_gains: Vec<f64>,
     /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
     /// this candidate (nats; empty in reports written before it was kept).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::stats::vec_nan_from_null")]
     pub object_mc_sd: Vec<f64>,
     /// Its log-likelihood on the evaluation part (nats per observed unit; NaN
     /// in reports written before it was recorded): which qualifying candidate
@@ -739,9 +740,11 @@ pub struct NestedComparison {
     pub nested: String,
     /// The candidate's held-out gain over it (nats per observed unit, paired
     /// over the evaluation objects).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain: f64,
     /// That gain's one-sided sign-flip p (one comparison per nesting
     /// candidate, and a further condition on a cause: no adjustment).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub p: f64,
 }
 
@@ -1120,7 +1123,7 @@ pub struct ReferenceReport {
     pub reseeded: Option<ReseededReport>,
     /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
     /// this refit (nats; empty in reports written before it was kept).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::stats::vec_nan_from_null")]
     pub object_mc_sd: Vec<f64>,
 }
 
@@ -1136,6 +1139,7 @@ pub struct ImpreciseObject {
     pub units: usize,
     /// The largest Monte Carlo sd of its log-likelihood over the models at
     /// the evaluation's particles (nats).
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub mc_sd: f64,
     /// The same after every model filtered it again with
     /// [`DiagnoseConfig::refine_factor`] times the particles (NaN without).
@@ -1153,18 +1157,20 @@ pub struct ReseededReport {
     /// Its held-out gain over the reference (nats per observed unit, paired
     /// over the evaluation objects like a candidate's); its size is the refits'
     /// noise, the least gain that names a cause.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain: f64,
     /// The gain's standard error over objects.
+    #[serde(deserialize_with = "crate::stats::nan_from_null")]
     pub gain_se: f64,
     /// Per evaluated object (in the order of the candidates' `object_gains`),
     /// its log-likelihood gain over the reference (nats): a candidate's gain
     /// over this refit, paired by object, is its `object_gains` minus these
     /// (empty in reports written before they were kept).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::stats::vec_nan_from_null")]
     pub object_gains: Vec<f64>,
     /// Per evaluated object, the Monte Carlo sd of its log-likelihood under
     /// this refit (nats; empty in reports written before it was kept).
-    #[serde(default)]
+    #[serde(default, deserialize_with = "crate::stats::vec_nan_from_null")]
     pub object_mc_sd: Vec<f64>,
     /// Training time (s).
     pub train_seconds: f64,
@@ -2693,6 +2699,10 @@ mod tests {
         let (b, a) = (&back.draws_before, &back.draws_after);
         assert!(b[0].0.is_nan() && b[0].1 == 0.5 && b[1].0.is_nan() && b[1].1.is_nan());
         assert!(a[0].0 == 1.0 && a[0].1.is_nan());
+        // One evaluation run leaves each object's Monte Carlo sd undefined.
+        let candidate = CandidateReport { object_mc_sd: vec![f64::NAN, 2.0], ..qualifying_candidate() };
+        let back: CandidateReport = serde_json::from_str(&serde_json::to_string(&candidate).unwrap()).unwrap();
+        assert!(back.object_mc_sd[0].is_nan() && back.object_mc_sd[1] == 2.0);
     }
 
     fn check_with_z(name: &str, z: f64) -> CheckResult {
