@@ -56,6 +56,8 @@ pub struct HeldOutSet {
     pub finding: String,
     /// How the held-out set is split into parts.
     pub part: EvalPart,
+    /// The level a candidate's Holm-adjusted p must be under (rule (a)).
+    pub cause_level: f64,
     /// Every fitted candidate.
     pub candidates: Vec<CandidateOnSet>,
 }
@@ -160,6 +162,7 @@ pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
         outcome,
         finding,
         part: r.eval_part(),
+        cause_level: r.config.cause_level,
         candidates,
     }
 }
@@ -191,6 +194,39 @@ pub fn agreement(sets: &[HeldOutSet]) -> String {
     format!("held-out sets: {}", counts.join(", "))
 }
 
+/// Every extension fitted on any set, in order of first appearance.
+fn fitted_extensions(sets: &[HeldOutSet]) -> Vec<&str> {
+    let mut extensions: Vec<&str> = Vec::new();
+    for c in sets.iter().flat_map(|set| &set.candidates) {
+        if !extensions.contains(&c.cause.as_str()) {
+            extensions.push(&c.cause);
+        }
+    }
+    extensions
+}
+
+/// Per extension fitted on any set (in order of first appearance): on how many
+/// sets it was fitted, gained at a Holm-adjusted p under the set's level, and
+/// qualified as a cause.
+pub fn consistency(sets: &[HeldOutSet]) -> Vec<String> {
+    fitted_extensions(sets)
+        .iter()
+        .map(|e| {
+            let on: Vec<(&HeldOutSet, &CandidateOnSet)> = sets
+                .iter()
+                .filter_map(|set| set.candidates.iter().find(|c| c.cause == *e).map(|c| (set, c)))
+                .collect();
+            let significant = on.iter().filter(|(set, c)| c.gain > 0.0 && c.p_adjusted < set.cause_level).count();
+            let qualifies = on.iter().filter(|(_, c)| c.fails.is_none()).count();
+            format!(
+                "`{e}`: fitted on {} of {} sets, a gain at p adj. under the level on {significant}, qualifies on {qualifies}",
+                on.len(),
+                sets.len()
+            )
+        })
+        .collect()
+}
+
 /// `gain ± se` in nats per unit.
 fn gain_cell(gain: f64, se: f64) -> String {
     format!("{gain:+.4} ± {se:.4}")
@@ -207,6 +243,10 @@ fn markdown(sets: &[HeldOutSet], shown: &[String]) -> String {
          standard error over objects; p is the sign-flip p, Holm-adjusted over the set's candidates.\n"
     );
     let _ = writeln!(s, "{}.\n", agreement(sets));
+    for line in consistency(sets) {
+        let _ = writeln!(s, "- {line}");
+    }
+    s.push('\n');
     let _ = writeln!(s, "## Outcome per held-out set\n");
     let _ = writeln!(s, "| held-out set | fitted objects | evaluated objects (units) | outcome | learned or failing checks | gain | p adj. |");
     let _ = writeln!(s, "|---|---|---|---|---|---|---|");
@@ -232,12 +272,7 @@ fn markdown(sets: &[HeldOutSet], shown: &[String]) -> String {
         "A candidate qualifies when it fails none of the decision's rules; the cause is the qualifying one with the \
          largest evaluation log-likelihood. – : not fitted on that set.\n"
     );
-    let mut extensions: Vec<&str> = Vec::new();
-    for c in sets.iter().flat_map(|set| &set.candidates) {
-        if !extensions.contains(&c.cause.as_str()) {
-            extensions.push(&c.cause);
-        }
-    }
+    let extensions = fitted_extensions(sets);
     let header: Vec<&str> = sets.iter().map(|set| set.label.as_str()).collect();
     let _ = writeln!(s, "| extension | {} |", header.join(" | "));
     let _ = writeln!(s, "|---|{}", "---|".repeat(sets.len()));
@@ -444,6 +479,7 @@ mod tests {
             recorded: None,
             finding: String::new(),
             part: EvalPart::KittiSequence,
+            cause_level: 0.05,
             candidates,
         }
     }
@@ -484,5 +520,9 @@ mod tests {
         let md = markdown(&sets, &shown);
         assert!(md.contains("| `latency` | +0.9000 ± 0.1000, p 0.0100: qualifies | – | – |"), "{md}");
         assert!(md.contains("b: positive in 1 of 2 parts, above 2 SE in 0"), "{md}");
+        assert_eq!(
+            consistency(&sets)[1],
+            "`heading_flip`: fitted on 2 of 3 sets, a gain at p adj. under the level on 2, qualifies on 2"
+        );
     }
 }
