@@ -800,6 +800,22 @@ mod tests {
         serde_json::from_str(&std::fs::read_to_string(path.join("report.json")).unwrap()).unwrap()
     }
 
+    /// The held-out gain split by KITTI sequence on a committed KITTI
+    /// diagnosis (which the report's own reading of its `null` draws needs)
+    /// is the section its `report.md` was written with, and a generated data
+    /// set's is split by scene.
+    #[test]
+    fn the_gain_by_part_is_by_kitti_sequence_on_kitti_and_by_scene_otherwise() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/diagnose-kitti-set-aside/train-to-val");
+        let kitti = committed_in("diagnose-kitti-set-aside", "train-to-val");
+        let section = gains_by_part(&kitti);
+        assert!(section.starts_with("## Held-out gain of `heading_flip` by KITTI sequence"), "{section}");
+        let written = std::fs::read_to_string(dir.join("report.md")).unwrap();
+        assert!(written.contains(&section), "{section}");
+        let generated = committed("latency/x1/seed0");
+        assert!(gains_by_part(&generated).contains("by scene\n"));
+    }
+
     /// The likelihood screen on a committed diagnosis (clutter at twice its
     /// default, seed 3, which no check flagged): the report lists every
     /// extension the checks left to the screen with its start's gain and p,
