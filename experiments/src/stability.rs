@@ -150,7 +150,7 @@ pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
     let finding = match chosen {
         Some(c) => c.description.clone(),
         None if outcome == r.cause => r.finding.clone(),
-        None => String::new(),
+        None => format!("decided again from a recorded `{}`: the report's checks say what fails", r.cause),
     };
     HeldOutSet {
         label,
