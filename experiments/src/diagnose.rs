@@ -801,8 +801,8 @@ mod tests {
     }
 
     /// The held-out gain split by KITTI sequence on a committed KITTI
-    /// diagnosis (which the report's own reading of its `null` draws needs)
-    /// is the section its `report.md` was written with, and a generated data
+    /// diagnosis (readable since its checks' `null` draws read back as NaN)
+    /// is the section its `report.md` was written with; a generated data
     /// set's is split by scene.
     #[test]
     fn the_gain_by_part_is_by_kitti_sequence_on_kitti_and_by_scene_otherwise() {
