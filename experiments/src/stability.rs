@@ -60,6 +60,9 @@ pub struct HeldOutSet {
     pub cause_level: f64,
     /// Every fitted candidate.
     pub candidates: Vec<CandidateOnSet>,
+    /// The extension whose gain by part is shown ([`Report::shown_candidate`]
+    /// of the outcome); `None` without candidates.
+    pub shown: Option<String>,
 }
 
 /// One candidate extension on one held-out set.
@@ -131,8 +134,8 @@ fn read_report(dir: &Path) -> Result<Report, String> {
 
 /// What one report says, decided under the current rules.
 pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
-    let (outcome, chosen) = r.decided(true);
     let verdicts = r.verdicts(true);
+    let (outcome, chosen) = r.outcome(&verdicts);
     let candidates = r
         .candidates
         .iter()
@@ -159,6 +162,7 @@ pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
         eval_objects: r.eval_objects,
         eval_units: r.eval_units,
         recorded: (r.cause != outcome).then(|| r.cause.clone()),
+        shown: r.shown_candidate(&outcome).map(|c| c.cause.clone()),
         outcome,
         finding,
         part: r.eval_part(),
@@ -167,18 +171,14 @@ pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
     }
 }
 
-/// The extensions whose gains by part are shown: each set's cause, or where a
-/// set names none, its candidate with the largest gain (what `report.md`
-/// splits by part), in order of first appearance.
+/// The extensions whose gains by part are shown: each set's
+/// [`HeldOutSet::shown`] (its cause, or where it names none its candidate with
+/// the largest gain, as `report.md` splits), in order of first appearance.
 pub fn shown_extensions(sets: &[HeldOutSet]) -> Vec<String> {
     let mut shown: Vec<String> = Vec::new();
-    for s in sets {
-        let cause = s.candidates.iter().find(|c| c.cause == s.outcome);
-        let best = cause.or_else(|| s.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain)));
-        if let Some(c) = best {
-            if !shown.contains(&c.cause) {
-                shown.push(c.cause.clone());
-            }
+    for e in sets.iter().filter_map(|s| s.shown.as_ref()) {
+        if !shown.contains(e) {
+            shown.push(e.clone());
         }
     }
     shown
@@ -468,8 +468,14 @@ mod tests {
         }
     }
 
+    /// A set whose shown extension is its cause, else its candidate with the
+    /// largest gain (as [`Report::shown_candidate`] chooses).
     fn set(label: &str, outcome: &str, candidates: Vec<CandidateOnSet>) -> HeldOutSet {
+        let named = candidates.iter().find(|c| c.cause == outcome);
+        let shown =
+            named.or_else(|| candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain))).map(|c| c.cause.clone());
         HeldOutSet {
+            shown,
             label: label.into(),
             report: PathBuf::new(),
             train_objects: 10,
@@ -484,8 +490,7 @@ mod tests {
         }
     }
 
-    /// The shown extensions are each set's cause, else its largest gain; the
-    /// forest plot has a whole row per set then one per part any of them has.
+    /// The shown extensions are the sets' own, each once; the forest plot has a whole row per set then one per part any of them has.
     #[test]
     fn the_forest_rows_hold_every_set_and_part_of_the_shown_extensions() {
         let sets = [

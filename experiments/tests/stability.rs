@@ -37,10 +37,13 @@ fn stability_sets_each_held_out_sets_finding_side_by_side() {
     for ((set, r), outcome) in sets.iter().zip(&reports).zip(&outcomes) {
         assert_eq!(set["outcome"].as_str().unwrap(), outcome);
         assert_eq!(set["part"].as_str().unwrap(), "kitti_sequence");
+        let recorded = (r.cause != *outcome).then_some(r.cause.as_str());
+        assert_eq!(set["recorded"].as_str(), recorded);
         let candidates = set["candidates"].as_array().unwrap();
         assert_eq!(candidates.len(), r.candidates.len());
-        for (c, rc) in candidates.iter().zip(&r.candidates) {
+        for ((c, rc), verdict) in candidates.iter().zip(&r.candidates).zip(r.verdicts(true)) {
             assert_eq!(c["cause"].as_str().unwrap(), rc.cause);
+            assert_eq!(c["fails"].as_str().map(str::to_owned), verdict.map(|rule| rule.to_string()), "{}", rc.cause);
             let parts = r.gains_by_part(rc).expect("a per-object record");
             let units: usize = parts.iter().map(|g| g.units).sum();
             assert_eq!(units, r.eval_units, "{}: the parts hold every evaluated unit", rc.cause);

@@ -1232,6 +1232,14 @@ impl Report {
         }
     }
 
+    /// The candidate whose gain a report splits by part: the one named `cause`,
+    /// or where none is (no cause, or a cause decided again), the one with the
+    /// largest gain; `None` without candidates.
+    pub fn shown_candidate(&self, cause: &str) -> Option<&CandidateReport> {
+        let named = self.candidates.iter().find(|c| c.cause == cause);
+        named.or_else(|| self.candidates.iter().max_by(|a, b| a.gain.total_cmp(&b.gain)))
+    }
+
     /// Candidate `c`'s held-out gain split by [`Report::eval_part`] (groups in
     /// ascending order, each labelled by its sequence or scene): whether the
     /// gain is carried by the whole evaluation part or by one of its parts.
@@ -1324,7 +1332,9 @@ impl Report {
     /// The outcome of candidates judged `verdicts` ([`Report::verdicts`]):
     /// the qualifying one with the largest gain, else `unexplained` or `none`
     /// by the reference's checks; without candidates, the recorded outcome.
-    fn outcome(&self, verdicts: &[Option<FailedRule>]) -> (String, Option<&CandidateReport>) {
+    /// [`Report::decided`] is this of [`Report::verdicts`]; a caller that needs
+    /// both judges the candidates once.
+    pub fn outcome(&self, verdicts: &[Option<FailedRule>]) -> (String, Option<&CandidateReport>) {
         if self.candidates.is_empty() {
             return (self.cause.clone(), None);
         }
