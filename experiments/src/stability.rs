@@ -60,6 +60,9 @@ pub struct HeldOutSet {
     pub cause_level: f64,
     /// Every fitted candidate.
     pub candidates: Vec<CandidateOnSet>,
+    /// The extensions the fitted screen fitted and turned away (neither
+    /// candidates nor evaluated), each with why.
+    pub not_admitted: Vec<ScreenedOut>,
     /// The extension whose gain by part is shown ([`Report::shown_candidate`]
     /// of the outcome); `None` without candidates.
     pub shown: Option<String>,
@@ -83,6 +86,15 @@ pub struct CandidateOnSet {
     /// Its gain by part of the held-out set (empty in reports without a
     /// per-object record).
     pub parts: Vec<GroupGain>,
+}
+
+/// An extension the fitted screen fitted on one held-out set and did not admit.
+#[derive(Debug, Serialize)]
+pub struct ScreenedOut {
+    /// The extension's id.
+    pub cause: String,
+    /// Why ([`ssm::criticism::diagnose::NotAdmitted::why`]).
+    pub why: String,
 }
 
 /// Runs `sefi stability`.
@@ -168,6 +180,7 @@ pub fn held_out_set(r: &Report, label: String, report: PathBuf) -> HeldOutSet {
         part: r.eval_part(),
         cause_level: r.config.cause_level,
         candidates,
+        not_admitted: r.not_admitted.iter().map(|n| ScreenedOut { cause: n.cause.clone(), why: n.why() }).collect(),
     }
 }
 
@@ -194,33 +207,42 @@ pub fn agreement(sets: &[HeldOutSet]) -> String {
     format!("held-out sets: {}", counts.join(", "))
 }
 
-/// Every extension fitted on any set, in order of first appearance.
+/// Every extension fitted on any set (a candidate, or turned away by the
+/// fitted screen), in order of first appearance.
 fn fitted_extensions(sets: &[HeldOutSet]) -> Vec<&str> {
     let mut extensions: Vec<&str> = Vec::new();
-    for c in sets.iter().flat_map(|set| &set.candidates) {
-        if !extensions.contains(&c.cause.as_str()) {
-            extensions.push(&c.cause);
+    for set in sets {
+        let fitted =
+            set.candidates.iter().map(|c| c.cause.as_str()).chain(set.not_admitted.iter().map(|n| n.cause.as_str()));
+        for e in fitted {
+            if !extensions.contains(&e) {
+                extensions.push(e);
+            }
         }
     }
     extensions
 }
 
 /// Per extension fitted on any set (in order of first appearance): on how many
-/// sets it was fitted, gained at a Holm-adjusted p under the set's level, and
-/// qualified as a cause.
+/// sets it was fitted (of those, on how many the fitted screen turned it away),
+/// gained at a Holm-adjusted p under the set's level, and qualified as a cause.
 pub fn consistency(sets: &[HeldOutSet]) -> Vec<String> {
     fitted_extensions(sets)
         .iter()
         .map(|e| {
-            let on: Vec<(&HeldOutSet, &CandidateOnSet)> = sets
-                .iter()
-                .filter_map(|set| set.candidates.iter().find(|c| c.cause == *e).map(|c| (set, c)))
-                .collect();
+            let on: Vec<(&HeldOutSet, &CandidateOnSet)> =
+                sets.iter().filter_map(|set| set.candidates.iter().find(|c| c.cause == *e).map(|c| (set, c))).collect();
             let significant = on.iter().filter(|(set, c)| c.gain > 0.0 && c.p_adjusted < set.cause_level).count();
             let qualifies = on.iter().filter(|(_, c)| c.fails.is_none()).count();
+            let screened_out = sets.iter().filter(|set| set.not_admitted.iter().any(|n| n.cause == *e)).count();
+            let turned_away = match screened_out {
+                0 => String::new(),
+                n => format!(" ({n} turned away by the fitted screen)"),
+            };
             format!(
-                "`{e}`: fitted on {} of {} sets, a gain at p adj. under the level on {significant}, qualifies on {qualifies}",
-                on.len(),
+                "`{e}`: fitted on {} of {} sets{turned_away}, a gain at p adj. under the level on {significant}, \
+                 qualifies on {qualifies}",
+                on.len() + screened_out,
                 sets.len()
             )
         })
@@ -270,7 +292,8 @@ fn markdown(sets: &[HeldOutSet], shown: &[String]) -> String {
     let _ = writeln!(
         s,
         "A candidate qualifies when it fails none of the decision's rules; the cause is the qualifying one with the \
-         largest evaluation log-likelihood. – : not fitted on that set.\n"
+         largest evaluation log-likelihood. – : not fitted on that set. An extension the fitted screen fitted \
+         and turned away is neither a candidate nor evaluated: its cell says why.\n"
     );
     let extensions = fitted_extensions(sets);
     let header: Vec<&str> = sets.iter().map(|set| set.label.as_str()).collect();
@@ -286,7 +309,10 @@ fn markdown(sets: &[HeldOutSet], shown: &[String]) -> String {
                     c.p_adjusted,
                     c.fails.as_deref().unwrap_or("qualifies")
                 ),
-                None => "–".into(),
+                None => match set.not_admitted.iter().find(|n| n.cause == *e) {
+                    Some(n) => n.why.clone(),
+                    None => "–".into(),
+                },
             })
             .collect();
         let _ = writeln!(s, "| `{e}` | {} |", cells.join(" | "));
@@ -487,7 +513,35 @@ mod tests {
             part: EvalPart::KittiSequence,
             cause_level: 0.05,
             candidates,
+            not_admitted: vec![],
         }
+    }
+
+    /// A committed diagnosis under the fitted screen whose screen turned two
+    /// extensions away, one at its futility stop and one fitted to its end
+    /// (the Student-t at the default scale, seed 2): each is listed with why,
+    /// and neither is a candidate.
+    #[test]
+    fn the_extensions_the_fitted_screen_turned_away_are_listed_with_why() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/diagnose-student-t-default/seed2");
+        let set = held_out_set(&read_report(&dir).unwrap(), "seed 2".into(), dir.join("report.json"));
+        let why: Vec<(&str, &str)> = set.not_admitted.iter().map(|n| (n.cause.as_str(), n.why.as_str())).collect();
+        assert_eq!(
+            why,
+            [
+                ("clutter", "not admitted by the fitted screen: check-part gain +0.0001, p 0.475"),
+                (
+                    "heavy_tailed_accel",
+                    "stopped at step 100 by the fitted screen's futility stop: its check-part evaluation had not risen \
+                     above the base's"
+                ),
+            ]
+        );
+        assert!(set.candidates.iter().all(|c| c.cause != "clutter" && c.cause != "heavy_tailed_accel"));
+        assert_eq!(
+            fitted_extensions(std::slice::from_ref(&set)),
+            ["latency", "size_bias", "clutter", "heavy_tailed_accel"]
+        );
     }
 
     /// The shown extensions are the sets' own, each once; the forest plot has a whole row per set then one per part any of them has.
@@ -509,6 +563,9 @@ mod tests {
             ),
             set("c", NO_CAUSE, vec![]),
         ];
+        let mut sets = sets;
+        let why = "stopped at step 100 by the fitted screen's futility stop";
+        sets[2].not_admitted.push(ScreenedOut { cause: "heading_flip".into(), why: why.into() });
         let shown = shown_extensions(&sets);
         assert_eq!(shown, ["heading_flip", "persistent_flip"]);
         let rows = forest_rows(&sets, &shown);
@@ -524,10 +581,12 @@ mod tests {
         );
         let md = markdown(&sets, &shown);
         assert!(md.contains("| `latency` | +0.9000 ± 0.1000, p 0.0100: qualifies | – | – |"), "{md}");
+        assert!(md.contains(&format!("p 0.0100: qualifies | {why} |")), "the screened-out fit says why: {md}");
         assert!(md.contains("b: positive in 1 of 2 parts, above 2 SE in 0"), "{md}");
         assert_eq!(
             consistency(&sets)[1],
-            "`heading_flip`: fitted on 2 of 3 sets, a gain at p adj. under the level on 2, qualifies on 2"
+            "`heading_flip`: fitted on 3 of 3 sets (1 turned away by the fitted screen), a gain at p adj. under the \
+             level on 2, qualifies on 2"
         );
     }
 }

@@ -583,6 +583,20 @@ pub struct NotAdmitted {
     pub stopped_at: Option<usize>,
 }
 
+impl NotAdmitted {
+    /// Why the fitted screen turned it away, in a clause: the futility stop
+    /// (the step it was stopped at), or its check-part gain and p.
+    pub fn why(&self) -> String {
+        match self.stopped_at {
+            Some(step) => format!(
+                "stopped at step {step} by the fitted screen's futility stop: its check-part evaluation had not \
+                 risen above the base's"
+            ),
+            None => not_admitted_clause(self.check_part_gain, Some(self.check_part_p)),
+        }
+    }
+}
+
 /// One fitted extension.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CandidateReport {
@@ -1394,7 +1408,10 @@ impl Report {
             let why = match (candidate, chosen, not_admitted) {
                 (Some(i), _, _) if !self.candidates[i].admitted(self.config.plausible_p) => {
                     let c = &self.candidates[i];
-                    not_admitted_phrase(expected, c.check_part_gain.unwrap_or(f64::NAN), c.check_part_p)
+                    format!(
+                        "`{expected}` fitted, {}",
+                        not_admitted_clause(c.check_part_gain.unwrap_or(f64::NAN), c.check_part_p)
+                    )
                 }
                 (Some(i), _, _) => match verdicts[i] {
                     Some(rule) => format!(
@@ -1403,13 +1420,7 @@ impl Report {
                     ),
                     None => format!("`{expected}` qualifies, but `{cause}` gains more"),
                 },
-                (None, _, Some(n)) => match n.stopped_at {
-                    Some(step) => format!(
-                        "`{expected}` fitted, stopped at step {step} by the fitted screen's futility stop: its \
-                         check-part evaluation had not risen above the base's"
-                    ),
-                    None => not_admitted_phrase(expected, n.check_part_gain, Some(n.check_part_p)),
-                },
+                (None, _, Some(n)) => format!("`{expected}` fitted, {}", n.why()),
                 (None, _, None) if expected != NO_CAUSE && expected != UNEXPLAINED => {
                     match self.likelihood_screen.iter().find(|s| s.cause == expected) {
                         Some(s) => format!(
@@ -1472,11 +1483,11 @@ impl Report {
     }
 }
 
-/// What [`Report::why_not`] says of the expected extension `expected` when the
-/// fitted screen fitted it and did not admit it (its check-part gain and p).
-fn not_admitted_phrase(expected: &str, check_part_gain: f64, check_part_p: Option<f64>) -> String {
+/// Why the fitted screen did not admit an extension it fitted to its end: its
+/// check-part gain and p.
+fn not_admitted_clause(check_part_gain: f64, check_part_p: Option<f64>) -> String {
     format!(
-        "`{expected}` fitted, not admitted by the fitted screen: check-part gain {check_part_gain:+.4}, p {:.3}",
+        "not admitted by the fitted screen: check-part gain {check_part_gain:+.4}, p {:.3}",
         check_part_p.unwrap_or(f64::NAN)
     )
 }
