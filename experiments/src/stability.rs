@@ -547,7 +547,7 @@ mod tests {
     /// The shown extensions are the sets' own, each once; the forest plot has a whole row per set then one per part any of them has.
     #[test]
     fn the_forest_rows_hold_every_set_and_part_of_the_shown_extensions() {
-        let sets = [
+        let mut sets = [
             set(
                 "a",
                 "heading_flip",
@@ -563,7 +563,6 @@ mod tests {
             ),
             set("c", NO_CAUSE, vec![]),
         ];
-        let mut sets = sets;
         let why = "stopped at step 100 by the fitted screen's futility stop";
         sets[2].not_admitted.push(ScreenedOut { cause: "heading_flip".into(), why: why.into() });
         let shown = shown_extensions(&sets);
