@@ -39,6 +39,8 @@ fn stability_sets_each_held_out_sets_finding_side_by_side() {
         assert_eq!(set["part"].as_str().unwrap(), "kitti_sequence");
         let recorded = (r.cause != *outcome).then_some(r.cause.as_str());
         assert_eq!(set["recorded"].as_str(), recorded);
+        let shown = r.shown_candidate(outcome).map(|c| c.cause.as_str());
+        assert_eq!(set["shown"].as_str(), shown, "the extension split by part is the outcome's");
         let candidates = set["candidates"].as_array().unwrap();
         assert_eq!(candidates.len(), r.candidates.len());
         for ((c, rc), verdict) in candidates.iter().zip(&r.candidates).zip(r.verdicts(true)) {

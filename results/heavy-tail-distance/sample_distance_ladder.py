@@ -5,41 +5,17 @@
 # over 200 samples. It shows which mixture strength a Student-t matches on what a sample holds, and that no
 # finite-variance t reaches the x1 mixture. Standard library only:
 #     python3 results/heavy-tail-distance/sample_distance_ladder.py
-import math
 import random
 import statistics as S
+
+from tails import gap_to_sample_gaussian, mix_logpdf, t_draw, t_logpdf
 
 random.seed(5)
 N, REPS = 600, 200
 
 
-def t_draw(nu):
-    z = random.gauss(0, 1)
-    c = random.gammavariate(nu / 2, 2.0)
-    return z / math.sqrt(c / nu)
-
-
-def t_logpdf(x, nu):
-    return math.lgamma((nu + 1) / 2) - math.lgamma(nu / 2) - 0.5 * math.log(nu * math.pi) - (nu + 1) / 2 * math.log1p(x * x / nu)
-
-
-def n_logpdf(x, s):
-    return -0.5 * math.log(2 * math.pi * s * s) - x * x / (2 * s * s)
-
-
-def mix_logpdf(x, p, k):
-    l1 = math.log(1 - p) + n_logpdf(x, 1.0)
-    l2 = math.log(p) + n_logpdf(x, k)
-    m = max(l1, l2)
-    return m + math.log(math.exp(l1 - m) + math.exp(l2 - m))
-
-
 def distance(draw, logp):
-    gaps = []
-    for _ in range(REPS):
-        xs = [draw() for _ in range(N)]
-        s = math.sqrt(sum(x * x for x in xs) / N)
-        gaps.append(sum(logp(x) - n_logpdf(x, s) for x in xs) / N)
+    gaps = [gap_to_sample_gaussian([draw() for _ in range(N)], logp) for _ in range(REPS)]
     q = S.quantiles(gaps, n=4)
     return f"median {S.median(gaps):.3f}, IQR {q[0]:.3f}-{q[2]:.3f}"
 

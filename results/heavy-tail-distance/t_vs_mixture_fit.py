@@ -2,13 +2,8 @@
 # (EM on 100,000 draws at each of the power study's three Student-t degrees of freedom). Standard library only:
 #   python3 results/heavy-tail-distance/t_vs_mixture_fit.py   (a few minutes)
 import random, math
+from tails import t_draw, t_logpdf, n_logpdf
 random.seed(1)
-def t_draw(nu):
-    z=random.gauss(0,1); c=random.gammavariate(nu/2,2.0)
-    return z/math.sqrt(c/nu)
-def t_logpdf(x,nu):
-    return math.lgamma((nu+1)/2)-math.lgamma(nu/2)-0.5*math.log(nu*math.pi)-(nu+1)/2*math.log1p(x*x/nu)
-def n_logpdf(x,s): return -0.5*math.log(2*math.pi*s*s)-x*x/(2*s*s)
 for nu in (2.56,2.19,2.06):
     N=100000
     xs=[t_draw(nu) for _ in range(N)]
