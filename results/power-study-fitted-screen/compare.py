@@ -12,8 +12,30 @@ import os
 import sys
 from collections import defaultdict
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "power-study-scoped"))
-from merge import false_cause, rows, show  # noqa: E402
+import csv  # noqa: E402
+
+ROOT = "results"
+EXPECTED = {"student_t_accel": "heavy_tailed_accel", "ego_pose_noise": "unexplained",
+            "none-points": "none", "none-boxes": "none"}
+
+
+def rows(source):
+    """One study's `power.csv` by cell, (effect, strength, seed) -> row."""
+    path = os.path.join(ROOT, source, "power.csv")
+    return {(r["effect"], r["strength"], r["seed"]): r for r in csv.DictReader(open(path))}
+
+
+def show(row):
+    """A cell's outcome, with the named cause's gain ("?" for a missing cell)."""
+    if row is None:
+        return "?"
+    named = row["cause"] not in ("none", "unexplained")
+    return row["cause"] + (f" {float(row['gain']):+.4f}" if named else "")
+
+
+def false_cause(effect, row):
+    """Whether the cell names a catalogue cause other than the effect's expected one."""
+    return row["cause"] not in (EXPECTED.get(effect, effect), "none", "unexplained")
 
 
 def main():
