@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::float::Float;
-use crate::nn::ParamStore;
+use crate::nn::{ParamId, ParamStore};
 use crate::tensor::Tensor;
 
 /// Global L2 norm of a set of gradients (accumulated in f64).
@@ -80,6 +80,34 @@ impl Adam {
     /// Adam with learning rate `lr` and the usual defaults (0.9, 0.999, 1e-8).
     pub fn new(lr: f64) -> Self {
         Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, t: 0, m: Vec::new(), v: Vec::new() }
+    }
+
+    /// Checks that the optimiser's moment estimates fit `params` (one per
+    /// parameter tensor, of its size; or none yet, before the first step), as
+    /// they must for [`Adam::step`] to continue from them: what a resumed run
+    /// checks of the state it read.
+    pub fn check_layout<F: Float>(&self, params: &ParamStore<F>) -> Result<(), String> {
+        if self.m.len() != self.v.len() {
+            return Err(format!("{} first moments but {} second moments", self.m.len(), self.v.len()));
+        }
+        if self.m.is_empty() {
+            return Ok(());
+        }
+        if self.m.len() != params.len() {
+            return Err(format!("moments of {} tensors for {} parameters", self.m.len(), params.len()));
+        }
+        for (i, ((m, v), p)) in self.m.iter().zip(&self.v).zip(params.values()).enumerate() {
+            if m.len() != p.numel() || v.len() != p.numel() {
+                return Err(format!(
+                    "moments of sizes {} and {} for parameter {} of size {}",
+                    m.len(),
+                    v.len(),
+                    params.name(ParamId(i)),
+                    p.numel()
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// One update of `params` with `grads` (same order and shapes). A non-finite

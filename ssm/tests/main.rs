@@ -16,6 +16,7 @@ mod estimators_pitfalls;
 mod filter_lgssm;
 mod filter_tempered;
 mod fitted_extension;
+mod fuzz_regressions;
 mod hidden_effects;
 mod lgssm;
 mod metrics;
