@@ -145,9 +145,13 @@ impl Adam {
             self.m = grads.iter().map(|g| vec![0.0; g.numel()]).collect();
             self.v = grads.iter().map(|g| vec![0.0; g.numel()]).collect();
         }
-        self.t += 1;
-        let c1 = 1.0 - self.beta1.powi(self.t as i32);
-        let c2 = 1.0 - self.beta2.powi(self.t as i32);
+        // A step count read from a file may be anything: it saturates rather
+        // than wraps, and past i32::MAX the bias corrections are 1 to the
+        // last bit, so the exponent saturates too.
+        self.t = self.t.saturating_add(1);
+        let t = i32::try_from(self.t).unwrap_or(i32::MAX);
+        let c1 = 1.0 - self.beta1.powi(t);
+        let c2 = 1.0 - self.beta2.powi(t);
         for (i, (p, g)) in params.values_mut().iter_mut().zip(grads).enumerate() {
             let lr = self.lr * rate_factors.map_or(1.0, |f| f[i]);
             for (j, (x, &gj)) in p.data_mut().iter_mut().zip(g.data()).enumerate() {

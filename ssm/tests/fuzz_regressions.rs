@@ -536,3 +536,94 @@ fn random_checkpoints_round_trip() {
         assert_eq!(Checkpoint::load(&path).unwrap(), ckpt, "case {case}");
     }
 }
+
+// ------------------------------------------------- minimised fuzz inputs
+
+/// The minimised inputs the fuzz targets of `fuzz/` stopped on, one folder
+/// per target, each fed through what its target does (`fuzz/fuzz_targets/`).
+fn fuzz_inputs(target: &str) -> Vec<(String, Vec<u8>)> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_inputs").join(target);
+    let mut out: Vec<(String, Vec<u8>)> = fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .map(|e| {
+            let path = e.unwrap().path();
+            (path.file_name().unwrap().to_string_lossy().into_owned(), fs::read(&path).unwrap())
+        })
+        .collect();
+    out.sort();
+    assert!(!out.is_empty(), "no inputs in {}", dir.display());
+    out
+}
+
+/// A fuzz input as the `params` and `checkpoint` targets turn it into a file
+/// (`ssm_fuzz::as_versioned_file`): an even first byte, the rest as it is; an
+/// odd one, the rest framed as a file of `version` with its checksum.
+fn as_versioned_file(data: &[u8], version: u32) -> Vec<u8> {
+    match data.split_first() {
+        None => Vec::new(),
+        Some((first, rest)) if first & 1 == 0 => rest.to_vec(),
+        Some((_, rest)) => framed(version, rest),
+    }
+}
+
+/// What the `params` target does with an input: the store, then the models
+/// for either kind and the synthetic data's true model.
+fn params_target(data: &[u8]) -> Result<ParamStore<f64>, String> {
+    let store = ParamStore::<f64>::from_bytes(&as_versioned_file(data, PARAM_FORMAT_VERSION)).map_err(|e| e.to_string())?;
+    for kind in [ObservationKind::Points, ObservationKind::Boxes] {
+        if let Ok(models) = Models::from_store(&store, kind) {
+            let again = Models::from_store(&models.to_store(), kind).unwrap();
+            assert_eq!(again.policy, models.policy);
+        }
+    }
+    let _ = ssm::synthetic::TrueModel::from_store(store.clone());
+    Ok(store)
+}
+
+/// What the `checkpoint` target does: the checkpoint, then a resumed run's
+/// first optimiser step from it, whose step count must not wrap.
+fn checkpoint_target(data: &[u8]) -> Result<Checkpoint, String> {
+    let version = match data.first().map(|b| b >> 6) {
+        Some(1) => 2,
+        Some(2) => 3,
+        _ => CHECKPOINT_VERSION,
+    };
+    let ckpt = Checkpoint::from_bytes(&as_versioned_file(data, version)).map_err(|e| e.to_string())?;
+    let mut params = ckpt.params.clone();
+    let grads: Vec<_> = params.values().iter().map(|v| Tensor::zeros(v.shape())).collect();
+    let mut adam = ckpt.adam.clone();
+    adam.step(&mut params, &grads).unwrap();
+    assert!(adam.t >= ckpt.adam.t, "the step count wrapped from {} to {}", ckpt.adam.t, adam.t);
+    Ok(ckpt)
+}
+
+/// The `params` target's crash: a store of more names than values, whose
+/// `Models::from_store` indexed past the values.
+#[test]
+fn fuzz_params_inputs_are_errors() {
+    for (name, data) in fuzz_inputs("params") {
+        let err = params_target(&data).expect_err(&name);
+        let expected = if name.starts_with("names-values") { "parameter names for" } else { "corrupt parameter file" };
+        assert!(err.contains(expected), "{name}: {err}");
+    }
+}
+
+/// The `checkpoint` target's crashes: moments that did not fit the
+/// parameters (`moments-*`: a panic in the first step of a resumed run); a
+/// tensor whose shape's element count overflows (`shape-overflow`: a panic
+/// in whatever sized a buffer by it); a step count of `u64::MAX`
+/// (`step-overflow`: its increment overflowed, a panic with overflow checks,
+/// without them a wrap to step 0, a bias correction of 0 and NaN parameters).
+#[test]
+fn fuzz_checkpoint_inputs_are_errors_or_resume() {
+    for (name, data) in fuzz_inputs("checkpoint") {
+        let read = checkpoint_target(&data);
+        if name.starts_with("step-overflow") {
+            assert_eq!(read.expect(&name).adam.t, u64::MAX, "{name}");
+            continue;
+        }
+        let err = read.expect_err(&name);
+        let expected = if name.starts_with("moments") { "optimiser state" } else { "tensor of shape" };
+        assert!(err.contains(expected), "{name}: {err}");
+    }
+}
