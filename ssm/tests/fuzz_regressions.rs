@@ -64,7 +64,8 @@ fn a_tensor_shorter_than_its_shape_is_refused() {
     let err = ParamStore::<f64>::from_bytes(&framed(PARAM_FORMAT_VERSION, &payload)).unwrap_err();
     assert!(err.to_string().contains("tensor of shape [2] with 1 elements"), "{err}");
     // The same file with both numbers reads.
-    let whole = le(&[&payload[..payload.len() - 16], &2u64.to_le_bytes(), &0.5f64.to_le_bytes(), &0.25f64.to_le_bytes()]);
+    let whole =
+        le(&[&payload[..payload.len() - 16], &2u64.to_le_bytes(), &0.5f64.to_le_bytes(), &0.25f64.to_le_bytes()]);
     let store = ParamStore::<f64>::from_bytes(&framed(PARAM_FORMAT_VERSION, &whole)).unwrap();
     assert_eq!(store.values()[0].data(), &[0.5, 0.25]);
 }
@@ -122,7 +123,13 @@ fn huge_length_fields_do_not_allocate() {
             le(&[&len.to_le_bytes()]),
             le(&[&1u64.to_le_bytes(), &len.to_le_bytes(), b"abc"]),
             le(&[&0u64.to_le_bytes(), &1u64.to_le_bytes(), &len.to_le_bytes()]),
-            le(&[&0u64.to_le_bytes(), &1u64.to_le_bytes(), &1u64.to_le_bytes(), &4u64.to_le_bytes(), &len.to_le_bytes()]),
+            le(&[
+                &0u64.to_le_bytes(),
+                &1u64.to_le_bytes(),
+                &1u64.to_le_bytes(),
+                &4u64.to_le_bytes(),
+                &len.to_le_bytes(),
+            ]),
         ];
         for p in &payloads {
             assert!(ParamStore::<f64>::from_bytes(&framed(PARAM_FORMAT_VERSION, p)).is_err());
@@ -158,8 +165,11 @@ fn checkpoint(rng: &mut StdRng) -> Checkpoint {
     let params = random_store(rng, false);
     let mut adam = Adam::new(0.01);
     let mut stepped = params.clone();
-    let grads: Vec<Tensor<f64>> =
-        params.values().iter().map(|v| Tensor::new(v.shape(), v.data().iter().map(|_| rng.random()).collect())).collect();
+    let grads: Vec<Tensor<f64>> = params
+        .values()
+        .iter()
+        .map(|v| Tensor::new(v.shape(), v.data().iter().map(|_| rng.random()).collect()))
+        .collect();
     adam.step(&mut stepped, &grads).unwrap();
     Checkpoint {
         step: rng.random_range(0..1000),
@@ -315,7 +325,8 @@ fn kitti_files_of_absurd_size_are_errors() {
     assert!(!import.train.objects().is_empty(), "the tiny sequence imports");
     for which in 0..4 {
         kitti_sequence(dir.path(), 9, b"");
-        let path = dir.path().join(["label_02", "det_pointrcnn/Car", "ego_pose_orbslam3", "calib"][which]).join("0000.txt");
+        let path =
+            dir.path().join(["label_02", "det_pointrcnn/Car", "ego_pose_orbslam3", "calib"][which]).join("0000.txt");
         fs::OpenOptions::new().write(true).open(&path).unwrap().set_len(1 << 30).unwrap();
         let err = import_kitti(dir.path(), &kitti_options()).unwrap_err();
         assert!(err.to_string().contains("file over"), "{which}: {err}");
@@ -382,8 +393,20 @@ fn random_dataset(rng: &mut StdRng) -> Dataset {
             if !ids.insert(id) {
                 continue;
             }
-            let state = |rng: &mut StdRng| State { x: value(rng), y: value(rng), yaw: value(rng), v: value(rng), kappa: value(rng) };
-            let sd = State { x: positive(rng), y: positive(rng), yaw: positive(rng), v: positive(rng), kappa: positive(rng) };
+            let state = |rng: &mut StdRng| State {
+                x: value(rng),
+                y: value(rng),
+                yaw: value(rng),
+                v: value(rng),
+                kappa: value(rng),
+            };
+            let sd = State {
+                x: positive(rng),
+                y: positive(rng),
+                yaw: positive(rng),
+                v: positive(rng),
+                kappa: positive(rng),
+            };
             let prior = Prior { mean: state(rng), sd };
             b.object(Object { scene, id, length: positive(rng), width: positive(rng), prior });
             for t in 0..steps {
@@ -457,8 +480,7 @@ fn random_store(rng: &mut StdRng, any_bits: bool) -> ParamStore<f64> {
         let rank = rng.random_range(0..4);
         let shape: Vec<usize> = (0..rank).map(|_| rng.random_range(0..5)).collect();
         let n: usize = shape.iter().product();
-        let data: Vec<f64> =
-            (0..n).map(|_| if any_bits { f64::from_bits(rng.random()) } else { value(rng) }).collect();
+        let data: Vec<f64> = (0..n).map(|_| if any_bits { f64::from_bits(rng.random()) } else { value(rng) }).collect();
         let name: String = (0..rng.random_range(0..8)).map(|_| rng.random::<char>()).collect();
         store.add(&format!("{i}{name}"), Tensor::new(&shape, data));
     }
@@ -467,7 +489,10 @@ fn random_store(rng: &mut StdRng, any_bits: bool) -> ParamStore<f64> {
 
 /// Bits of every value, for comparisons that NaN would defeat.
 fn bits(store: &ParamStore<f64>) -> Vec<(String, Vec<usize>, Vec<u64>)> {
-    store.iter().map(|(n, v)| (n.to_string(), v.shape().to_vec(), v.data().iter().map(|x| x.to_bits()).collect())).collect()
+    store
+        .iter()
+        .map(|(n, v)| (n.to_string(), v.shape().to_vec(), v.data().iter().map(|x| x.to_bits()).collect()))
+        .collect()
 }
 
 /// Whatever `ParamStore::save` writes, `ParamStore::load` reads back bit for
@@ -569,7 +594,8 @@ fn as_versioned_file(data: &[u8], version: u32) -> Vec<u8> {
 /// What the `params` target does with an input: the store, then the models
 /// for either kind and the synthetic data's true model.
 fn params_target(data: &[u8]) -> Result<ParamStore<f64>, String> {
-    let store = ParamStore::<f64>::from_bytes(&as_versioned_file(data, PARAM_FORMAT_VERSION)).map_err(|e| e.to_string())?;
+    let store =
+        ParamStore::<f64>::from_bytes(&as_versioned_file(data, PARAM_FORMAT_VERSION)).map_err(|e| e.to_string())?;
     for kind in [ObservationKind::Points, ObservationKind::Boxes] {
         if let Ok(models) = Models::from_store(&store, kind) {
             let again = Models::from_store(&models.to_store(), kind).unwrap();

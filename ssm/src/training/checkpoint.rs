@@ -181,7 +181,9 @@ impl Checkpoint {
     /// parameters, and the best and averaged parameters have their layout.
     fn check_layout(&self) -> Result<(), String> {
         self.adam.check_layout(&self.params).map_err(|e| format!("optimiser state: {e}"))?;
-        for (what, store) in [("best", self.best.as_ref().map(|b| &b.2)), ("average", self.average.as_ref().map(|a| &a.1))] {
+        for (what, store) in
+            [("best", self.best.as_ref().map(|b| &b.2)), ("average", self.average.as_ref().map(|a| &a.1))]
+        {
             if let Some(store) = store {
                 self.params.check_same_layout(store).map_err(|e| format!("{what} parameters: {e}"))?;
             }
