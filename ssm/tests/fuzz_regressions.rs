@@ -628,18 +628,23 @@ fn checkpoint_target(data: &[u8]) -> Result<Checkpoint, String> {
 #[test]
 fn fuzz_params_inputs_are_errors() {
     for (name, data) in fuzz_inputs("params") {
+        // The minimised input also holds a tensor of shape [2, 32] without
+        // data, which the decoder now meets first.
         let err = params_target(&data).expect_err(&name);
-        let expected = if name.starts_with("names-values") { "parameter names for" } else { "corrupt parameter file" };
-        assert!(err.contains(expected), "{name}: {err}");
+        assert!(err.contains("parameter names for") || err.contains("tensor of shape"), "{name}: {err}");
     }
 }
 
-/// The `checkpoint` target's crashes: moments that did not fit the
-/// parameters (`moments-*`: a panic in the first step of a resumed run); a
-/// tensor whose shape's element count overflows (`shape-overflow`: a panic
-/// in whatever sized a buffer by it); a step count of `u64::MAX`
+/// The `checkpoint` target's crashes: a step count of `u64::MAX`
 /// (`step-overflow`: its increment overflowed, a panic with overflow checks,
-/// without them a wrap to step 0, a bias correction of 0 and NaN parameters).
+/// without them a wrap to step 0, a bias correction of 0 and NaN parameters),
+/// now read and stepped without a wrap; and two refused as they are decoded:
+/// moments that did not fit the parameters (`moments`: the resumed run's first
+/// step indexed past them; the minimised input's tensors also disagree with
+/// their shapes, which the decoder now meets first, so the moments check is
+/// tested on its own in `a_checkpoint_whose_parts_do_not_fit_is_refused`), and
+/// a tensor of 10^19 elements by its shape without data (`shape-overflow`:
+/// a buffer sized by the shape overflowed its capacity).
 #[test]
 fn fuzz_checkpoint_inputs_are_errors_or_resume() {
     for (name, data) in fuzz_inputs("checkpoint") {
@@ -649,7 +654,6 @@ fn fuzz_checkpoint_inputs_are_errors_or_resume() {
             continue;
         }
         let err = read.expect_err(&name);
-        let expected = if name.starts_with("moments") { "optimiser state" } else { "tensor of shape" };
-        assert!(err.contains(expected), "{name}: {err}");
+        assert!(err.contains("corrupt") && err.contains("tensor of shape"), "{name}: {err}");
     }
 }
