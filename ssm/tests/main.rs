@@ -16,7 +16,6 @@ mod estimators_pitfalls;
 mod filter_lgssm;
 mod filter_tempered;
 mod fitted_extension;
-mod fuzz_regressions;
 mod hidden_effects;
 mod lgssm;
 mod metrics;
