@@ -37,11 +37,39 @@ use crate::tensor::Tensor;
 pub struct ParamId(pub usize);
 
 /// An ordered set of named parameter tensors.
+///
+/// Deserialising checks what [`ParamStore::add`] keeps true: one value per
+/// name, and no name twice.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(bound = "F: Float")]
+#[serde(bound = "F: Float", try_from = "StoreParts<F>")]
 pub struct ParamStore<F: Float = f64> {
     names: Vec<String>,
     values: Vec<Tensor<F>>,
+}
+
+/// A store's fields as serialised, before [`ParamStore`]'s checks.
+#[derive(Deserialize)]
+#[serde(bound = "F: Float")]
+struct StoreParts<F: Float> {
+    names: Vec<String>,
+    values: Vec<Tensor<F>>,
+}
+
+impl<F: Float> TryFrom<StoreParts<F>> for ParamStore<F> {
+    type Error = String;
+
+    fn try_from(parts: StoreParts<F>) -> Result<Self, String> {
+        let StoreParts { names, values } = parts;
+        if names.len() != values.len() {
+            return Err(format!("{} parameter names for {} values", names.len(), values.len()));
+        }
+        let mut sorted: Vec<&str> = names.iter().map(String::as_str).collect();
+        sorted.sort_unstable();
+        if let Some(w) = sorted.windows(2).find(|w| w[0] == w[1]) {
+            return Err(format!("parameter name {:?} given twice", w[0]));
+        }
+        Ok(ParamStore { names, values })
+    }
 }
 
 impl<F: Float> Default for ParamStore<F> {
@@ -134,13 +162,20 @@ pub fn write_versioned<T: Serialize>(path: &Path, version: u32, value: &T) -> Re
 pub fn read_versioned<T: for<'de> Deserialize<'de>>(path: &Path, version: u32) -> Result<T, ParamError> {
     let p = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|source| ParamError::Io { path: p.clone(), source })?;
-    let corrupt = |reason: &str| ParamError::Corrupt { path: p.clone(), reason: reason.to_string() };
+    decode_versioned(&bytes, version, &p)
+}
+
+/// Decodes the bytes of a file written by [`write_versioned`] (what
+/// [`read_versioned`] does after reading the file), checking magic, version and
+/// checksum; `name` names the source in errors (a path, or `<bytes>`).
+pub fn decode_versioned<T: for<'de> Deserialize<'de>>(bytes: &[u8], version: u32, name: &str) -> Result<T, ParamError> {
+    let corrupt = |reason: &str| ParamError::Corrupt { path: name.to_string(), reason: reason.to_string() };
     if bytes.len() < 20 || &bytes[..8] != MAGIC {
         return Err(corrupt("not a PF-SEFI file (bad header)"));
     }
     let found = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
     if found != version {
-        return Err(ParamError::Version { path: p, found });
+        return Err(ParamError::Version { path: name.to_string(), found });
     }
     let sum = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes"));
     let payload = &bytes[20..];
@@ -267,6 +302,12 @@ impl<F: Float> ParamStore<F> {
     /// Reads a store written by [`ParamStore::save`].
     pub fn load(path: &Path) -> Result<Self, ParamError> {
         read_versioned(path, PARAM_FORMAT_VERSION)
+    }
+
+    /// Decodes the bytes of a file written by [`ParamStore::save`] (what
+    /// [`ParamStore::load`] does after reading the file).
+    pub fn from_bytes(bytes: &[u8]) -> Result<Self, ParamError> {
+        decode_versioned(bytes, PARAM_FORMAT_VERSION, "<bytes>")
     }
 }
 

@@ -4,7 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::float::Float;
-use crate::nn::ParamStore;
+use crate::nn::{ParamId, ParamStore};
 use crate::tensor::Tensor;
 
 /// Global L2 norm of a set of gradients (accumulated in f64).
@@ -82,6 +82,34 @@ impl Adam {
         Adam { lr, beta1: 0.9, beta2: 0.999, eps: 1e-8, t: 0, m: Vec::new(), v: Vec::new() }
     }
 
+    /// Checks that the optimiser's moment estimates fit `params` (one per
+    /// parameter tensor, of its size; or none yet, before the first step), as
+    /// they must for [`Adam::step`] to continue from them: what a resumed run
+    /// checks of the state it read.
+    pub fn check_layout<F: Float>(&self, params: &ParamStore<F>) -> Result<(), String> {
+        if self.m.len() != self.v.len() {
+            return Err(format!("{} first moments but {} second moments", self.m.len(), self.v.len()));
+        }
+        if self.m.is_empty() {
+            return Ok(());
+        }
+        if self.m.len() != params.len() {
+            return Err(format!("moments of {} tensors for {} parameters", self.m.len(), params.len()));
+        }
+        for (i, ((m, v), p)) in self.m.iter().zip(&self.v).zip(params.values()).enumerate() {
+            if m.len() != p.numel() || v.len() != p.numel() {
+                return Err(format!(
+                    "moments of sizes {} and {} for parameter {} of size {}",
+                    m.len(),
+                    v.len(),
+                    params.name(ParamId(i)),
+                    p.numel()
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// One update of `params` with `grads` (same order and shapes). A non-finite
     /// gradient leaves parameters and state untouched and returns
     /// [`StepError::NonFinite`].
@@ -117,9 +145,13 @@ impl Adam {
             self.m = grads.iter().map(|g| vec![0.0; g.numel()]).collect();
             self.v = grads.iter().map(|g| vec![0.0; g.numel()]).collect();
         }
-        self.t += 1;
-        let c1 = 1.0 - self.beta1.powi(self.t as i32);
-        let c2 = 1.0 - self.beta2.powi(self.t as i32);
+        // A step count read from a file may be anything: it saturates rather
+        // than wraps, and past i32::MAX the bias corrections are 1 to the
+        // last bit, so the exponent saturates too.
+        self.t = self.t.saturating_add(1);
+        let t = i32::try_from(self.t).unwrap_or(i32::MAX);
+        let c1 = 1.0 - self.beta1.powi(t);
+        let c2 = 1.0 - self.beta2.powi(t);
         for (i, (p, g)) in params.values_mut().iter_mut().zip(grads).enumerate() {
             let lr = self.lr * rate_factors.map_or(1.0, |f| f[i]);
             for (j, (x, &gj)) in p.data_mut().iter_mut().zip(g.data()).enumerate() {

@@ -6,11 +6,35 @@ use serde::{Deserialize, Serialize};
 use crate::float::Float;
 
 /// A dense, row-major, n-dimensional array. A scalar has shape `[]`.
+///
+/// Deserialising checks that the data has as many elements as the shape says
+/// (a damaged file is an error, not a tensor that panics when used).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(bound = "F: Float")]
+#[serde(bound = "F: Float", try_from = "TensorParts<F>")]
 pub struct Tensor<F: Float> {
     shape: Vec<usize>,
     data: Vec<F>,
+}
+
+/// A tensor's fields as serialised, before [`Tensor`]'s check of their sizes.
+#[derive(Deserialize)]
+#[serde(bound = "F: Float")]
+struct TensorParts<F: Float> {
+    shape: Vec<usize>,
+    data: Vec<F>,
+}
+
+impl<F: Float> TryFrom<TensorParts<F>> for Tensor<F> {
+    type Error = String;
+
+    fn try_from(parts: TensorParts<F>) -> Result<Self, String> {
+        let TensorParts { shape, data } = parts;
+        let numel = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d));
+        if numel != Some(data.len()) {
+            return Err(format!("tensor of shape {shape:?} with {} elements", data.len()));
+        }
+        Ok(Tensor { shape, data })
+    }
 }
 
 impl<F: Float> Tensor<F> {

@@ -23,15 +23,37 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// The most columns any dataset file has.
 const MAX_COLUMNS: usize = 14;
 
-/// Reads a whole text file; a missing file is [`DataError::MissingFile`].
-fn read_text(path: &Path) -> Result<String, DataError> {
-    fs::read_to_string(path).map_err(|e| {
+/// The longest line a CSV file may have, in bytes. A row of fourteen numbers
+/// in shortest round-trip form takes under 400; the bound lets a reader stop
+/// at a line that cannot be a row (a file without line breaks, say) before
+/// holding it in memory.
+pub(crate) const MAX_LINE_BYTES: usize = 1 << 20;
+
+/// The largest `meta.json` read, in bytes (the file holds four short fields).
+pub(crate) const MAX_META_BYTES: u64 = 1 << 20;
+
+/// Reads the text of `meta.json`; a missing file is [`DataError::MissingFile`],
+/// one over [`MAX_META_BYTES`] an error before it is read.
+fn read_meta_text(path: &Path) -> Result<String, DataError> {
+    let file = fs::File::open(path).map_err(|e| {
         if e.kind() == io::ErrorKind::NotFound {
             DataError::MissingFile { path: path.to_path_buf() }
         } else {
             DataError::io(path, e)
         }
-    })
+    })?;
+    let mut bytes = Vec::new();
+    io::Read::read_to_end(&mut io::Read::take(file, MAX_META_BYTES + 1), &mut bytes)
+        .map_err(|e| DataError::io(path, e))?;
+    if bytes.len() as u64 > MAX_META_BYTES {
+        return Err(DataError::Meta {
+            line: 1,
+            field: "-".into(),
+            message: format!("the file is over {MAX_META_BYTES} bytes; meta.json holds four short fields"),
+        });
+    }
+    String::from_utf8(bytes)
+        .map_err(|e| DataError::io(path, io::Error::new(io::ErrorKind::InvalidData, e.utf8_error())))
 }
 
 /// One data row of a CSV file, with typed accessors that report bad fields.
@@ -121,10 +143,19 @@ fn read_rows(
     let mut line_no = 0;
     loop {
         buffer.clear();
-        if reader.read_line(&mut buffer).map_err(|e| DataError::io(&path, e))? == 0 {
+        let limit = MAX_LINE_BYTES as u64 + 1;
+        if io::Read::take(&mut reader, limit).read_line(&mut buffer).map_err(|e| DataError::io(&path, e))? == 0 {
             break;
         }
         line_no += 1;
+        if buffer.len() > MAX_LINE_BYTES {
+            return Err(DataError::invalid(
+                name,
+                Place::Line(line_no),
+                "-",
+                Problem::Other(format!("line longer than {MAX_LINE_BYTES} bytes")),
+            ));
+        }
         let line = buffer.strip_suffix('\n').unwrap_or(&buffer);
         let line = line.strip_suffix('\r').unwrap_or(line);
         if line_no == 1 {
@@ -243,7 +274,7 @@ fn observation_kind(dir: &Path) -> Result<ObservationKind, DataError> {
 
 /// [`read_dir`] (`keep` = `None`) or [`read_shard`].
 fn read_objects(dir: &Path, keep: Option<&HashSet<(i64, i64)>>) -> Result<Dataset, DataError> {
-    let meta = parse_meta(&read_text(&dir.join(META_FILE))?)?;
+    let meta = parse_meta(&read_meta_text(&dir.join(META_FILE))?)?;
     let kind = observation_kind(dir)?;
     let av = read_csv(dir, AV_FILE, &AV_COLUMNS, |r| {
         // Parse in column order so the first bad column is reported.
@@ -313,7 +344,7 @@ fn read_objects(dir: &Path, keep: Option<&HashSet<(i64, i64)>>) -> Result<Datase
 /// of each object, without parsing any value. An object whose scene `av.csv`
 /// lacks is reported here, as [`read_dir`] would.
 pub(crate) fn read_layout(dir: &Path) -> Result<DataLayout, DataError> {
-    let meta = parse_meta(&read_text(&dir.join(META_FILE))?)?;
+    let meta = parse_meta(&read_meta_text(&dir.join(META_FILE))?)?;
     let kind = observation_kind(dir)?;
     let mut scene_ids = Vec::new();
     read_rows(dir, AV_FILE, &AV_COLUMNS, |r| {

@@ -5,7 +5,7 @@ use std::fmt;
 use std::fs::{File, OpenOptions};
 use std::path::{Path, PathBuf};
 
-use autodiff::nn::{read_versioned, write_versioned, ParamError, ParamStore};
+use autodiff::nn::{decode_versioned, write_versioned, ParamError, ParamStore};
 use autodiff::optim::Adam;
 use serde::{Deserialize, Serialize};
 
@@ -148,19 +148,60 @@ impl Checkpoint {
     /// over); a missing file is [`TrainError::NoCheckpoint`], an unreadable or
     /// damaged one [`TrainError::Checkpoint`].
     pub fn load(path: &Path) -> Result<Checkpoint, TrainError> {
-        let read = match read_versioned(path, CHECKPOINT_VERSION) {
-            Err(ParamError::Version { found: 2, .. }) => {
-                read_versioned::<CheckpointV2>(path, 2).map(|v2| Checkpoint::from(CheckpointV3::from(v2)))
-            }
-            Err(ParamError::Version { found: 3, .. }) => read_versioned::<CheckpointV3>(path, 3).map(Checkpoint::from),
-            read => read,
-        };
-        read.map_err(|source| match source {
-            ParamError::Io { source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+        let bytes = std::fs::read(path).map_err(|source| {
+            if source.kind() == std::io::ErrorKind::NotFound {
                 TrainError::NoCheckpoint { path: path.to_path_buf() }
+            } else {
+                let source = ParamError::Io { path: path.display().to_string(), source };
+                TrainError::Checkpoint { path: path.to_path_buf(), source }
             }
-            source => TrainError::Checkpoint { path: path.to_path_buf(), source },
-        })
+        })?;
+        Checkpoint::decode(&bytes, &path.display().to_string())
+            .map_err(|source| TrainError::Checkpoint { path: path.to_path_buf(), source })
+    }
+
+    /// Decodes the bytes of a checkpoint file (what [`Checkpoint::load`] does
+    /// after reading the file); a damaged one is [`TrainError::Checkpoint`]
+    /// with the path `<bytes>`.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, TrainError> {
+        let name = "<bytes>";
+        Checkpoint::decode(bytes, name).map_err(|source| TrainError::Checkpoint { path: name.into(), source })
+    }
+
+    /// Decodes a checkpoint of this format version, or of version 2 or 3, and
+    /// checks that its parts fit together ([`Checkpoint::check_layout`]).
+    fn decode(bytes: &[u8], name: &str) -> Result<Checkpoint, ParamError> {
+        let ckpt = Checkpoint::decode_any_version(bytes, name)?;
+        ckpt.check_layout()
+            .map_err(|reason| ParamError::Corrupt { path: name.to_string(), reason: reason.to_string() })?;
+        Ok(ckpt)
+    }
+
+    /// Checks what a resumed run relies on: the optimiser's moments fit the
+    /// parameters, and the best and averaged parameters have their layout.
+    fn check_layout(&self) -> Result<(), String> {
+        self.adam.check_layout(&self.params).map_err(|e| format!("optimiser state: {e}"))?;
+        for (what, store) in
+            [("best", self.best.as_ref().map(|b| &b.2)), ("average", self.average.as_ref().map(|a| &a.1))]
+        {
+            if let Some(store) = store {
+                self.params.check_same_layout(store).map_err(|e| format!("{what} parameters: {e}"))?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Decodes a checkpoint of this format version, or of version 2 or 3.
+    fn decode_any_version(bytes: &[u8], name: &str) -> Result<Checkpoint, ParamError> {
+        match decode_versioned(bytes, CHECKPOINT_VERSION, name) {
+            Err(ParamError::Version { found: 2, .. }) => {
+                decode_versioned::<CheckpointV2>(bytes, 2, name).map(|v2| Checkpoint::from(CheckpointV3::from(v2)))
+            }
+            Err(ParamError::Version { found: 3, .. }) => {
+                decode_versioned::<CheckpointV3>(bytes, 3, name).map(Checkpoint::from)
+            }
+            read => read,
+        }
     }
 
     /// Writes the checkpoint atomically (temporary file, then rename).

@@ -38,16 +38,28 @@ pub(super) struct SeqFile {
     pub(super) text: String,
 }
 
+/// The largest KITTI text file read, in bytes: the largest of the data
+/// (a label file of about 1100 frames) is under 2 MB, so a file past this is
+/// refused before it is held in memory.
+pub(super) const MAX_FILE_BYTES: u64 = 64 << 20;
+
 pub(super) fn read_seq_file(root: &Path, folder: &str, seq: u32) -> Result<SeqFile, DataError> {
     let name = format!("{folder}/{seq:04}.txt");
     let path = root.join(&name);
-    let text = fs::read_to_string(&path).map_err(|e| {
+    let file = fs::File::open(&path).map_err(|e| {
         if e.kind() == std::io::ErrorKind::NotFound {
             DataError::MissingFile { path: path.clone() }
         } else {
             DataError::io(&path, e)
         }
     })?;
+    let mut text = String::new();
+    std::io::Read::read_to_string(&mut std::io::Read::take(file, MAX_FILE_BYTES + 1), &mut text)
+        .map_err(|e| DataError::io(&path, e))?;
+    if text.len() as u64 > MAX_FILE_BYTES {
+        let problem = Problem::Other(format!("file over {MAX_FILE_BYTES} bytes (KITTI files are under 2 MB)"));
+        return Err(DataError::invalid(&name, Place::Line(1), "-", problem));
+    }
     Ok(SeqFile { name, text })
 }
 
@@ -60,23 +72,29 @@ impl SeqFile {
         sep: Option<char>,
     ) -> impl Iterator<Item = Result<Fields<'a>, DataError>> + 'a {
         self.text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(move |(i, l)| {
-            let fields: Vec<&str> = match sep {
-                Some(c) => l.split(c).map(str::trim).collect(),
-                None => l.split_whitespace().collect(),
+            // Fields are counted before they are collected, so a line of a
+            // million fields is an error without a vector of a million.
+            let found = match sep {
+                Some(c) => l.split(c).count(),
+                None => l.split_whitespace().count(),
             };
-            let f = Fields { file: &self.name, line: i + 1, columns, fields };
-            if f.fields.len() != columns.len() {
+            if found != columns.len() {
                 let col = columns
-                    .get(f.fields.len())
+                    .get(found)
                     .map(|c| c.to_string())
                     .unwrap_or_else(|| format!("(extra field {})", columns.len() + 1));
                 return Err(DataError::invalid(
                     &self.name,
                     Place::Line(i + 1),
                     col,
-                    Problem::FieldCount { expected: columns.len(), found: f.fields.len() },
+                    Problem::FieldCount { expected: columns.len(), found },
                 ));
             }
+            let fields: Vec<&str> = match sep {
+                Some(c) => l.split(c).map(str::trim).collect(),
+                None => l.split_whitespace().collect(),
+            };
+            let f = Fields { file: &self.name, line: i + 1, columns, fields };
             Ok(f)
         })
     }
