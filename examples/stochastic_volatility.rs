@@ -26,11 +26,11 @@ use ssm::filter::{run_filter, FilterConfig, Sampling};
 use ssm::models::tape_model::{OnTape, TapeModel};
 
 /// The stochastic-volatility model over some observation sequences.
-struct Sv<'a> {
+pub struct Sv<'a> {
     /// `[phi, ln sigma, ln beta]`.
-    theta: [f64; 3],
+    pub theta: [f64; 3],
     /// One sequence `y_{0:T}` per object.
-    ys: &'a [Vec<f64>],
+    pub ys: &'a [Vec<f64>],
 }
 
 /// `theta`'s three scalars on the tape, split from the one `[3]` parameter
@@ -93,7 +93,7 @@ impl TapeModel for Sv<'_> {
 }
 
 /// `objects` sequences of `len` observations at `theta = [phi, ln sigma, ln beta]`.
-fn simulate(theta: [f64; 3], objects: usize, len: usize, seed: u64) -> Vec<Vec<f64>> {
+pub fn simulate(theta: [f64; 3], objects: usize, len: usize, seed: u64) -> Vec<Vec<f64>> {
     let [phi, sigma, beta] = [theta[0], theta[1].exp(), theta[2].exp()];
     let mut rng = StdRng::seed_from_u64(seed);
     let mut normal = move || rng.sample::<f64, _>(StandardNormal);
