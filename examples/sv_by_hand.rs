@@ -177,7 +177,14 @@ fn sv_by_hand(objects: usize, len: usize, particles: usize, repeats: usize) -> V
         name: "filter",
         hand: (ll(&run_hand), vec![]),
         once: (ll(&run_once), vec![]),
-        seconds: (median_seconds(repeats, || drop(run_hand())), median_seconds(repeats, || drop(run_once()))),
+        seconds: (
+            median_seconds(repeats, || {
+                std::hint::black_box(run_hand());
+            }),
+            median_seconds(repeats, || {
+                std::hint::black_box(run_once());
+            }),
+        ),
     });
     for (name, estimator) in [("PF-SEFI L=10", Estimator::pf_sefi(10)), ("DPF-SGR", Estimator::dpf_sgr())] {
         let estimate = |m: &dyn Fn() -> ssm::estimators::ScoreEstimate| {
@@ -190,7 +197,14 @@ fn sv_by_hand(objects: usize, len: usize, particles: usize, repeats: usize) -> V
             name,
             hand: estimate(&run_hand),
             once: estimate(&run_once),
-            seconds: (median_seconds(repeats, || drop(run_hand())), median_seconds(repeats, || drop(run_once()))),
+            seconds: (
+                median_seconds(repeats, || {
+                    std::hint::black_box(run_hand());
+                }),
+                median_seconds(repeats, || {
+                    std::hint::black_box(run_once());
+                }),
+            ),
         });
     }
     println!("{objects} sequences of {len} observations, {particles} particles, median of {repeats} runs");
