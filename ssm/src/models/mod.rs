@@ -14,6 +14,9 @@
 //!   frame to frame, as offsets in the state of [`extended::ExtendedSsm`].
 //! * [`linear_gaussian`]: the linear-Gaussian model with its exact Kalman
 //!   likelihood and score, and as a particle model.
+//! * [`tape_model`]: [`tape_model::TapeModel`], a user's model written once on
+//!   the tape, and [`tape_model::OnTape`], which makes it a particle model and a
+//!   differentiable model.
 //! * [`params`]: the parameter-file convention ([`params::Models`]).
 //! * `plain_mlp`: the tape-free block kernel that runs the networks in the filter.
 //! * [`error`]: [`ModelError`], why a model could not be built.
@@ -27,6 +30,7 @@ pub mod observation;
 pub mod params;
 pub(crate) mod plain_mlp;
 pub mod road_user;
+pub mod tape_model;
 pub mod traits;
 pub mod vehicle;
 
