@@ -184,7 +184,7 @@ pub struct DiagnoseConfig {
     /// filters such objects again with [`DiagnoseConfig::refine_factor`] times
     /// the particles (the same seeds for every model, so the pairing holds),
     /// and an object the refined runs bring under the bar stays, with its
-    /// refined estimates. On by default since 2026-12-02: over the power
+    /// refined estimates. On by default (protocol v7): over the power
     /// study's 130 cells it changed no outcome and moved the named gains by
     /// what the objects set aside had inflated (README, "Objects a model does
     /// not measure"). A report written before it reads `false` (every

@@ -317,7 +317,7 @@ pub(super) fn not_admitted_clause(check_part_gain: f64, check_part_p: Option<f64
 }
 
 /// Rule (b)'s least gain over the reference: `min_gain`; in reports whose
-/// reseeded refit did not keep its per-object gains (before 2026-11-27, so no
+/// reseeded refit did not keep its per-object gains (so no
 /// candidate could be compared with it by object), the size of its gain when
 /// that is larger.
 pub(super) fn gain_bar(min_gain: f64, reseeded: Option<&ReseededReport>) -> f64 {

@@ -90,7 +90,8 @@
 //! `unmeasured.rs` the objects a model does not measure; `dispatch.rs` the
 //! dispatch over the data's models; `report.rs` the report's schema;
 //! `judge.rs` the reading of a stored report under the current rules;
-//! `progress.rs` the progress stages; `heldout.rs` the held-out evaluation and
+//! `progress.rs` the progress stages; `protocol.rs` the named versions of
+//! the rules; `heldout.rs` the held-out evaluation and
 //! the paired comparison of two models, `replicated.rs` the replicated
 //! (posterior predictive) checks.
 //! The paths the checks draw come from [`crate::filter::paths`].
@@ -102,6 +103,7 @@ mod heldout;
 mod judge;
 mod pipeline;
 mod progress;
+mod protocol;
 mod references;
 mod replicated;
 mod report;
@@ -117,6 +119,7 @@ pub use fits::TRAINING_RUN_DIRS;
 pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 pub use judge::{EvalPart, StudyDecision};
 pub use progress::Stage;
+pub use protocol::{Protocol, Screen, DEFAULT_PROTOCOL, PROTOCOLS};
 pub use report::{CandidateReport, CheckReport, ImpreciseObject, NotAdmitted, ReferenceReport, Report, ReseededReport};
 pub use rules::{
     beats_reseeded, flagged_check_moves, improves_flagged_checks, nested_comparisons, FailedRule, NestedComparison,

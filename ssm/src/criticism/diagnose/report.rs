@@ -178,7 +178,7 @@ pub struct CandidateReport {
     /// [`DiagnoseConfig::plausible_p`] it admits the candidate (into step 5's
     /// Holm family, and rule (d)); above it the extension was fitted and not
     /// admitted, and is a candidate only where an admitted one nests it (in
-    /// reports written before 2026-12-06, every such extension was). `None`
+    /// reports written before the [`NotAdmitted`] list, every such extension was). `None`
     /// otherwise.
     #[serde(default)]
     pub check_part_p: Option<f64>,
@@ -314,7 +314,7 @@ pub struct Report {
     pub likelihood_screen: Vec<LikelihoodScreen>,
     /// The extensions the fitted screen fitted and did not admit
     /// ([`DiagnoseConfig::fitted_screen`]; empty without it, and in reports
-    /// written before 2026-12-06, which kept them among `candidates` with
+    /// written before this list, which kept them among `candidates` with
     /// `p adj.` 1).
     #[serde(default)]
     pub not_admitted: Vec<NotAdmitted>,

@@ -275,8 +275,9 @@ pub(super) fn reference_tests(
 /// (kurtosis and Geary's ratio for heavy tails), and a mixture that explains
 /// the kurtosis can leave the Geary ratio's z larger as its replicates' spread
 /// narrows (measured: |z| 1.16 -> 0.82 and 0.91 -> 2.42 on one diagnosis).
-/// Until 2026-11-26 the mean |z| over the flagging checks had to fall; until
-/// 2026-11-29 (twenty-fifth session) an overshoot did not count.
+/// (Earlier forms of this rule asked the mean |z| over the flagging checks to
+/// fall, and did not count an overshoot; a stored report is decided again by
+/// this one.)
 pub fn improves_flagged_checks(
     flagged_by: &[String],
     reference: &[CheckResult],
