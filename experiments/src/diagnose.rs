@@ -10,7 +10,8 @@ use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Report, Stage, NO_CAUSE, UNEXPLAINED,
+    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Protocol, Report, Screen, Stage, DEFAULT_PROTOCOL, NO_CAUSE,
+    PROTOCOLS, UNEXPLAINED,
 };
 use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
@@ -22,6 +23,28 @@ use crate::train::bar;
 
 /// Checks plotted in the report (the largest |z| first).
 const PLOTTED_CHECKS: usize = 4;
+
+/// The protocol a diagnosis runs under, declared once for `sefi diagnose` and
+/// `sefi power-study`.
+#[derive(Args, Debug, Clone)]
+pub struct ProtocolArg {
+    /// The version of the diagnosis's rules: the default is frozen, and the others are those the committed reports
+    /// and studies were made with (see `ssm::criticism::diagnose::PROTOCOLS`).
+    #[arg(long, default_value = DEFAULT_PROTOCOL, value_parser = protocol_names())]
+    protocol: String,
+}
+
+impl ProtocolArg {
+    /// The protocol named.
+    pub fn protocol(&self) -> Result<&'static Protocol, String> {
+        Protocol::named(&self.protocol)
+    }
+}
+
+/// Every protocol's name, for the command line.
+fn protocol_names() -> clap::builder::PossibleValuesParser {
+    clap::builder::PossibleValuesParser::new(PROTOCOLS.iter().map(|p| p.name))
+}
 
 /// Arguments of `sefi diagnose`.
 #[derive(Args, Debug)]
@@ -42,28 +65,30 @@ pub struct DiagnoseArgs {
     /// Seed of the split, initialisation, training and checks.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    #[command(flatten)]
+    protocol: ProtocolArg,
     /// Fit every extension that applies to the data, not only those the checks make plausible.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     fit_all: bool,
     /// Fit also the extensions no check flagged whose start raises the check objects' likelihood over the base's
     /// (one-sided sign-flip p below 0.2); such an extension must raise it again after its fit, over the
     /// reference's, to be named.
-    #[arg(long, conflicts_with = "fit_all")]
+    #[arg(long, hide = true, conflicts_with = "fit_all")]
     likelihood_screen: bool,
     /// Fit every extension no check flagged, and keep one as a candidate only when its fitted model raises the check
     /// objects' likelihood over its reference's (one-sided sign-flip p below 0.2): a screen by the fitted model's
     /// likelihood rather than a summary statistic, at the cost of fitting every extension.
-    #[arg(long, conflicts_with_all = ["fit_all", "likelihood_screen"])]
+    #[arg(long, hide = true, conflicts_with_all = ["fit_all", "likelihood_screen"])]
     fitted_screen: bool,
     /// With --fitted-screen: pause each extension the screen fits at the first evaluation after this share of its
     /// steps, and continue it only where its best check-part evaluation is above the base's (0: fit each to its end)
     /// [default: 1/3].
-    #[arg(long, requires = "fitted_screen")]
+    #[arg(long, hide = true, requires = "fitted_screen")]
     screen_futility: Option<f64>,
     /// Fit a nesting extension (persistent_flip) from the base, as every other, instead of where its nested
     /// extension's fit (heading_flip) ended (the base's parameters and the fraction from that fit, the
     /// persistence from the checks).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     no_nesting_from_nested: bool,
     /// PF-SEFI steps of the base fit.
     #[arg(long)]
@@ -81,78 +106,85 @@ pub struct DiagnoseArgs {
     #[arg(long)]
     eval_runs: Option<usize>,
     /// Train with the bootstrap filter instead of the tempered one (the checks and the evaluation stay tempered).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     bootstrap_training: bool,
     /// The smallest gain that names a cause (nats per observed unit).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     min_gain: Option<f64>,
     /// Smoother draws per held-out object.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     draws: Option<usize>,
     /// Scenes per training step.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     scenes_per_step: Option<usize>,
     /// Fraction of the objects that fit the models.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     fit_fraction: Option<f64>,
     /// Fraction of the objects that check the base and start the candidates (the rest evaluate the gain).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     check_fraction: Option<f64>,
     /// Adam learning rate of the base fit.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     lr: Option<f64>,
     /// Adam learning rate of the candidates' fits and the reference's.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     candidate_lr: Option<f64>,
     /// Adam learning rate at which the refits move the base's parameters (the extensions' own parameters stay at
     /// --candidate-lr) [default: --candidate-lr for all; the base's final rate, --lr / 10, continues the base
     /// where it ended].
-    #[arg(long)]
+    #[arg(long, hide = true)]
     refit_base_lr: Option<f64>,
     /// Evaluate every fit on the check objects every this many steps and keep its best parameters (0: keep the
     /// last) [default: 25].
-    #[arg(long)]
+    #[arg(long, hide = true)]
     keep_best_every: Option<usize>,
     /// Average the iterates of every fit's last this share of steps and keep their mean (Polyak–Ruppert tail
     /// averaging; 0: keep the iterate) [default: 0].
-    #[arg(long)]
+    #[arg(long, hide = true)]
     average_tail: Option<f64>,
     /// Learn only the extensions' parameters on top of the fixed base (the base is the reference), instead of
     /// refitting every parameter with them beside the base refitted alone.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     no_refit: bool,
     /// Do not refit the base a second time with another seed to measure the refits' own noise (a cause's gain
     /// must then exceed only --min-gain).
-    #[arg(long)]
+    #[arg(long, hide = true)]
     no_refit_noise: bool,
     /// Refit every candidate (and its reference) in every parameter, the extensions of the dynamics (heavy tails)
-    /// included, instead of those in the policy alone with the observation network held, as diagnoses before
-    /// 2026-12-01 did.
-    #[arg(long)]
+    /// included, instead of those in the policy alone with the observation network held (protocol v5 and earlier).
+    #[arg(long, hide = true)]
     no_scoped_refits: bool,
-    /// Keep every evaluation object, as diagnoses before 2026-12-02 did, instead of setting aside those on which
+    /// Keep every evaluation object (protocol v6 and earlier) instead of setting aside those on which
     /// the models cannot be compared: whose held-out log-likelihood has a Monte Carlo sd above --min-gain times the
     /// evaluation part's units under some model, after a refinement (listed in the report).
-    #[arg(long, conflicts_with = "set_aside_unmeasured")]
+    #[arg(long, hide = true, conflicts_with = "set_aside_unmeasured")]
     keep_unmeasured: bool,
-    /// Set aside the objects no model measures: the default, accepted so that commands written before it was
-    /// still run.
+    /// Set aside the objects no model measures: the default, accepted for older commands.
     #[arg(long, hide = true)]
     set_aside_unmeasured: bool,
     /// Every model filters an object it did not measure again with this many times the evaluation particles
     /// before it is set aside, and an object brought under the bar stays (1: no refinement) [default: 8].
-    #[arg(long)]
+    #[arg(long, hide = true)]
     refine_factor: Option<usize>,
 }
 
 impl DiagnoseArgs {
-    fn config(&self) -> DiagnoseConfig {
+    /// The diagnosis's settings: the scale (`--quick` or the default), the
+    /// protocol's rules, then every expert override given.
+    fn config(&self) -> Result<DiagnoseConfig, String> {
         let mut c = if self.quick { DiagnoseConfig::quick() } else { DiagnoseConfig::default() };
+        self.protocol.protocol()?.apply(&mut c);
         c.seed = self.seed;
-        c.fit_all = self.fit_all;
-        c.likelihood_screen = self.likelihood_screen;
-        c.fitted_screen = self.fitted_screen;
-        c.nesting_from_nested = !self.no_nesting_from_nested;
+        for (on, screen) in [
+            (self.fit_all, Screen::FitAll),
+            (self.likelihood_screen, Screen::Likelihood),
+            (self.fitted_screen, Screen::Fitted),
+        ] {
+            if on {
+                screen.apply_to(&mut c);
+            }
+        }
+        c.nesting_from_nested &= !self.no_nesting_from_nested;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;
@@ -175,12 +207,12 @@ impl DiagnoseArgs {
         c.refit_base_lr = self.refit_base_lr.or(c.refit_base_lr);
         set(&mut c.keep_best_every, self.keep_best_every);
         set(&mut c.average_tail, self.average_tail);
-        c.refit = !self.no_refit;
-        c.refit_noise = !self.no_refit_noise;
-        c.scoped_refits = !self.no_scoped_refits;
-        c.set_aside_unmeasured = !self.keep_unmeasured;
+        c.refit &= !self.no_refit;
+        c.refit_noise &= !self.no_refit_noise;
+        c.scoped_refits &= !self.no_scoped_refits;
+        c.set_aside_unmeasured &= !self.keep_unmeasured;
         set(&mut c.refine_factor, self.refine_factor);
-        c
+        Ok(c)
     }
 }
 
@@ -190,7 +222,7 @@ impl DiagnoseArgs {
 /// [`diagnose`]).
 pub fn run(args: &DiagnoseArgs, cluster: &Cluster) -> Result<(), String> {
     let data = Dataset::read(&args.data).map_err(|e| e.to_string())?;
-    let config = args.config();
+    let config = args.config()?;
     config.validate()?;
     let root = cluster.is_root();
     // The first process holds `--out` for the whole diagnosis (its fits resume
@@ -537,7 +569,7 @@ fn fitted_screen_note(r: &Report) -> String {
     }
     let unadmitted_candidate = r.candidates.iter().any(|c| !c.admitted(r.config.plausible_p));
     let others = match (r.not_admitted.is_empty(), unadmitted_candidate) {
-        // A report written before 2026-12-06 kept every unadmitted extension among the candidates.
+        // A report written before the `not_admitted` list kept every unadmitted extension among the candidates.
         (true, true) => "; the others show `p adj.` 1 and fail (d)",
         (true, false) => "",
         (false, _) => {

@@ -15,13 +15,14 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
+use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, Screen, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 use ssm::stats::wilson_interval;
 use ssm::training::EVAL_LOG;
 
 use crate::cluster::Cluster;
+use crate::diagnose::ProtocolArg;
 use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{share_chart, Share, ShareSeries};
 
@@ -46,59 +47,80 @@ pub struct PowerArgs {
     /// at another data size. Use a fresh `--out` for it.
     #[arg(long)]
     scenes: Option<usize>,
+    #[command(flatten)]
+    protocol: ProtocolArg,
     /// Adam's learning rate of every diagnosis's refits (the reference's and the
     /// candidates'), in place of the quick diagnosis's: the study at another
     /// refit rate. Use a fresh `--out` for it.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     candidate_lr: Option<f64>,
     /// Adam's learning rate of the base model's parameters in every refit, while
     /// an extension's learn at the refit rate (`sefi diagnose --refit-base-lr`):
     /// the study with the base refitted at its own rate. Use a fresh `--out` for it.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     refit_base_lr: Option<f64>,
     /// Every diagnosis runs the likelihood screen (`sefi diagnose
     /// --likelihood-screen`): the study with extensions no check flagged screened
     /// in by their start's likelihood. Use a fresh `--out` for it.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     likelihood_screen: bool,
     /// Every diagnosis runs the fitted screen (`sefi diagnose --fitted-screen`):
     /// every extension fitted, those no check flagged kept as candidates by their
     /// fitted model's likelihood on the check objects. Use a fresh `--out` for it.
-    #[arg(long, conflicts_with = "likelihood_screen")]
+    #[arg(long, hide = true, conflicts_with = "likelihood_screen")]
     fitted_screen: bool,
     /// With --fitted-screen: the futility stop's share of a fit's steps (`sefi diagnose --screen-futility`; 0: every
-    /// screened extension fitted to its end, as the studies before 2026-12-06's fortieth session) [default: 1/3].
-    #[arg(long, requires = "fitted_screen")]
+    /// screened extension fitted to its end, protocol v7-fitted-screen-full) [default: 1/3].
+    #[arg(long, hide = true, requires = "fitted_screen")]
     screen_futility: Option<f64>,
     /// Every diagnosis fits a nesting extension from the base (`sefi diagnose
-    /// --no-nesting-from-nested`), as the studies before 2026-11-30's
-    /// twenty-eighth session did: their directories' tables need it.
-    #[arg(long)]
+    /// --no-nesting-from-nested`; protocol v4 and earlier).
+    #[arg(long, hide = true)]
     no_nesting_from_nested: bool,
     /// Every diagnosis refits its candidates in every parameter (`sefi diagnose
-    /// --no-scoped-refits`), as the studies before 2026-12-01's twenty-ninth
-    /// session did: their directories' tables need it.
-    #[arg(long)]
+    /// --no-scoped-refits`; protocol v5 and earlier).
+    #[arg(long, hide = true)]
     no_scoped_refits: bool,
     /// Every diagnosis keeps every evaluation object (`sefi diagnose
-    /// --keep-unmeasured`), as the studies before 2026-12-02's thirty-fourth
-    /// session did: their directories' tables need it.
-    #[arg(long, conflicts_with = "set_aside_unmeasured")]
+    /// --keep-unmeasured`; protocol v6 and earlier).
+    #[arg(long, hide = true, conflicts_with = "set_aside_unmeasured")]
     keep_unmeasured: bool,
     /// Every diagnosis sets aside the evaluation objects no model measures: the
-    /// default, accepted so that commands written before it was still run.
+    /// default, accepted for older commands.
     #[arg(long, hide = true)]
     set_aside_unmeasured: bool,
     /// Every fit of every diagnosis returns the mean of its last this share of
     /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
     /// fits. Use a fresh `--out` for it.
-    #[arg(long)]
+    #[arg(long, hide = true)]
     average_tail: Option<f64>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
     #[arg(long)]
     table_only: bool,
+}
+
+impl PowerArgs {
+    /// The study's setting: the protocol's rules, then every expert override given.
+    fn setting(&self) -> Result<StudySetting, String> {
+        let mut c = DiagnoseConfig::quick();
+        self.protocol.protocol()?.apply(&mut c);
+        if self.likelihood_screen {
+            Screen::Likelihood.apply_to(&mut c);
+        }
+        if self.fitted_screen {
+            Screen::Fitted.apply_to(&mut c);
+        }
+        if let Some(futility) = self.screen_futility {
+            c.screen_futility = futility;
+        }
+        c.nesting_from_nested &= !self.no_nesting_from_nested;
+        c.scoped_refits &= !self.no_scoped_refits;
+        c.set_aside_unmeasured &= !self.keep_unmeasured;
+        let setting = StudySetting::new_from(&c, self.candidate_lr, self.refit_base_lr, self.average_tail)?;
+        Ok(setting)
+    }
 }
 
 /// Every effect id of the study, in the order of its tables (and the default of
@@ -208,7 +230,17 @@ impl StudySetting {
         refit_base_lr: Option<f64>,
         average_tail: Option<f64>,
     ) -> Result<StudySetting, String> {
-        let quick = DiagnoseConfig::quick();
+        StudySetting::new_from(&DiagnoseConfig::quick(), candidate_lr, refit_base_lr, average_tail)
+    }
+
+    /// [`StudySetting::new`] from the quick diagnosis under a protocol, `quick`.
+    fn new_from(
+        quick: &DiagnoseConfig,
+        candidate_lr: Option<f64>,
+        refit_base_lr: Option<f64>,
+        average_tail: Option<f64>,
+    ) -> Result<StudySetting, String> {
+        let quick = quick.clone();
         let config = DiagnoseConfig {
             candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
             refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
@@ -319,18 +351,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
-    let setting = StudySetting {
-        likelihood_screen: args.likelihood_screen,
-        fitted_screen: args.fitted_screen,
-        nesting_from_nested: !args.no_nesting_from_nested,
-        scoped_refits: !args.no_scoped_refits,
-        set_aside_unmeasured: !args.keep_unmeasured,
-        screen_futility: match args.fitted_screen {
-            true => args.screen_futility.unwrap_or(DiagnoseConfig::quick().screen_futility),
-            false => 0.0,
-        },
-        ..StudySetting::new(args.candidate_lr, args.refit_base_lr, args.average_tail)?
-    };
+    let setting = args.setting()?;
     setting.diagnose_config(0).validate().map_err(|e| {
         format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
     })?;

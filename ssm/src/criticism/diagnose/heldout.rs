@@ -266,4 +266,51 @@ mod tests {
         let one_run = EvalLikelihoods { object_ll: vec![0.0], object_mc_sd: vec![f64::NAN], units: 1 };
         assert!(gain_monte_carlo_sd(&one_run, &one_run).0.is_nan());
     }
+
+    /// Gains split by group: each group's gain is its objects' differences over
+    /// its units, the groups' gains weighted by their units add up to the whole
+    /// gain, and the groups come in ascending order with their objects counted.
+    #[test]
+    fn gains_by_group_split_the_whole_gain() {
+        let keys = [(20_003, 1), (10_007, 1), (20_050, 2), (10_007, 4), (30_000, 1)];
+        let gains = [1.0, -0.5, 3.0, 0.25, -2.0];
+        let units = [10, 5, 20, 5, 8];
+        let groups = gains_by_group(&gains, &keys, &units, |scene| scene / 10_000);
+        let labels: Vec<i64> = groups.iter().map(|g| g.group).collect();
+        assert_eq!(labels, vec![1, 2, 3]);
+        assert_eq!(groups[0].objects, 2);
+        assert_eq!(groups[0].units, 10);
+        assert!((groups[0].gain + 0.025).abs() < 1e-12);
+        assert!((groups[0].positive - 0.5).abs() < 1e-12);
+        assert!((groups[1].gain - 4.0 / 30.0).abs() < 1e-12);
+        assert!(groups[2].gain_se.is_infinite(), "one object has no spread");
+        let total: f64 = groups.iter().map(|g| g.gain * g.units as f64).sum();
+        let (whole, _) = paired_gain(&gains, &[0.0; 5], units.iter().sum());
+        assert!((total / 48.0 - whole).abs() < 1e-12);
+    }
+
+    /// The sign-flip p-value: exact enumeration for few objects, uniform-ish
+    /// under a symmetric null, small for a clear shift, and not fooled by one
+    /// object that carries the whole sum.
+    #[test]
+    fn sign_flip_p_is_calibrated_and_robust() {
+        // Exact: 3 objects, all positive -> only the identity flip reaches the sum.
+        assert!((sign_flip_p(&[1.0, 2.0, 3.0], 9999, 0) - 1.0 / 8.0).abs() < 1e-12);
+        // A clear shift over 40 objects.
+        let shifted: Vec<f64> = (0..40).map(|i| 1.0 + ((i * 37 % 11) as f64 - 5.0) * 0.2).collect();
+        assert!(sign_flip_p(&shifted, 9999, 1) < 1e-3);
+        // One huge object among many small negative ones: not significant.
+        let mut carried = vec![-0.1; 39];
+        carried.push(100.0);
+        assert!(sign_flip_p(&carried, 9999, 2) > 0.4, "one object cannot carry the decision");
+        // Under a symmetric null, p is below 0.05 in about 5% of draws.
+        let mut rng = SmallRng::seed_from_u64(3);
+        let rejections = (0..400)
+            .filter(|&k| {
+                let d: Vec<f64> = (0..30).map(|_| rng.random::<f64>() - 0.5).collect();
+                sign_flip_p(&d, 999, k) < 0.05
+            })
+            .count();
+        assert!((8..=36).contains(&rejections), "{rejections} of 400 null draws rejected at 5%");
+    }
 }
