@@ -7,11 +7,32 @@ and out and releases the GIL while it computes.
   exact Kalman log-likelihood and score, and every particle estimator's score.
 * :func:`particle_filter` -- a model written in Python (see :class:`Model`),
   filtered in Rust, with PF-SEFI's score from its callbacks.
+* :class:`SyntheticScene` -- the vehicle model on a generated scene: any
+  estimator's score as a dict by parameter name.
+* :func:`read_params`, :func:`write_params`, :func:`convert_params` -- parameter
+  files (``.npz`` or the project's format) as dicts of arrays.
 """
 
-from ._native import CallbackError, LinearGaussian, particle_filter
+from ._native import (
+    CallbackError,
+    LinearGaussian,
+    SyntheticScene,
+    convert_params,
+    particle_filter,
+    read_params,
+    write_params,
+)
 
-__all__ = ["CallbackError", "LinearGaussian", "Model", "particle_filter"]
+__all__ = [
+    "CallbackError",
+    "LinearGaussian",
+    "Model",
+    "SyntheticScene",
+    "convert_params",
+    "particle_filter",
+    "read_params",
+    "write_params",
+]
 
 
 class Model:

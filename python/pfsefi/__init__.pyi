@@ -2,6 +2,10 @@ from ._native import CallbackError as CallbackError
 from ._native import LinearGaussian as LinearGaussian
 from ._native import particle_filter as particle_filter
 from ._native import CallbackModel as CallbackModel
+from ._native import SyntheticScene as SyntheticScene
+from ._native import read_params as read_params
+from ._native import write_params as write_params
+from ._native import convert_params as convert_params
 from typing import Optional
 import numpy as np
 from numpy.typing import NDArray

@@ -1,6 +1,7 @@
 """Type stub of the native module ``pfsefi._native`` (Rust, PyO3)."""
 
-from typing import Any, Optional, Protocol, Tuple, TypedDict
+import os
+from typing import Any, Dict, Mapping, Optional, Protocol, Tuple, TypedDict, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -78,3 +79,40 @@ def particle_filter(
     ess_threshold: Optional[float] = None,
 ) -> FilterResult:
     """Filter a Python-defined model in Rust; with ``score``, PF-SEFI's score."""
+
+class VehicleScore(TypedDict):
+    loglik: float
+    score: Dict[str, F64]
+    observed_units: int
+    rows_evaluated: int
+    particle_slots: int
+    collapsed_steps: int
+
+class SyntheticScene:
+    """A synthetic scene of the paper's setting with its true vehicle model."""
+
+    def __init__(self, transitions: int = 25, seed: int = 3) -> None: ...
+    @property
+    def parameters(self) -> Dict[str, F64]: ...
+    @property
+    def num_objects(self) -> int: ...
+    def score(
+        self, estimator: str = "pf-sefi", particles: int = 1024, lag: int = 8, seed: int = 1,
+        precision: str = "f32", alpha: float = 0.8,
+    ) -> VehicleScore: ...
+    def score_timed(
+        self, estimator: str = "pf-sefi", particles: int = 1024, lag: int = 8, seed: int = 1,
+        precision: str = "f32", alpha: float = 0.8,
+    ) -> Tuple[VehicleScore, float]: ...
+    def save_params(self, path: Union[str, os.PathLike]) -> None: ...
+
+def read_params(path: Union[str, os.PathLike]) -> Dict[str, F64]:
+    """A parameter file (``.npz`` or the project's format) as arrays by name."""
+
+def write_params(params: Mapping[str, ArrayLike], path: Union[str, os.PathLike]) -> None:
+    """Arrays by name as a parameter file (``.npz`` or the project's format, by extension)."""
+
+def convert_params(
+    src: Union[str, os.PathLike], dst: Union[str, os.PathLike], like: Optional[Union[str, os.PathLike]] = None
+) -> None:
+    """A parameter file converted between formats by extension."""

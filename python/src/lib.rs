@@ -5,6 +5,8 @@
 //!   log-likelihood and score, every particle estimator's score);
 //! * [`callback`]: a model written in Python as vectorised callbacks, filtered
 //!   and scored by PF-SEFI in Rust;
+//! * [`vehicle`]: the vehicle model on a synthetic scene (score by parameter name);
+//! * [`params`]: parameter files (`.npz` and the project's format) as dicts;
 //! * [`convert`]: NumPy arguments checked into Rust values, errors into Python
 //!   exceptions, panics caught.
 //!
@@ -14,7 +16,9 @@
 pub mod callback;
 pub mod convert;
 pub mod lgssm;
+pub mod params;
 pub mod sampling;
+pub mod vehicle;
 
 use pyo3::prelude::*;
 
@@ -22,7 +26,11 @@ use pyo3::prelude::*;
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<lgssm::LinearGaussian>()?;
+    m.add_class::<vehicle::SyntheticScene>()?;
     m.add_function(wrap_pyfunction!(callback::particle_filter, m)?)?;
+    m.add_function(wrap_pyfunction!(params::read_params, m)?)?;
+    m.add_function(wrap_pyfunction!(params::write_params, m)?)?;
+    m.add_function(wrap_pyfunction!(params::convert_params, m)?)?;
     m.add("CallbackError", m.py().get_type::<callback::CallbackError>())?;
     Ok(())
 }

@@ -42,7 +42,9 @@ impl fmt::Display for NpzError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             NpzError::Io { path, source } => write!(f, "{path}: {source}"),
-            NpzError::Format { path, entry, reason } if entry.is_empty() => write!(f, "{path}: not a readable .npz: {reason}"),
+            NpzError::Format { path, entry, reason } if entry.is_empty() => {
+                write!(f, "{path}: not a readable .npz: {reason}")
+            }
             NpzError::Format { path, entry, reason } => write!(f, "{path}: entry {entry:?}: {reason}"),
         }
     }
@@ -112,7 +114,7 @@ fn zip_stored(entries: &[(String, Vec<u8>)]) -> Result<Vec<u8>, String> {
         central.extend_from_slice(&0x0201_4b50u32.to_le_bytes());
         central.extend_from_slice(&20u16.to_le_bytes()); // version made by
         common(&mut central);
-        central.extend_from_slice(&[0u8; 8]); // comment length, disk, internal attributes
+        central.extend_from_slice(&[0u8; 6]); // comment length, disk, internal attributes
         central.extend_from_slice(&0u32.to_le_bytes()); // external attributes
         central.extend_from_slice(&offset.to_le_bytes());
         central.extend_from_slice(name.as_bytes());
@@ -268,7 +270,10 @@ pub fn parse_npy(b: &[u8]) -> Result<(Vec<usize>, Vec<f64>), String> {
     } else if descr.starts_with("'<f4'") {
         4
     } else {
-        return Err(format!("dtype {} is not read (float64 '<f8' or float32 '<f4')", descr.split(',').next().unwrap_or("")));
+        return Err(format!(
+            "dtype {} is not read (float64 '<f8' or float32 '<f4')",
+            descr.split(',').next().unwrap_or("")
+        ));
     };
     if field("fortran_order")?.starts_with("True") {
         return Err("Fortran-ordered arrays are not read (save a C-ordered array)".into());
@@ -299,8 +304,7 @@ pub fn parse_npy(b: &[u8]) -> Result<(Vec<usize>, Vec<f64>), String> {
 pub fn read_params(path: &Path, like: Option<&ParamStore<f64>>) -> Result<ParamStore<f64>, NpzError> {
     let p = path.display().to_string();
     let bytes = std::fs::read(path).map_err(|source| NpzError::Io { path: p.clone(), source })?;
-    let arrays =
-        parse_npz(&bytes).map_err(|(entry, reason)| NpzError::Format { path: p.clone(), entry, reason })?;
+    let arrays = parse_npz(&bytes).map_err(|(entry, reason)| NpzError::Format { path: p.clone(), entry, reason })?;
     let mut store = ParamStore::new();
     for (name, shape, values) in arrays {
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
