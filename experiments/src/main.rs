@@ -12,6 +12,7 @@ mod experiment_c;
 mod generate;
 mod import;
 mod output;
+mod params_npz;
 mod plot;
 mod power;
 mod reproduce;
@@ -106,6 +107,8 @@ enum Command {
     /// Whether a diagnosis's finding hinges on its held-out set: several diagnoses' outcomes, candidates and
     /// gains by part (KITTI sequence or scene) side by side, with a forest plot.
     Stability(stability::StabilityArgs),
+    /// Parameter files to and from NumPy's `.npz` (`export`, `import`).
+    Params(params_npz::ParamsArgs),
 }
 
 fn main() -> ExitCode {
@@ -154,6 +157,7 @@ fn main() -> ExitCode {
         Command::Precision(args) => calibrate::run_precision(&args),
         Command::PowerStudy(args) => power::run(&args),
         Command::Stability(args) => stability::run(&args),
+        Command::Params(args) => params_npz::run(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

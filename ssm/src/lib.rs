@@ -62,6 +62,7 @@ pub mod estimators;
 pub mod filter;
 pub mod metrics;
 pub mod models;
+pub mod npz;
 pub mod objective;
 pub mod reduce;
 pub mod seed;
