@@ -5,6 +5,7 @@
 //! cold build of the test suite was those copies.
 
 mod common;
+mod committed_reports;
 mod criticism_checks;
 mod criticism_extensions;
 mod data_format;
