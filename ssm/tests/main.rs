@@ -4,8 +4,8 @@
 //! generic code (filters, models, estimators) once, not once per file: most of a
 //! cold build of the test suite was those copies.
 
-mod common;
 mod committed_reports;
+mod common;
 mod criticism_checks;
 mod criticism_extensions;
 mod data_format;
