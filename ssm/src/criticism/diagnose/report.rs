@@ -382,8 +382,7 @@ mod tests {
 
     /// A check none of whose draws had anything to measure (KITTI's
     /// `initial_lag` when no object moves fast enough) is written with `null`s
-    /// and read back with NaNs: every KITTI report before 2026-12-07 could not
-    /// be read again.
+    /// and read back with NaNs, so that such a report can be read again.
     #[test]
     fn a_check_with_undefined_draws_reads_back() {
         let undefined =
