@@ -118,7 +118,7 @@ impl PowerArgs {
         c.nesting_from_nested &= !self.no_nesting_from_nested;
         c.scoped_refits &= !self.no_scoped_refits;
         c.set_aside_unmeasured &= !self.keep_unmeasured;
-        let setting = StudySetting::new_from(&c, self.candidate_lr, self.refit_base_lr, self.average_tail)?;
+        let setting = StudySetting::new(&c, self.candidate_lr, self.refit_base_lr, self.average_tail)?;
         Ok(setting)
     }
 }
@@ -221,20 +221,11 @@ struct StudySetting {
 }
 
 impl StudySetting {
-    /// The quick diagnosis with the given rates in place of its own (its
-    /// screen and nesting start as they are), checked by the diagnosis's own
-    /// [`DiagnoseConfig::validate`] (an error names the flag: `--refit-base-lr =
-    /// 0: expected positive and finite`).
+    /// The quick diagnosis under a protocol, `quick`, with the given rates in
+    /// place of its own (its screen and nesting start as they are), checked by
+    /// the diagnosis's own [`DiagnoseConfig::validate`] (an error names the
+    /// flag: `--refit-base-lr = 0: expected positive and finite`).
     fn new(
-        candidate_lr: Option<f64>,
-        refit_base_lr: Option<f64>,
-        average_tail: Option<f64>,
-    ) -> Result<StudySetting, String> {
-        StudySetting::new_from(&DiagnoseConfig::quick(), candidate_lr, refit_base_lr, average_tail)
-    }
-
-    /// [`StudySetting::new`] from the quick diagnosis under a protocol, `quick`.
-    fn new_from(
         quick: &DiagnoseConfig,
         candidate_lr: Option<f64>,
         refit_base_lr: Option<f64>,
@@ -817,7 +808,7 @@ mod tests {
             nesting_from_nested: false,
             scoped_refits: false,
             set_aside_unmeasured: false,
-            ..StudySetting::new(None, None, None).unwrap()
+            ..StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap()
         }
     }
 
@@ -858,7 +849,7 @@ mod tests {
         assert!(fitted.diagnose_config(3).fitted_screen && !setting.diagnose_config(3).fitted_screen);
         // The committed report fitted the nesting extension from the base, as
         // every study before the nesting start did; today's default is refused.
-        let today = StudySetting::new(None, None, None).unwrap();
+        let today = StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap();
         assert!(today.nesting_from_nested && today.diagnose_config(0).nesting_from_nested);
         let err = run_cell(&out, &effect, 1.0, 0, today, true).err().expect("a report from before the nesting start");
         assert!(err.contains("nesting fits from the base") && err.contains("--no-nesting-from-nested"), "{err}");
@@ -873,8 +864,12 @@ mod tests {
         let err = run_cell(&out, &effect, 1.0, 0, set_aside, true).err().expect("a report that kept every object");
         assert!(err.contains("every evaluation object kept") && err.contains("--keep-unmeasured"), "{err}");
         assert!(today.set_aside_unmeasured && today.diagnose_config(0).set_aside_unmeasured);
-        assert!(StudySetting::new(None, Some(0.0), None).unwrap_err().contains("--refit-base-lr"));
-        assert!(StudySetting::new(Some(f64::NAN), None, None).unwrap_err().contains("--candidate-lr"));
+        assert!(StudySetting::new(&DiagnoseConfig::quick(), None, Some(0.0), None)
+            .unwrap_err()
+            .contains("--refit-base-lr"));
+        assert!(StudySetting::new(&DiagnoseConfig::quick(), Some(f64::NAN), None, None)
+            .unwrap_err()
+            .contains("--candidate-lr"));
         effect.scenes = 32;
         let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
@@ -919,7 +914,7 @@ mod tests {
         let out = std::env::temp_dir().join(format!("sefi-power-futility-{}", std::process::id()));
         copy_committed_cells(&out, "power-study-fitted-screen", &["none-points/x1/seed0"]);
         let effect = StudyEffect::of("none-points").unwrap();
-        let today = StudySetting::new(None, None, None).unwrap();
+        let today = StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap();
         let whole = StudySetting { fitted_screen: true, screen_futility: 0.0, ..today };
         assert!(run_cell(&out, &effect, 1.0, 0, whole, true).unwrap().is_some());
         let stopped = StudySetting { screen_futility: DiagnoseConfig::quick().screen_futility, ..whole };
