@@ -103,7 +103,12 @@ struct Table {
 }
 
 impl Table {
-    fn read(py: Python<'_>, obj: &Bound<'_, PyAny>, name: &'static str, columns: &'static [&'static str]) -> PyResult<Self> {
+    fn read(
+        py: Python<'_>,
+        obj: &Bound<'_, PyAny>,
+        name: &'static str,
+        columns: &'static [&'static str],
+    ) -> PyResult<Self> {
         let a = float_array(py, obj, name)?;
         check(a.shape.len() == 2 && a.shape[1] == columns.len(), name, || {
             format!("expected shape (rows, {}) with columns {columns:?}, got {:?}", columns.len(), a.shape)
@@ -128,7 +133,9 @@ impl Table {
     /// Column `c` of row `r` as a step index (a non-negative integer).
     fn step(&self, r: usize, row: &[f64], c: usize) -> PyResult<usize> {
         let t = self.int(r, row, c)?;
-        check(t >= 0, self.name, || format!("row {r}, column `{}`: a step must be at least 0, got {t}", self.columns[c]))?;
+        check(t >= 0, self.name, || {
+            format!("row {r}, column `{}`: a step must be at least 0, got {t}", self.columns[c])
+        })?;
         Ok(t as usize)
     }
 }
@@ -165,12 +172,7 @@ impl PyDataset {
         check(object < n, "object", || format!("index {object} out of range (the dataset has {n} objects)"))
     }
 
-    fn from_tables(
-        py: Python<'_>,
-        dt: f64,
-        prior_from_detection: bool,
-        t: Tables,
-    ) -> PyResult<Self> {
+    fn from_tables(py: Python<'_>, dt: f64, prior_from_detection: bool, t: Tables) -> PyResult<Self> {
         let kind = if t.points.is_some() { ObservationKind::Points } else { ObservationKind::Boxes };
         // Every scene's poses, by id in order of first appearance.
         let mut order: Vec<i64> = Vec::new();
@@ -222,7 +224,8 @@ impl PyDataset {
         }
         if let Some(b) = &t.boxes {
             for (r, row) in b.rows() {
-                let d = BoxDetection { x: row[3], y: row[4], yaw: row[5], length: row[6], width: row[7], score: row[8] };
+                let d =
+                    BoxDetection { x: row[3], y: row[4], yaw: row[5], length: row[6], width: row[7], score: row[8] };
                 builder.detection(b.int(r, row, 0)?, b.int(r, row, 1)?, b.step(r, row, 2)?, d);
             }
         }
@@ -240,7 +243,8 @@ impl PyDataset {
                 builder.action(a.int(r, row, 0)?, a.int(r, row, 1)?, a.step(r, row, 2)?, action);
             }
         }
-        let data = py.detach(|| guard("Dataset.from_arrays", || Ok(builder.build())))?.map_err(|e| data_error(py, e))?;
+        let data =
+            py.detach(|| guard("Dataset.from_arrays", || Ok(builder.build())))?.map_err(|e| data_error(py, e))?;
         Ok(PyDataset { data })
     }
 }
@@ -456,7 +460,8 @@ impl PyDataset {
     fn truth<'py>(&self, py: Python<'py>, object: usize) -> PyResult<Option<Bound<'py, PyAny>>> {
         self.check_object(object)?;
         let Some(states) = self.data.states() else { return Ok(None) };
-        let rows: Vec<f64> = states.object(object).iter().flat_map(|s| s.map_or([f64::NAN; 5], |s| state_row(&s))).collect();
+        let rows: Vec<f64> =
+            states.object(object).iter().flat_map(|s| s.map_or([f64::NAN; 5], |s| state_row(&s))).collect();
         Ok(Some(array2(py, rows, 5)?))
     }
 
@@ -475,7 +480,9 @@ impl PyDataset {
     fn select_scenes(&self, scenes: Vec<usize>) -> PyResult<Self> {
         let n = self.data.scenes().len();
         if let Some(&bad) = scenes.iter().find(|&&s| s >= n) {
-            return Err(PyValueError::new_err(format!("scenes: index {bad} out of range (the dataset has {n} scenes)")));
+            return Err(PyValueError::new_err(format!(
+                "scenes: index {bad} out of range (the dataset has {n} scenes)"
+            )));
         }
         Ok(PyDataset { data: self.data.select_scenes(&scenes) })
     }
@@ -484,7 +491,9 @@ impl PyDataset {
     fn select_objects(&self, objects: Vec<usize>) -> PyResult<Self> {
         let n = self.data.objects().len();
         if let Some(&bad) = objects.iter().find(|&&o| o >= n) {
-            return Err(PyValueError::new_err(format!("objects: index {bad} out of range (the dataset has {n} objects)")));
+            return Err(PyValueError::new_err(format!(
+                "objects: index {bad} out of range (the dataset has {n} objects)"
+            )));
         }
         check(!objects.is_empty(), "objects", || "select at least one object".into())?;
         Ok(PyDataset { data: self.data.select_objects(&objects) })
@@ -520,9 +529,9 @@ pub fn generate_experiment_data<'py>(
     seed: u64,
     quick: bool,
 ) -> PyResult<(PyDataset, PyDataset, Bound<'py, PyDict>)> {
-    let experiment: Experiment = experiment.parse().map_err(|e: ssm::synthetic::SyntheticError| {
-        PyValueError::new_err(format!("experiment: {e}"))
-    })?;
+    let experiment: Experiment = experiment
+        .parse()
+        .map_err(|e: ssm::synthetic::SyntheticError| PyValueError::new_err(format!("experiment: {e}")))?;
     let config = if quick { ExperimentConfig::quick(experiment) } else { ExperimentConfig::paper(experiment) };
     let data = py.detach(|| {
         guard("generate_experiment", || {
@@ -555,7 +564,8 @@ pub fn generate_hidden_data(
     finite("strength", strength)?;
     check(scenes > 0 && objects > 0, "scenes, objects", || "must be at least 1".into())?;
     check(steps >= 2, "steps", || format!("must be at least 2, got {steps}"))?;
-    let effect = HiddenEffect::at_strength(effect, strength).map_err(|e| PyValueError::new_err(format!("effect: {e}")))?;
+    let effect =
+        HiddenEffect::at_strength(effect, strength).map_err(|e| PyValueError::new_err(format!("effect: {e}")))?;
     let kind = if boxes { ObservationKind::Boxes } else { ObservationKind::Points };
     let config = HiddenConfig { scenes, objects_per_scene: objects, steps, ..HiddenConfig::quick(kind, effect, seed) };
     let data = py.detach(|| {
@@ -593,6 +603,7 @@ pub fn import_kitti_data(
         val_sequences,
         ..data::KittiOptions::default()
     };
-    let import = py.detach(|| guard("import_kitti", || Ok(import_kitti(&root, &options))))?.map_err(|e| data_error(py, e))?;
+    let import =
+        py.detach(|| guard("import_kitti", || Ok(import_kitti(&root, &options))))?.map_err(|e| data_error(py, e))?;
     Ok((PyDataset { data: import.train }, PyDataset { data: import.val }, import.report.to_string()))
 }

@@ -97,7 +97,8 @@ fn read_store(py: Python<'_>, params: &Bound<'_, PyAny>) -> PyResult<ParamStore<
 
 impl VehicleModel {
     fn build(data: Dataset, store: ParamStore<f64>) -> PyResult<Self> {
-        let models = Models::from_store(&store, data.kind()).map_err(|e| PyValueError::new_err(format!("params: {e}")))?;
+        let models =
+            Models::from_store(&store, data.kind()).map_err(|e| PyValueError::new_err(format!("params: {e}")))?;
         // Build the model once, so that data the parameters do not fit fail here.
         struct Fits<'a> {
             data: &'a Dataset,
@@ -151,7 +152,12 @@ impl VehicleModel {
         self.models.observation.visit(Of { data: &self.data, models: &self.models, tracks, config })
     }
 
-    fn estimate(&self, estimator: &Estimator, config: &EstimatorConfig, seed: u64) -> Result<(ScoreEstimate, Vec<String>), String> {
+    fn estimate(
+        &self,
+        estimator: &Estimator,
+        config: &EstimatorConfig,
+        seed: u64,
+    ) -> Result<(ScoreEstimate, Vec<String>), String> {
         struct Score<'a> {
             data: &'a Dataset,
             models: &'a Models,
@@ -251,7 +257,8 @@ impl VehicleModel {
                     format!("expected two finite sds > 0, got ({a}, {p})")
                 })?;
                 AnyPolicy::HandCrafted(
-                    HandCraftedPolicy::new(a.ln(), p.ln()).map_err(|e| PyValueError::new_err(format!("init_sd: {e}")))?,
+                    HandCraftedPolicy::new(a.ln(), p.ln())
+                        .map_err(|e| PyValueError::new_err(format!("init_sd: {e}")))?,
                 )
             }
             "neural" => {
@@ -259,7 +266,9 @@ impl VehicleModel {
                 AnyPolicy::Neural(NeuralPolicy::new(&mut rand::rngs::StdRng::seed_from_u64(seed)))
             }
             other => {
-                return Err(PyValueError::new_err(format!("policy: expected 'hand-crafted' or 'neural', got {other:?}")))
+                return Err(PyValueError::new_err(format!(
+                    "policy: expected 'hand-crafted' or 'neural', got {other:?}"
+                )))
             }
         };
         let models = Models::initial(dataset.data.kind(), policy, seed.wrapping_add(1));
@@ -446,7 +455,8 @@ impl VehicleModel {
     /// parameters), ``final_eval`` (dict), ``evaluations`` (list of ``(step,
     /// dict)``), ``steps``, ``skipped_steps`` and ``seconds``. The run's files
     /// (``train.csv``, ``eval.csv``, checkpoint, ``params.bin``) go to ``out`` if given,
-    /// otherwise to a temporary directory that is removed.
+    /// otherwise to a temporary directory that is removed; an ``out`` that
+    /// already holds a run is a ``FileExistsError``.
     #[pyo3(signature = (test, epochs = 1, lr = 0.01, estimator = "pf-sefi", particles = 256, eval_particles = 1024,
         lag = 8, alpha = 0.8, seed = 0, scenes_per_step = 1, eval_every = 0, clip = None, final_lr = None,
         filter = "tempered", out = None, callback = None))]
@@ -544,6 +554,10 @@ impl VehicleModel {
         }
         let outcome = outcome.map_err(|e| match e {
             training::TrainError::Config(m) => PyValueError::new_err(format!("VehicleModel.train: {m}")),
+            e @ training::TrainError::Exists { .. } => {
+                pyo3::exceptions::PyFileExistsError::new_err(format!("VehicleModel.train: {e}"))
+            }
+            e @ training::TrainError::Io { .. } => pyo3::exceptions::PyOSError::new_err(format!("VehicleModel.train: {e}")),
             other => PyRuntimeError::new_err(format!("VehicleModel.train: {other}")),
         })?;
         let metrics = |m: &[(String, f64)]| -> PyResult<Bound<'py, PyDict>> {

@@ -107,6 +107,8 @@ def test_training_reports_progress_and_improves(experiment, tmp_path):
     assert evals[-1][1]["test_mll"] > evals[0][1]["test_mll"] + 0.2, evals
     moved = result["model"].parameters["policy.log_sd"][0] - np.log(2.0)
     assert moved < -0.05, moved
+    with pytest.raises(FileExistsError, match="already"):
+        start.train(test, epochs=1, particles=16, eval_particles=16, lag=2, out=tmp_path / "run")
 
 
 def test_an_exception_in_the_callback_stops_training(experiment):
