@@ -551,6 +551,7 @@ pub fn generate_experiment_data<'py>(
 /// its default size.
 #[pyfunction(name = "generate_hidden")]
 #[pyo3(signature = (effect, strength = 1.0, boxes = false, scenes = 8, objects = 6, steps = 16, seed = 0))]
+#[allow(clippy::too_many_arguments)]
 pub fn generate_hidden_data(
     py: Python<'_>,
     effect: &str,

@@ -557,7 +557,9 @@ impl VehicleModel {
             e @ training::TrainError::Exists { .. } => {
                 pyo3::exceptions::PyFileExistsError::new_err(format!("VehicleModel.train: {e}"))
             }
-            e @ training::TrainError::Io { .. } => pyo3::exceptions::PyOSError::new_err(format!("VehicleModel.train: {e}")),
+            e @ training::TrainError::Io { .. } => {
+                pyo3::exceptions::PyOSError::new_err(format!("VehicleModel.train: {e}"))
+            }
             other => PyRuntimeError::new_err(format!("VehicleModel.train: {other}")),
         })?;
         let metrics = |m: &[(String, f64)]| -> PyResult<Bound<'py, PyDict>> {
