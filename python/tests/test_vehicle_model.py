@@ -191,6 +191,27 @@ def test_same_log_likelihood_as_the_cli(experiment, tmp_path):
     assert py["smoothed"]["ade"] == cli["smoothed"]["ade"]
 
 
+@pytest.mark.skipif(sefi_binary() is None, reason="no sefi binary (cargo build -p experiments, or set SEFI)")
+def test_same_smoothed_states_as_the_cli_on_boxes(tmp_path):
+    # Box detections (the other observation model, tempered with origin moves)
+    # from a fresh model's parameters: `filter` gives `sefi track`'s states.
+    data = pfsefi.generate_hidden("heading_flip", boxes=True, scenes=2, objects=3, steps=6, seed=3)
+    data.write(tmp_path / "data")
+    model = pfsefi.VehicleModel.initial(data, init_sd=(1.0, 0.1), seed=4)
+    model.save_params(tmp_path / "params.bin")
+    subprocess.run(
+        [sefi_binary(), "track", "--data", str(tmp_path / "data"), "--params", str(tmp_path / "params.bin"),
+         "--particles", "64", "--lag", "2", "--seed", "7", "--out", str(tmp_path / "track")],
+        check=True, capture_output=True,
+    )
+    r = model.filter(particles=64, lag=2, seed=7)
+    for which in ["smoothed", "filtered"]:
+        cli = np.loadtxt(tmp_path / "track" / f"{which}.csv", delimiter=",", skiprows=1)
+        np.testing.assert_array_equal(r[which].reshape(-1, 5), cli[:, 3:])
+    metrics = json.loads((tmp_path / "track" / "track.json").read_text())["metrics"]
+    assert r["loglik"] == metrics["log_likelihood"]
+
+
 def test_diagnosis_report_as_a_dict(tmp_path):
     data = pfsefi.generate_hidden("none", scenes=4, objects=5, steps=8, seed=2)
     settings = dict(base_steps=6, candidate_steps=4, particles=32, eval_particles=64, draws=4, eval_runs=1,
