@@ -224,3 +224,25 @@ def test_diagnosis_report_as_a_dict(tmp_path):
         pfsefi.diagnose(data, tmp_path / "d2", settings={"no_such": 1})
     with pytest.raises(ValueError, match="settings"):
         pfsefi.diagnose(data, tmp_path / "d3", settings={"fit_fraction": 2.0})
+
+
+@pytest.mark.skipif(sefi_binary() is None, reason="no sefi binary (cargo build -p experiments, or set SEFI)")
+def test_same_trained_parameters_as_the_cli(experiment, tmp_path):
+    train, test, _ = experiment
+    train.write(tmp_path / "train")
+    test.write(tmp_path / "test")
+    start = pfsefi.VehicleModel.initial(train, init_sd=(2.0, 0.2), seed=0)
+    start.save_params(tmp_path / "init.bin")
+    subprocess.run(
+        [sefi_binary(), "train", "--data", str(tmp_path / "train"), "--test", str(tmp_path / "test"),
+         "--init", str(tmp_path / "init.bin"), "--epochs", "2", "--lr", "0.02", "--particles", "32",
+         "--eval-particles", "32", "--lag", "3", "--seed", "6", "--out", str(tmp_path / "cli")],
+        check=True, capture_output=True,
+    )
+    cli = pfsefi.read_params(tmp_path / "cli" / "params.bin")
+    result = start.train(test, epochs=2, lr=0.02, particles=32, eval_particles=32, lag=3, seed=6)
+    mine = result["model"].parameters
+    assert list(mine) == list(cli)
+    for name in cli:
+        np.testing.assert_array_equal(mine[name], cli[name], err_msg=name)
+    assert not np.array_equal(mine["policy.log_sd"], start.parameters["policy.log_sd"])
