@@ -96,7 +96,13 @@ fn read_store(py: Python<'_>, params: &Bound<'_, PyAny>) -> PyResult<ParamStore<
 }
 
 impl VehicleModel {
+    /// The models `store` describes for `data`, checked by building the model
+    /// once (a panic is caught, as everywhere, and raised as `RuntimeError`).
     fn build(data: Dataset, store: ParamStore<f64>) -> PyResult<Self> {
+        guard("VehicleModel", || Self::build_unguarded(data, store))
+    }
+
+    fn build_unguarded(data: Dataset, store: ParamStore<f64>) -> PyResult<Self> {
         let models =
             Models::from_store(&store, data.kind()).map_err(|e| PyValueError::new_err(format!("params: {e}")))?;
         // Build the model once, so that data the parameters do not fit fail here.
