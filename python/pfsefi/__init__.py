@@ -11,20 +11,43 @@ and out and releases the GIL while it computes.
   estimator's score as a dict by parameter name.
 * :func:`read_params`, :func:`write_params`, :func:`convert_params` -- parameter
   files (``.npz`` or the project's format) as dicts of arrays.
+* :class:`Dataset` -- the project's dataset format read and written, built from
+  arrays (the CSV files' columns, :data:`COLUMNS`); :func:`generate_experiment`,
+  :func:`generate_hidden` and :func:`import_kitti` make one.
+* :class:`VehicleModel` -- the vehicle model of a dataset and a parameter file:
+  filter and smoother, any estimator's score by parameter name, evaluation
+  metrics and training with a progress callback; :func:`diagnose` runs the
+  diagnosis and returns its report as a dict.
 """
 
 from ._native import (
+    COLUMNS,
     CallbackError,
+    DataError,
+    Dataset,
     LinearGaussian,
     SyntheticScene,
+    VehicleModel,
     convert_params,
+    diagnose,
+    generate_experiment,
+    generate_hidden,
+    import_kitti,
     particle_filter,
     read_params,
     write_params,
 )
 
 __all__ = [
+    "COLUMNS",
     "CallbackError",
+    "DataError",
+    "Dataset",
+    "VehicleModel",
+    "diagnose",
+    "generate_experiment",
+    "generate_hidden",
+    "import_kitti",
     "LinearGaussian",
     "Model",
     "SyntheticScene",

@@ -1,7 +1,7 @@
 """Type stub of the native module ``pfsefi._native`` (Rust, PyO3)."""
 
 import os
-from typing import Any, Dict, Mapping, Optional, Protocol, Tuple, TypedDict, Union
+from typing import Any, Callable, Dict, List, Mapping, Optional, Protocol, Sequence, Tuple, TypedDict, Union
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -116,3 +116,137 @@ def convert_params(
     src: Union[str, os.PathLike], dst: Union[str, os.PathLike], like: Optional[Union[str, os.PathLike]] = None
 ) -> None:
     """A parameter file converted between formats by extension."""
+
+PathLike = Union[str, os.PathLike]
+
+#: Column names of every dataset table (as in its CSV file), by table name:
+#: ``av``, ``objects``, ``points``, ``boxes``, ``states``, ``actions``.
+COLUMNS: Dict[str, List[str]]
+
+class DataError(ValueError):
+    """A dataset file or table is invalid; ``file``, ``line`` (None for a table
+    built in memory) and ``column`` say where."""
+
+    file: Optional[str]
+    line: Optional[int]
+    column: Optional[str]
+
+class Dataset:
+    """A dataset of the project's format (scenes, objects, point sets or box
+    detections, optional true states and actions), always valid."""
+
+    @staticmethod
+    def read(path: PathLike) -> "Dataset": ...
+    def write(self, path: PathLike) -> None: ...
+    @staticmethod
+    def from_arrays(
+        dt: float,
+        av: ArrayLike,
+        objects: ArrayLike,
+        points: Optional[ArrayLike] = None,
+        boxes: Optional[ArrayLike] = None,
+        states: Optional[ArrayLike] = None,
+        actions: Optional[ArrayLike] = None,
+        prior_from_detection: bool = False,
+    ) -> "Dataset":
+        """Tables with the columns of :data:`COLUMNS`; exactly one of ``points`` and ``boxes``."""
+    def tables(self) -> Dict[str, F64]:
+        """Every table as a 2-D array (``Dataset.from_arrays(ds.dt, **ds.tables())`` rebuilds ``ds``)."""
+    @property
+    def kind(self) -> str: ...
+    @property
+    def dt(self) -> float: ...
+    @property
+    def steps(self) -> int: ...
+    @property
+    def prior_from_detection(self) -> bool: ...
+    @property
+    def num_scenes(self) -> int: ...
+    @property
+    def num_objects(self) -> int: ...
+    @property
+    def num_observations(self) -> int: ...
+    @property
+    def has_truth(self) -> bool: ...
+    @property
+    def object_ids(self) -> NDArray[np.int64]:
+        """``(scene id, object id)`` per object, shape ``(objects, 2)``."""
+    def observations(self, object: int) -> F64:
+        """Points: ``(m, 3)`` rows ``(t, x, y)``; boxes: ``(steps, 6)``, NaN where undetected."""
+    def truth(self, object: int) -> Optional[F64]:
+        """True states ``(steps, 5)``: ``x, y, yaw, v, kappa``."""
+    def actions(self, object: int) -> Optional[F64]:
+        """True actions ``(steps, 2)``: ``accel, pinch`` (NaN at ``t = 0``)."""
+    def select_scenes(self, scenes: Sequence[int]) -> "Dataset": ...
+    def select_objects(self, objects: Sequence[int]) -> "Dataset": ...
+
+def generate_experiment(experiment: str = "A", seed: int = 0, quick: bool = False) -> Tuple[Dataset, Dataset, Dict[str, F64]]:
+    """``(train, test, true_params)`` of experiment A or B, as ``sefi generate``."""
+
+def generate_hidden(
+    effect: str, strength: float = 1.0, boxes: bool = False, scenes: int = 8, objects: int = 6, steps: int = 16,
+    seed: int = 0,
+) -> Dataset:
+    """A dataset with a hidden effect, as ``sefi generate --hidden``."""
+
+def import_kitti(
+    root: PathLike, steps: int = 20, stride: int = 1, align: int = 1, gate: float = 2.0,
+    sequences: Optional[Sequence[int]] = None, val_sequences: Optional[Sequence[int]] = None,
+) -> Tuple[Dataset, Dataset, str]:
+    """``(train, val, report)`` from the KITTI tracking folder, as ``sefi import-kitti``."""
+
+class TrackResult(TypedDict):
+    loglik: float
+    loglik_per_object: F64
+    observed_units: NDArray[np.int64]
+    collapsed_steps: NDArray[np.int64]
+    min_ess: F64
+    filtered: F64
+    smoothed: F64
+
+class TrainResult(TypedDict):
+    model: "VehicleModel"
+    final_eval: Dict[str, float]
+    evaluations: List[Tuple[int, Dict[str, float]]]
+    steps: int
+    skipped_steps: int
+    seconds: float
+
+class VehicleModel:
+    """The vehicle model of a dataset under a parameter file (path or dict of arrays)."""
+
+    def __init__(self, dataset: Dataset, params: Union[PathLike, Mapping[str, ArrayLike]]) -> None: ...
+    @staticmethod
+    def initial(
+        dataset: Dataset, policy: str = "hand-crafted", init_sd: Tuple[float, float] = (1.0, 0.1), seed: int = 0
+    ) -> "VehicleModel": ...
+    @property
+    def parameters(self) -> Dict[str, F64]: ...
+    @property
+    def dataset(self) -> Dataset: ...
+    @property
+    def policy(self) -> str: ...
+    def on(self, dataset: Dataset) -> "VehicleModel": ...
+    def save_params(self, path: PathLike) -> None: ...
+    def filter(self, particles: int = 4096, lag: int = 8, seed: int = 0, filter: str = "tempered") -> TrackResult: ...
+    def score(
+        self, estimator: str = "pf-sefi", particles: int = 1024, lag: int = 8, seed: int = 0, alpha: float = 0.8,
+        precision: str = "f32", filter: str = "tempered", chunk_objects: int = 4,
+    ) -> VehicleScore: ...
+    def evaluate(
+        self, particles: int = 4096, lag: int = 8, seed: int = 0, runs: int = 1, filter: str = "tempered"
+    ) -> Dict[str, Any]:
+        """``{"runs": [...], "summary": {...}, "per_object": {"loglik", "observed_units"}}``."""
+    def train(
+        self, test: Dataset, epochs: int = 1, lr: float = 0.01, estimator: str = "pf-sefi", particles: int = 256,
+        eval_particles: int = 1024, lag: int = 8, alpha: float = 0.8, seed: int = 0, scenes_per_step: int = 1,
+        eval_every: int = 0, clip: Optional[float] = None, final_lr: Optional[float] = None,
+        filter: str = "tempered", out: Optional[PathLike] = None,
+        callback: Optional[Callable[[int, float], Any]] = None,
+    ) -> TrainResult: ...
+
+def diagnose(
+    dataset: Dataset, out: PathLike, quick: bool = True, seed: int = 0, protocol: Optional[str] = None,
+    settings: Optional[Mapping[str, Any]] = None, heldout: Optional[Dataset] = None,
+) -> Dict[str, Any]:
+    """The diagnosis's report (``report.json``) as a dict."""

@@ -32,6 +32,9 @@ pub fn sequences(py: Python<'_>, y: &Bound<'_, PyAny>) -> PyResult<Vec<Vec<f64>>
     }
 }
 
+/// Two arrays returned together (`(x, y)`, `(mean, var)`).
+type Pair<'py, A> = (Bound<'py, A>, Bound<'py, A>);
+
 /// The scalar linear-Gaussian state-space model
 /// `x_0 ~ N(m0, P0)`, `x_t = phi x_{t-1} + sv e_t`, `y_t = x_t + sw u_t`.
 ///
@@ -114,7 +117,7 @@ impl LinearGaussian {
         steps: usize,
         objects: usize,
         seed: u64,
-    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray2<f64>>)> {
+    ) -> PyResult<Pair<'py, PyArray2<f64>>> {
         check(steps > 0, "steps", || "must be at least 1".into())?;
         check(objects > 0, "objects", || "must be at least 1".into())?;
         let model = self.model.clone();
@@ -169,11 +172,7 @@ impl LinearGaussian {
 
     /// The Kalman smoother of one sequence `y` (shape `(steps,)`): the smoothed
     /// means and variances of `x_t`, `(mean, var)`.
-    fn kalman_smooth<'py>(
-        &self,
-        py: Python<'py>,
-        y: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    fn kalman_smooth<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>) -> PyResult<Pair<'py, PyArray1<f64>>> {
         let seqs = sequences(py, y)?;
         check(seqs.len() == 1, "y", || {
             format!("kalman_smooth takes one sequence (shape (steps,)), got {} objects", seqs.len())

@@ -7,17 +7,21 @@ use std::path::Path;
 use autodiff::nn::{ParamError, ParamStore};
 use autodiff::Tensor;
 use numpy::{PyArray, PyArrayMethods};
-use pyo3::exceptions::{PyOSError, PyTypeError, PyValueError};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use ssm::npz::{self, NpzError};
 
-use crate::convert::float_array;
+use crate::convert::{check, float_array};
 
-/// A parameter-file error as a Python exception: `OSError` for the file system,
+/// A parameter-file error as a Python exception: `FileNotFoundError` for a
+/// missing file, `OSError` for other file-system failures,
 /// `ValueError` for contents; the message names the file.
 pub fn param_error(e: ParamError) -> PyErr {
     match e {
+        ParamError::Io { ref source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
         ParamError::Io { .. } => PyOSError::new_err(e.to_string()),
         _ => PyValueError::new_err(e.to_string()),
     }
@@ -25,6 +29,9 @@ pub fn param_error(e: ParamError) -> PyErr {
 
 fn npz_error(e: NpzError) -> PyErr {
     match e {
+        NpzError::Io { ref source, .. } if source.kind() == std::io::ErrorKind::NotFound => {
+            PyFileNotFoundError::new_err(e.to_string())
+        }
         NpzError::Io { .. } => PyOSError::new_err(e.to_string()),
         NpzError::Format { .. } => PyValueError::new_err(e.to_string()),
     }
@@ -34,7 +41,8 @@ fn is_npz(path: &Path) -> bool {
     path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npz"))
 }
 
-fn load(path: &Path) -> PyResult<ParamStore<f64>> {
+/// Reads a parameter file: `.npz`, or the project's format for any other extension.
+pub fn load(path: &Path) -> PyResult<ParamStore<f64>> {
     if is_npz(path) {
         npz::read_params(path, None).map_err(npz_error)
     } else {
@@ -47,6 +55,11 @@ fn load(path: &Path) -> PyResult<ParamStore<f64>> {
 #[pyfunction]
 pub fn read_params<'py>(py: Python<'py>, path: std::path::PathBuf) -> PyResult<Bound<'py, PyDict>> {
     let store = py.detach(|| load(&path))?;
+    store_to_dict(py, &store)
+}
+
+/// A store as a dict of float64 arrays by name, in the store's order.
+pub fn store_to_dict<'py>(py: Python<'py>, store: &ParamStore<f64>) -> PyResult<Bound<'py, PyDict>> {
     let out = PyDict::new(py);
     for (name, t) in store.iter() {
         out.set_item(name, PyArray::from_vec(py, t.data().to_vec()).reshape(t.shape().to_vec())?)?;
@@ -54,26 +67,37 @@ pub fn read_params<'py>(py: Python<'py>, path: std::path::PathBuf) -> PyResult<B
     Ok(out)
 }
 
-/// Writes a dict of float arrays by name as a parameter file: `.npz` for that
-/// extension, the project's bincode format (read by `sefi`) for any other.
-#[pyfunction]
-pub fn write_params(py: Python<'_>, params: &Bound<'_, PyDict>, path: std::path::PathBuf) -> PyResult<()> {
+/// A store from a dict of float arrays by name (in the dict's order).
+pub fn store_from_dict(py: Python<'_>, params: &Bound<'_, PyDict>) -> PyResult<ParamStore<f64>> {
     if params.is_empty() {
         return Err(PyValueError::new_err("params: the dict is empty"));
     }
     let mut store = ParamStore::new();
     for (k, v) in params.iter() {
         let name: String = k.extract().map_err(|_| PyTypeError::new_err(format!("params: key {k} is not a string")))?;
+        check(store.id(&name).is_none(), "params", || format!("the name {name:?} appears twice"))?;
         let a = float_array(py, &v, &format!("params[{name:?}]"))?;
         store.add(&name, Tensor::new(&a.shape, a.data));
     }
-    py.detach(|| {
-        if is_npz(&path) {
-            npz::write_params(&store, &path).map_err(npz_error)
-        } else {
-            store.save(&path).map_err(param_error)
-        }
-    })
+    Ok(store)
+}
+
+/// Writes `store` as a parameter file: `.npz` for that extension, the project's
+/// format for any other.
+pub fn save(store: &ParamStore<f64>, path: &Path) -> PyResult<()> {
+    if is_npz(path) {
+        npz::write_params(store, path).map_err(npz_error)
+    } else {
+        store.save(path).map_err(param_error)
+    }
+}
+
+/// Writes a dict of float arrays by name as a parameter file: `.npz` for that
+/// extension, the project's bincode format (read by `sefi`) for any other.
+#[pyfunction]
+pub fn write_params(py: Python<'_>, params: &Bound<'_, PyDict>, path: std::path::PathBuf) -> PyResult<()> {
+    let store = store_from_dict(py, params)?;
+    py.detach(|| save(&store, &path))
 }
 
 /// Converts a parameter file between formats by extension (`.npz` <-> the

@@ -122,6 +122,7 @@ impl SyntheticScene {
     /// `score` (a dict of arrays by parameter name), `observed_units`,
     /// `rows_evaluated`, `particle_slots` and `collapsed_steps`.
     #[pyo3(signature = (estimator = "pf-sefi", particles = 1024, lag = 8, seed = 1, precision = "f32", alpha = 0.8))]
+    #[allow(clippy::too_many_arguments)]
     fn score<'py>(
         &self,
         py: Python<'py>,
@@ -140,6 +141,7 @@ impl SyntheticScene {
     /// As `score`, and the seconds the estimate took inside Rust (model built,
     /// estimated; no Python objects made): `(result, rust_seconds)`.
     #[pyo3(signature = (estimator = "pf-sefi", particles = 1024, lag = 8, seed = 1, precision = "f32", alpha = 0.8))]
+    #[allow(clippy::too_many_arguments)]
     fn score_timed<'py>(
         &self,
         py: Python<'py>,
