@@ -51,7 +51,9 @@
 //! also measured with chunks of 1 and 8 to show the memory/time trade-off.
 //!
 //! Run: `cargo bench --bench estimators` (add `-- --quick` for one repetition of
-//! everything and no chunk sweep; `-- --default-path` for filter, PF-SEFI and
+//! everything, without warm-up, and no chunk sweep; `--size A|B` for one size;
+//! `--no-memory` without the peak-memory children; `--no-wait` without waiting
+//! for a quiet machine; `-- --default-path` for filter, PF-SEFI and
 //! their tempered rows with the precision section only, without the baselines:
 //! about three minutes with `--quick` on two cores; `--moves K`, `--ess F` and
 //! `--lookback-only true|false` change those of the tempered rows' settings, to
@@ -128,6 +130,8 @@ impl TemperingOverride {
     }
 }
 
+/// `--no-wait`: time at once, without waiting for a quiet machine.
+static NO_WAIT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
 static TEMPERING_OVERRIDE: std::sync::OnceLock<TemperingOverride> = std::sync::OnceLock::new();
 /// Tag of the line a child prints for its parent.
 const CHILD_TAG: &str = "ESTIMATORS-CHILD";
@@ -372,6 +376,9 @@ fn ticks_per_second() -> f64 {
 /// whether the machine became quiet.
 fn wait_for_quiet(tick_rate: f64) -> (f64, bool) {
     let start = Instant::now();
+    if NO_WAIT.get().copied().unwrap_or(false) {
+        return (0.0, false);
+    }
     while start.elapsed().as_secs_f64() < QUIET_WAIT_MAX_S {
         let (Some(a), t) = (cpu_ticks(), Instant::now()) else { return (0.0, false) };
         std::thread::sleep(std::time::Duration::from_secs(1));
@@ -437,7 +444,7 @@ fn time_workloads<M: ssm::models::DifferentiableModel>(
     tick_rate: f64,
 ) -> Vec<(Timing, Outcome)> {
     let (waited, quiet) = wait_for_quiet(tick_rate);
-    if waited > 1.5 || !quiet {
+    if waited > 1.5 || (!quiet && waited > 0.0) {
         println!(
             "  (waited {waited:.0} s for other processes to go below {QUIET_LOAD} cores{})",
             if quiet { "" } else { "; they did not" }
@@ -666,6 +673,13 @@ fn main() {
     }
     let quick = args.iter().any(|a| a == "--quick");
     let skip_baselines = args.iter().any(|a| a == "--default-path");
+    let skip_memory = args.iter().any(|a| a == "--no-memory");
+    let no_wait = args.iter().any(|a| a == "--no-wait");
+    let sizes: Vec<Size> = match args.iter().position(|a| a == "--size") {
+        Some(p) => vec![args.get(p + 1).and_then(|s| Size::parse(s)).expect("--size A|B")],
+        None => vec![Size::A, Size::B],
+    };
+    NO_WAIT.set(no_wait).expect("set once");
     let precision_runs = if quick { PRECISION_RUNS_QUICK } else { PRECISION_RUNS };
     let default_chunk = EstimatorConfig::default().chunk_objects;
     let threads = rayon::current_num_threads();
@@ -679,7 +693,7 @@ fn main() {
     println!("tempered rows: {:?}", estimator_config(Workload::TemperedFilter, default_chunk).sampling.tempering);
     let mut rows: Vec<Row> = Vec::new();
     let mut spreads: Vec<(Size, Workload, Spread)> = Vec::new();
-    for size in [Size::A, Size::B] {
+    for &size in &sizes {
         let problem = Problem::new(size);
         let model = problem.model();
         let points: usize = problem.data.points().map(|p| p.len()).unwrap_or(0);
@@ -702,10 +716,10 @@ fn main() {
         let groups = if skip_baselines { &all[..1] } else { &all[..] };
         for &group in groups {
             let reps = reps_for(group[0], quick);
-            let warm_up = !group[0].is_baseline();
+            let warm_up = !group[0].is_baseline() && !quick;
             let timed = time_workloads(&model, group, default_chunk, warm_up, reps, tick_rate);
             for (&workload, (timing, outcome)) in group.iter().zip(timed) {
-                let memory = measure_memory(workload, size, default_chunk);
+                let memory = if skip_memory { None } else { measure_memory(workload, size, default_chunk) };
                 println!(
                     "  {:<8} median {:7.3} s  best {:7.3} s  cpu {:7.3} s  others {:.2} cores  ({} reps{})  \
                      peak +{} MiB  l_hat {:.1}{}",
