@@ -732,7 +732,7 @@ fn main() {
                     if warm_up { " after a warm-up" } else { "" },
                     memory.map_or("?".into(), |m| mib(m.added())),
                     outcome.log_likelihood,
-                    if outcome.observed_steps > 0 {
+                    if workload.is_tempered() && outcome.observed_steps > 0 {
                         format!(
                             "  {:.2} likelihood evaluations and {:.2} stages per observed object-step, \
                              {:.1}% of moves accepted",
@@ -887,9 +887,7 @@ fn main() {
         }
     }
 
-    println!(
-        "\n## Precision at the truth per CPU-second (PF-SEFI, one block per object, seeds {PRECISION_SEED}..)\n"
-    );
+    println!("\n## Precision at the truth per CPU-second (PF-SEFI, one block per object, seeds {PRECISION_SEED}..)\n");
     println!(
         "sd: median over objects of the sd over runs of an object's l_hat, and of its score (sqrt of the summed \
          variances of the components); merit = 1 / (sd^2 x CPU s per run on all objects), higher is better.\n"
