@@ -21,5 +21,4 @@ run A ess-0.3 --ess 0.3
 run A lookback-only --lookback-only true
 run A lookback-only-moves-1-ess-0.3 --lookback-only true --moves 1 --ess 0.3
 run B default
-run B lookback-only-moves-1 --lookback-only true --moves 1
 run B lookback-only-moves-1-ess-0.3 --lookback-only true --moves 1 --ess 0.3
