@@ -16,7 +16,9 @@
 //! with one reduction block per object, and the table reports, as medians over
 //! the objects, the sd of an object's `l_hat` and the spread of its score
 //! (`sqrt` of the summed variances of its components) over the runs at the truth
-//! that generated the data, with the merit `1 / (sd^2 x CPU s per run)`.
+//! that generated the data, with the merit `1 / (sd^2 x CPU s per run)`, and
+//! the bias at the truth as `sefi score-at` measures it: per score component, the
+//! `z` of the mean over objects of each object's mean score over the runs.
 //!
 //! The data and model are built as in `benches/filter.rs`: one synthetic scene
 //! (seed 3) with the hand-crafted policy and an *unfitted* observation network (its
@@ -603,6 +605,13 @@ struct Spread {
     score_sd: f64,
     /// Median CPU seconds of one run on the whole batch (both threads).
     cpu_seconds: f64,
+    /// Bias at the truth, as `sefi score-at` measures it: per score component,
+    /// `z = mean / se` of the objects' mean scores over the runs (the objects are
+    /// independent draws, each with mean score zero at the truth); the largest
+    /// `|z|`, and how many components have `|z| > 3` of how many.
+    max_abs_z: f64,
+    over_3: usize,
+    components: usize,
 }
 
 impl Spread {
@@ -661,7 +670,28 @@ fn precision<M: ssm::models::DifferentiableModel>(
                 .sqrt()
         })
         .collect();
-    Spread { runs, loglik_sd: median(&loglik_sds), score_sd: median(&score_sds), cpu_seconds: median(&cpu) }
+    let dim = score.first().map_or(0, |o| o[0].len());
+    let z: Vec<f64> = (0..dim)
+        .map(|k| {
+            let means: Vec<f64> = score.iter().map(|o| o.iter().map(|g| g[k]).sum::<f64>() / o.len() as f64).collect();
+            let mean = means.iter().sum::<f64>() / objects as f64;
+            let se = sample_sd(&means) / (objects as f64).sqrt();
+            if se > 0.0 {
+                mean / se
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    Spread {
+        runs,
+        loglik_sd: median(&loglik_sds),
+        score_sd: median(&score_sds),
+        cpu_seconds: median(&cpu),
+        max_abs_z: z.iter().fold(0.0, |m, v| m.max(v.abs())),
+        over_3: z.iter().filter(|v| v.abs() > 3.0).count(),
+        components: dim,
+    }
 }
 
 fn main() {
@@ -752,12 +782,16 @@ fn main() {
             wait_for_quiet(tick_rate);
             let spread = precision(&model, workload, precision_runs, tick_rate);
             println!(
-                "  {:<9} precision over {} runs: median sd of l_hat {:.3}, of the score {:.3}, cpu {:.2} s per run",
+                "  {:<9} precision over {} runs: median sd of l_hat {:.3}, of the score {:.3}, cpu {:.2} s per run; \
+                 score at the truth: max |z| {:.2}, {} of {} components with |z| > 3",
                 workload.name(),
                 spread.runs,
                 spread.loglik_sd,
                 spread.score_sd,
-                spread.cpu_seconds
+                spread.cpu_seconds,
+                spread.max_abs_z,
+                spread.over_3,
+                spread.components
             );
             spreads.push((size, workload, spread));
         }
@@ -894,9 +928,9 @@ fn main() {
     );
     println!(
         "| size | workload | runs | cpu s per run | sd l_hat | sd score | merit l_hat | merit score | \
-         merit l_hat / bootstrap's | merit score / bootstrap's |"
+         merit l_hat / bootstrap's | merit score / bootstrap's | max abs z of the mean score | components with abs z > 3 |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (size, workload, s) in &spreads {
         let base = spreads.iter().find(|(z, w, _)| z == size && *w == Workload::PfSefi).map(|(_, _, b)| b);
         let (ml, ms) = (Spread::merit(s.loglik_sd, s.cpu_seconds), Spread::merit(s.score_sd, s.cpu_seconds));
@@ -904,7 +938,7 @@ fn main() {
             (ml / Spread::merit(b.loglik_sd, b.cpu_seconds), ms / Spread::merit(b.score_sd, b.cpu_seconds))
         });
         println!(
-            "| {} | {} | {} | {:.3} | {:.4} | {:.4} | {:.3e} | {:.3e} | {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.3} | {:.4} | {:.4} | {:.3e} | {:.3e} | {:.2} | {:.2} | {:.2} | {} of {} |",
             size.name(),
             workload.name(),
             s.runs,
@@ -914,7 +948,10 @@ fn main() {
             ml,
             ms,
             rl,
-            rs
+            rs,
+            s.max_abs_z,
+            s.over_3,
+            s.components
         );
     }
 
