@@ -22,3 +22,5 @@ run A lookback-only --lookback-only true
 run A lookback-only-moves-1-ess-0.3 --lookback-only true --moves 1 --ess 0.3
 run B default
 run B lookback-only-moves-1-ess-0.3 --lookback-only true --moves 1 --ess 0.3
+# (The z-*.txt files: the same runs of A and B default and lean, from the bench once it
+# printed the score's z at the truth; `run` above now writes that into every file.)
