@@ -5,7 +5,20 @@
 //! Workloads, each one call on the whole batch of 100 objects:
 //! - **filter**: `run_filter` alone (lag 8, observer `()`), the floor under PF-SEFI;
 //! - **pf-sefi** (L = 8), **pf**, **dpf-sgr** and **pfnet** (alpha 0.8): one
-//!   `ScoreEstimator::estimate` call, i.e. one training step's gradient.
+//!   `ScoreEstimator::estimate` call, i.e. one training step's gradient;
+//! - **filter-t** and **pf-sefi-t**: the same on the tempered filter at the same
+//!   `N` (`Tempering::for_observations` on point sets, as training and
+//!   evaluation run it: the default path). They are timed interleaved with filter
+//!   and PF-SEFI, so their ratios compare like with like on a loaded machine.
+//!
+//! **Precision per CPU-second**: a faster filter that is less precise is no
+//! progress, so PF-SEFI on each filter is also run on 8 seeds (4 with `--quick`)
+//! with one reduction block per object, and the table reports, as medians over
+//! the objects, the sd of an object's `l_hat` and the spread of its score
+//! (`sqrt` of the summed variances of its components) over the runs at the truth
+//! that generated the data, with the merit `1 / (sd^2 x CPU s per run)`, and
+//! the bias at the truth as `sefi score-at` measures it: per score component, the
+//! `z` of the mean over objects of each object's mean score over the runs.
 //!
 //! The data and model are built as in `benches/filter.rs`: one synthetic scene
 //! (seed 3) with the hand-crafted policy and an *unfitted* observation network (its
@@ -40,9 +53,15 @@
 //! also measured with chunks of 1 and 8 to show the memory/time trade-off.
 //!
 //! Run: `cargo bench --bench estimators` (add `-- --quick` for one repetition of
-//! everything and no chunk sweep). A single child run, e.g. for `perf record`:
-//! `.../estimators --child pf-sefi A 4` (workloads: filter, pf-sefi, pf, dpf-sgr,
-//! pfnet; sizes A, B). The child's line also carries the estimate's CPU time (both
+//! everything, without warm-up, and no chunk sweep; `--size A|B` for one size;
+//! `--no-memory` without the peak-memory children; `--no-wait` without waiting
+//! for a quiet machine; `-- --default-path` for filter, PF-SEFI and
+//! their tempered rows with the precision section only, without the baselines:
+//! about three minutes with `--quick` on two cores; `--moves K`, `--ess F` and
+//! `--lookback-only true|false` change those of the tempered rows' settings, to
+//! weigh them). A single child run, e.g. for `perf record`:
+//! `.../estimators --child pf-sefi A 4` (workloads: filter, pf-sefi, filter-t,
+//! pf-sefi-t, pf, dpf-sgr, pfnet; sizes A, B). The child's line also carries the estimate's CPU time (both
 //! threads, from `/proc/self/stat`), the figure to compare on a busy machine.
 
 use std::process::Command;
@@ -50,9 +69,9 @@ use std::time::Instant;
 
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::data::Dataset;
+use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
-use ssm::filter::{run_filter, Sampling};
+use ssm::filter::{run_filter, FilterPurpose, Sampling, Tempering};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::ParticleModel;
@@ -70,6 +89,52 @@ const DATA_SEED: u64 = 3;
 const FILTER_SEED: u64 = 1;
 /// Chunk sizes of the DPF-SGR sweep at B.
 const SWEEP_CHUNKS: [usize; 3] = [1, 4, 8];
+/// Seeds of the precision runs (`PRECISION_SEED + r`), apart from the timing seed.
+const PRECISION_SEED: u64 = 1000;
+/// Runs per filter in the precision section (and with `--quick`).
+const PRECISION_RUNS: usize = 8;
+const PRECISION_RUNS_QUICK: usize = 4;
+/// Settings of the tempered rows that differ from the default's, to weigh a
+/// setting: `--moves K`, `--ess F` and `--lookback-only BOOL` (the children
+/// inherit them).
+#[derive(Clone, Copy, Debug, Default)]
+struct TemperingOverride {
+    moves: Option<usize>,
+    ess_fraction: Option<f64>,
+    lookback_only: Option<bool>,
+}
+
+impl TemperingOverride {
+    /// Reads the options from the command line.
+    fn parse(args: &[String]) -> Self {
+        let value = |flag: &str| args.iter().position(|a| a == flag).map(|p| args.get(p + 1).map(String::as_str));
+        let parse = |flag: &str| value(flag).map(|v| v.unwrap_or_else(|| panic!("{flag} needs a value")));
+        TemperingOverride {
+            moves: parse("--moves").map(|v| v.parse().expect("--moves K (a count)")),
+            ess_fraction: parse("--ess").map(|v| v.parse().expect("--ess F (a fraction)")),
+            lookback_only: parse("--lookback-only").map(|v| v.parse().expect("--lookback-only true|false")),
+        }
+    }
+
+    /// The options that give this override to a child.
+    fn args(&self) -> Vec<String> {
+        let mut a = Vec::new();
+        if let Some(m) = self.moves {
+            a.extend(["--moves".to_string(), m.to_string()]);
+        }
+        if let Some(f) = self.ess_fraction {
+            a.extend(["--ess".to_string(), f.to_string()]);
+        }
+        if let Some(l) = self.lookback_only {
+            a.extend(["--lookback-only".to_string(), l.to_string()]);
+        }
+        a
+    }
+}
+
+/// `--no-wait`: time at once, without waiting for a quiet machine.
+static NO_WAIT: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+static TEMPERING_OVERRIDE: std::sync::OnceLock<TemperingOverride> = std::sync::OnceLock::new();
 /// Tag of the line a child prints for its parent.
 const CHILD_TAG: &str = "ESTIMATORS-CHILD";
 const MIB: f64 = 1024.0 * 1024.0;
@@ -113,18 +178,32 @@ impl Size {
 enum Workload {
     Filter,
     PfSefi,
+    /// The tempered filter alone (the default path's filter).
+    TemperedFilter,
+    /// PF-SEFI on the tempered filter (the default path's score).
+    TemperedPfSefi,
     Pf,
     DpfSgr,
     Pfnet,
 }
 
-const WORKLOADS: [Workload; 5] = [Workload::Filter, Workload::PfSefi, Workload::Pf, Workload::DpfSgr, Workload::Pfnet];
+const WORKLOADS: [Workload; 7] = [
+    Workload::Filter,
+    Workload::PfSefi,
+    Workload::TemperedFilter,
+    Workload::TemperedPfSefi,
+    Workload::Pf,
+    Workload::DpfSgr,
+    Workload::Pfnet,
+];
 
 impl Workload {
     fn name(self) -> &'static str {
         match self {
             Workload::Filter => "filter",
             Workload::PfSefi => "pf-sefi",
+            Workload::TemperedFilter => "filter-t",
+            Workload::TemperedPfSefi => "pf-sefi-t",
             Workload::Pf => "pf",
             Workload::DpfSgr => "dpf-sgr",
             Workload::Pfnet => "pfnet",
@@ -137,12 +216,17 @@ impl Workload {
 
     fn estimator(self) -> Option<Estimator> {
         match self {
-            Workload::Filter => None,
-            Workload::PfSefi => Some(Estimator::pf_sefi(LAG)),
+            Workload::Filter | Workload::TemperedFilter => None,
+            Workload::PfSefi | Workload::TemperedPfSefi => Some(Estimator::pf_sefi(LAG)),
             Workload::Pf => Some(Estimator::pf()),
             Workload::DpfSgr => Some(Estimator::dpf_sgr()),
             Workload::Pfnet => Some(Estimator::pfnet(PFNET_ALPHA)),
         }
+    }
+
+    /// Whether the workload runs the tempered filter (the default path).
+    fn is_tempered(self) -> bool {
+        matches!(self, Workload::TemperedFilter | Workload::TemperedPfSefi)
     }
 
     /// Whether the workload back-propagates through the whole filter (slow).
@@ -197,23 +281,51 @@ struct Outcome {
     log_likelihood: f64,
     rows_evaluated: usize,
     particle_slots: usize,
+    /// The filter-alone workloads: evaluations of all `N` particles' observation
+    /// log-likelihoods, tempering stages, and the object-steps with an observation.
+    likelihood_evaluations: usize,
+    stages: usize,
+    observed_steps: usize,
+    /// Metropolis moves proposed and accepted (the tempered filter alone).
+    moves_proposed: usize,
+    moves_accepted: usize,
 }
 
-fn estimator_config(chunk: usize) -> EstimatorConfig {
-    EstimatorConfig { chunk_objects: chunk, ..EstimatorConfig::new(Sampling::new(PARTICLES, None)) }
+/// The estimator settings of `workload`: the bootstrap filter, or the tempered
+/// filter the default path runs on point observations.
+fn estimator_config(workload: Workload, chunk: usize) -> EstimatorConfig {
+    let tempering = workload.is_tempered().then(|| {
+        let default = Tempering::for_observations(ObservationKind::Points, FilterPurpose::Training);
+        let o = TEMPERING_OVERRIDE.get().copied().unwrap_or_default();
+        Tempering {
+            moves: o.moves.unwrap_or(default.moves),
+            ess_fraction: o.ess_fraction.unwrap_or(default.ess_fraction),
+            lookback_only: o.lookback_only.unwrap_or(default.lookback_only),
+            ..default
+        }
+    });
+    EstimatorConfig { chunk_objects: chunk, ..EstimatorConfig::new(Sampling::new(PARTICLES, tempering)) }
 }
 
 /// Runs `workload` once on the whole batch of objects.
 fn run_once<M: ssm::models::DifferentiableModel>(model: &M, workload: Workload, chunk: usize) -> Outcome {
-    let config = estimator_config(chunk);
+    let config = estimator_config(workload, chunk);
     match workload.estimator() {
         None => {
             let filter = config.filter(FILTER_SEED, LAG, None);
             let run = run_filter(model, &filter, |_| ());
+            let observed_steps = (0..model.num_objects())
+                .map(|o| (0..model.num_steps()).filter(|&t| model.observation_count(o, t) > 0).count())
+                .sum();
             Outcome {
                 log_likelihood: run.log_likelihood(),
                 rows_evaluated: 0,
                 particle_slots: PARTICLES * model.num_steps() * model.num_objects(),
+                likelihood_evaluations: run.objects.iter().map(|o| o.likelihood_evaluations).sum(),
+                stages: run.objects.iter().map(|o| o.tempering_stages).sum(),
+                observed_steps,
+                moves_proposed: run.objects.iter().map(|o| o.moves_proposed).sum(),
+                moves_accepted: run.objects.iter().map(|o| o.moves_accepted).sum(),
             }
         }
         Some(estimator) => {
@@ -223,6 +335,7 @@ fn run_once<M: ssm::models::DifferentiableModel>(model: &M, workload: Workload, 
                 log_likelihood: estimate.log_likelihood,
                 rows_evaluated: estimate.rows_evaluated,
                 particle_slots: estimate.particle_slots,
+                ..Outcome::default()
             }
         }
     }
@@ -265,6 +378,9 @@ fn ticks_per_second() -> f64 {
 /// whether the machine became quiet.
 fn wait_for_quiet(tick_rate: f64) -> (f64, bool) {
     let start = Instant::now();
+    if NO_WAIT.get().copied().unwrap_or(false) {
+        return (0.0, false);
+    }
     while start.elapsed().as_secs_f64() < QUIET_WAIT_MAX_S {
         let (Some(a), t) = (cpu_ticks(), Instant::now()) else { return (0.0, false) };
         std::thread::sleep(std::time::Duration::from_secs(1));
@@ -330,7 +446,7 @@ fn time_workloads<M: ssm::models::DifferentiableModel>(
     tick_rate: f64,
 ) -> Vec<(Timing, Outcome)> {
     let (waited, quiet) = wait_for_quiet(tick_rate);
-    if waited > 1.5 || !quiet {
+    if waited > 1.5 || (!quiet && waited > 0.0) {
         println!(
             "  (waited {waited:.0} s for other processes to go below {QUIET_LOAD} cores{})",
             if quiet { "" } else { "; they did not" }
@@ -421,7 +537,11 @@ impl Memory {
 
 fn measure_memory(workload: Workload, size: Size, chunk: usize) -> Option<Memory> {
     let exe = std::env::current_exe().ok()?;
-    let out = Command::new(exe).args(["--child", workload.name(), size.name(), &chunk.to_string()]).output().ok()?;
+    let mut command = Command::new(exe);
+    if let Some(o) = TEMPERING_OVERRIDE.get() {
+        command.args(o.args());
+    }
+    let out = command.args(["--child", workload.name(), size.name(), &chunk.to_string()]).output().ok()?;
     if !out.status.success() {
         eprintln!(
             "child {} {} {chunk} failed: {}\n{}",
@@ -474,13 +594,123 @@ fn reps_for(workload: Workload, quick: bool) -> usize {
     }
 }
 
+/// PF-SEFI's precision at the truth on one filter over repeated runs.
+struct Spread {
+    /// Runs (seeds).
+    runs: usize,
+    /// Median over objects of the sd of an object's `l_hat` over the runs.
+    loglik_sd: f64,
+    /// Median over objects of the spread of an object's score over the runs:
+    /// `sqrt(trace Cov)`, the root of the summed variances of its components.
+    score_sd: f64,
+    /// Median CPU seconds of one run on the whole batch (both threads).
+    cpu_seconds: f64,
+    /// Bias at the truth, as `sefi score-at` measures it: per score component,
+    /// `z = mean / se` of the objects' mean scores over the runs (the objects are
+    /// independent draws, each with mean score zero at the truth); the largest
+    /// `|z|`, and how many components have `|z| > 3` of how many.
+    max_abs_z: f64,
+    over_3: usize,
+    components: usize,
+}
+
+impl Spread {
+    /// Precision per CPU-second: `1 / (sd^2 x CPU s per run)`, the number of
+    /// runs' worth of variance reduction a CPU-second buys (a filter twice as
+    /// precise at four times the cost scores the same).
+    fn merit(sd: f64, cpu: f64) -> f64 {
+        1.0 / (sd * sd * cpu)
+    }
+}
+
+/// The sample sd of `values`.
+fn sample_sd(values: &[f64]) -> f64 {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt()
+}
+
+/// Runs PF-SEFI (`workload`: on the bootstrap or the tempered filter) `runs`
+/// times with seeds `PRECISION_SEED + r`, one reduction block per object, and
+/// measures the spread of each object's `l_hat` and score over the runs. The
+/// model is the one that generated the data, so this is the spread at the truth.
+fn precision<M: ssm::models::DifferentiableModel>(
+    model: &M,
+    workload: Workload,
+    runs: usize,
+    tick_rate: f64,
+) -> Spread {
+    let config = estimator_config(workload, 1);
+    let estimator = workload.estimator().expect("a score workload");
+    let objects = model.num_objects();
+    // [object][run]
+    let mut loglik = vec![Vec::with_capacity(runs); objects];
+    let mut score: Vec<Vec<Vec<f64>>> = vec![Vec::with_capacity(runs); objects];
+    let mut cpu = Vec::with_capacity(runs);
+    for r in 0..runs {
+        let before = cpu_ticks();
+        let partial = estimator.partial(model, &config, PRECISION_SEED + r as u64);
+        if let (Some(a), Some(b)) = (before, cpu_ticks()) {
+            cpu.push((b.this_process - a.this_process) as f64 / tick_rate);
+        }
+        assert_eq!(partial.blocks.len(), objects, "one block per object");
+        for (o, block) in partial.blocks.into_iter().enumerate() {
+            loglik[o].push(block.log_likelihood);
+            score[o].push(block.gradient);
+        }
+    }
+    let loglik_sds: Vec<f64> = loglik.iter().map(|l| sample_sd(l)).collect();
+    let score_sds: Vec<f64> = score
+        .iter()
+        .map(|runs_of_object| {
+            let dim = runs_of_object[0].len();
+            (0..dim)
+                .map(|k| sample_sd(&runs_of_object.iter().map(|g| g[k]).collect::<Vec<_>>()).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        })
+        .collect();
+    let dim = score.first().map_or(0, |o| o[0].len());
+    let z: Vec<f64> = (0..dim)
+        .map(|k| {
+            let means: Vec<f64> = score.iter().map(|o| o.iter().map(|g| g[k]).sum::<f64>() / o.len() as f64).collect();
+            let mean = means.iter().sum::<f64>() / objects as f64;
+            let se = sample_sd(&means) / (objects as f64).sqrt();
+            if se > 0.0 {
+                mean / se
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    Spread {
+        runs,
+        loglik_sd: median(&loglik_sds),
+        score_sd: median(&score_sds),
+        cpu_seconds: median(&cpu),
+        max_abs_z: z.iter().fold(0.0, |m, v| m.max(v.abs())),
+        over_3: z.iter().filter(|v| v.abs() > 3.0).count(),
+        components: dim,
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).collect();
+    TEMPERING_OVERRIDE.set(TemperingOverride::parse(&args)).expect("set once");
     if let Some(pos) = args.iter().position(|a| a == "--child") {
         child(&args[pos + 1..]);
         return;
     }
     let quick = args.iter().any(|a| a == "--quick");
+    let skip_baselines = args.iter().any(|a| a == "--default-path");
+    let skip_memory = args.iter().any(|a| a == "--no-memory");
+    let no_wait = args.iter().any(|a| a == "--no-wait");
+    let sizes: Vec<Size> = match args.iter().position(|a| a == "--size") {
+        Some(p) => vec![args.get(p + 1).and_then(|s| Size::parse(s)).expect("--size A|B")],
+        None => vec![Size::A, Size::B],
+    };
+    NO_WAIT.set(no_wait).expect("set once");
+    let precision_runs = if quick { PRECISION_RUNS_QUICK } else { PRECISION_RUNS };
     let default_chunk = EstimatorConfig::default().chunk_objects;
     let threads = rayon::current_num_threads();
     let tick_rate = ticks_per_second();
@@ -490,8 +720,10 @@ fn main() {
          resampling, {threads} rayon threads, baselines in chunks of {default_chunk} objects"
     );
 
+    println!("tempered rows: {:?}", estimator_config(Workload::TemperedFilter, default_chunk).sampling.tempering);
     let mut rows: Vec<Row> = Vec::new();
-    for size in [Size::A, Size::B] {
+    let mut spreads: Vec<(Size, Workload, Spread)> = Vec::new();
+    for &size in &sizes {
         let problem = Problem::new(size);
         let model = problem.model();
         let points: usize = problem.data.points().map(|p| p.len()).unwrap_or(0);
@@ -504,17 +736,23 @@ fn main() {
             points as f64 / (model.num_objects() * model.num_steps()) as f64
         );
         // Filter and PF-SEFI interleaved (their ratio is a target), then each baseline.
-        let groups: [&[Workload]; 4] =
-            [&[Workload::Filter, Workload::PfSefi], &[Workload::Pf], &[Workload::DpfSgr], &[Workload::Pfnet]];
-        for group in groups {
+        // The tempered rows join them: the default path's cost against the paper's filter.
+        let all: [&[Workload]; 4] = [
+            &[Workload::Filter, Workload::PfSefi, Workload::TemperedFilter, Workload::TemperedPfSefi],
+            &[Workload::Pf],
+            &[Workload::DpfSgr],
+            &[Workload::Pfnet],
+        ];
+        let groups = if skip_baselines { &all[..1] } else { &all[..] };
+        for &group in groups {
             let reps = reps_for(group[0], quick);
-            let warm_up = !group[0].is_baseline();
+            let warm_up = !group[0].is_baseline() && !quick;
             let timed = time_workloads(&model, group, default_chunk, warm_up, reps, tick_rate);
             for (&workload, (timing, outcome)) in group.iter().zip(timed) {
-                let memory = measure_memory(workload, size, default_chunk);
+                let memory = if skip_memory { None } else { measure_memory(workload, size, default_chunk) };
                 println!(
                     "  {:<8} median {:7.3} s  best {:7.3} s  cpu {:7.3} s  others {:.2} cores  ({} reps{})  \
-                     peak +{} MiB  l_hat {:.1}",
+                     peak +{} MiB  l_hat {:.1}{}",
                     workload.name(),
                     timing.median(),
                     timing.best(),
@@ -523,17 +761,45 @@ fn main() {
                     reps,
                     if warm_up { " after a warm-up" } else { "" },
                     memory.map_or("?".into(), |m| mib(m.added())),
-                    outcome.log_likelihood
+                    outcome.log_likelihood,
+                    if workload.is_tempered() && outcome.observed_steps > 0 {
+                        format!(
+                            "  {:.2} likelihood evaluations and {:.2} stages per observed object-step, \
+                             {:.1}% of moves accepted",
+                            outcome.likelihood_evaluations as f64 / outcome.observed_steps as f64,
+                            outcome.stages as f64 / outcome.observed_steps as f64,
+                            100.0 * outcome.moves_accepted as f64 / outcome.moves_proposed.max(1) as f64
+                        )
+                    } else {
+                        String::new()
+                    }
                 );
                 let chunk = workload.is_baseline().then_some(default_chunk);
                 rows.push(Row { size, workload, chunk, timing, outcome, memory });
             }
         }
+        for workload in [Workload::PfSefi, Workload::TemperedPfSefi] {
+            wait_for_quiet(tick_rate);
+            let spread = precision(&model, workload, precision_runs, tick_rate);
+            println!(
+                "  {:<9} precision over {} runs: median sd of l_hat {:.3}, of the score {:.3}, cpu {:.2} s per run; \
+                 score at the truth: max |z| {:.2}, {} of {} components with |z| > 3",
+                workload.name(),
+                spread.runs,
+                spread.loglik_sd,
+                spread.score_sd,
+                spread.cpu_seconds,
+                spread.max_abs_z,
+                spread.over_3,
+                spread.components
+            );
+            spreads.push((size, workload, spread));
+        }
     }
 
     // DPF-SGR at B: the memory/time trade-off of the chunk size.
     let mut sweep: Vec<Row> = Vec::new();
-    if !quick {
+    if !quick && !skip_baselines {
         let problem = Problem::new(Size::B);
         let model = problem.model();
         println!("\nDPF-SGR at B, chunk sweep");
@@ -622,6 +888,71 @@ fn main() {
                 s.timing.cpu_median() / f.timing.cpu_median()
             );
         }
+    }
+
+    println!("\n## The default path: the tempered filter against the bootstrap filter (same N, interleaved runs)\n");
+    println!(
+        "| size | filter s | filter-t s | filter-t / filter | pf-sefi s | pf-sefi-t s | pf-sefi-t / pf-sefi | target | \
+         met | cpu ratio pf-sefi-t / pf-sefi | evaluations per observed object-step (filter-t) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for size in [Size::A, Size::B] {
+        let find = |w: Workload| rows.iter().find(|r| r.size == size && r.workload == w);
+        if let (Some(f), Some(s), Some(ft), Some(st)) = (
+            find(Workload::Filter),
+            find(Workload::PfSefi),
+            find(Workload::TemperedFilter),
+            find(Workload::TemperedPfSefi),
+        ) {
+            let ratio = st.timing.median() / s.timing.median();
+            println!(
+                "| {} | {:.3} | {:.3} | {:.2} | {:.3} | {:.3} | {:.2} | <= 3 | {} | {:.2} | {:.2} |",
+                size.name(),
+                f.timing.median(),
+                ft.timing.median(),
+                ft.timing.median() / f.timing.median(),
+                s.timing.median(),
+                st.timing.median(),
+                ratio,
+                verdict(ratio, Some(3.0)),
+                st.timing.cpu_median() / s.timing.cpu_median(),
+                ft.outcome.likelihood_evaluations as f64 / ft.outcome.observed_steps.max(1) as f64
+            );
+        }
+    }
+
+    println!("\n## Precision at the truth per CPU-second (PF-SEFI, one block per object, seeds {PRECISION_SEED}..)\n");
+    println!(
+        "sd: median over objects of the sd over runs of an object's l_hat, and of its score (sqrt of the summed \
+         variances of the components); merit = 1 / (sd^2 x CPU s per run on all objects), higher is better.\n"
+    );
+    println!(
+        "| size | workload | runs | cpu s per run | sd l_hat | sd score | merit l_hat | merit score | \
+         merit l_hat / bootstrap's | merit score / bootstrap's | max abs z of the mean score | components with abs z > 3 |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for (size, workload, s) in &spreads {
+        let base = spreads.iter().find(|(z, w, _)| z == size && *w == Workload::PfSefi).map(|(_, _, b)| b);
+        let (ml, ms) = (Spread::merit(s.loglik_sd, s.cpu_seconds), Spread::merit(s.score_sd, s.cpu_seconds));
+        let (rl, rs) = base.map_or((f64::NAN, f64::NAN), |b| {
+            (ml / Spread::merit(b.loglik_sd, b.cpu_seconds), ms / Spread::merit(b.score_sd, b.cpu_seconds))
+        });
+        println!(
+            "| {} | {} | {} | {:.3} | {:.4} | {:.4} | {:.3e} | {:.3e} | {:.2} | {:.2} | {:.2} | {} of {} |",
+            size.name(),
+            workload.name(),
+            s.runs,
+            s.cpu_seconds,
+            s.loglik_sd,
+            s.score_sd,
+            ml,
+            ms,
+            rl,
+            rs,
+            s.max_abs_z,
+            s.over_3,
+            s.components
+        );
     }
 
     println!("\n## Baselines against PF-SEFI: ratio of median wall times (of median CPU times)\n");

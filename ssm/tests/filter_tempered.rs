@@ -71,6 +71,34 @@ fn likelihood_is_unbiased_and_precise_where_the_bootstrap_filter_degenerates() {
     }
 }
 
+/// `Tempering::lookback_only` drops the sweep of `x_t`'s noise alone from `t = 1`
+/// on: the lookback moves (which move it jointly with its parent's) keep every
+/// intermediate target invariant by themselves, so the likelihood stays unbiased,
+/// and a stage's moves cost at most two evaluations per sweep instead of three.
+#[test]
+fn lookback_only_moves_keep_the_likelihood_unbiased_at_fewer_evaluations() {
+    let model = sharp_model(0.5, 0.02);
+    let ys = model.simulate(16, &mut StdRng::seed_from_u64(1)).ys;
+    let exact = model.log_likelihood(&ys);
+    let data = replicated(&model, &ys, 200);
+    let per_stage = |run: &FilterRun<()>| {
+        let evals: usize = run.objects.iter().map(|o| o.likelihood_evaluations).sum();
+        let stages: usize = run.objects.iter().map(|o| o.tempering_stages).sum();
+        (evals - run.objects.len() * ys.len()) as f64 / stages as f64
+    };
+    let full = run_filter(&data, &config(128, Some(Tempering::default())), |_| ());
+    let lean = Tempering { lookback_only: true, ..Tempering::default() };
+    let run = run_filter(&data, &config(128, Some(lean)), |_| ());
+    let (m, se, _) = spread(&run, exact);
+    assert!((m - 1.0).abs() < 4.0 * se + 0.02, "lookback only: mean ratio {m} +- {se}");
+    assert_eq!(run.collapsed_steps(), 0);
+    assert!(run.objects.iter().all(|o| o.moves_accepted > 0), "every object's particles moved");
+    let (lean_cost, full_cost) = (per_stage(&run), per_stage(&full));
+    let moves = lean.moves as f64;
+    assert!(lean_cost <= 2.0 * moves + 1e-9, "lookback only: {lean_cost} evaluations per stage");
+    assert!(full_cost > lean_cost + 0.5, "{full_cost} evaluations per stage with the sweep, {lean_cost} without");
+}
+
 #[test]
 fn steps_the_bootstrap_filter_handles_are_taken_in_one_go() {
     // Observations broader than the prediction: no stage is needed, and the

@@ -64,6 +64,12 @@ pub struct Tempering {
     /// evaluations per object; the filter's ring keeps `K + 1` steps.
     #[serde(default)]
     pub origin_steps: usize,
+    /// From `t = 1` on, make only the lookback moves (which move `x_t`'s noise
+    /// jointly with its parent's) and not the separate sweep of `x_t`'s noise
+    /// alone: one likelihood evaluation and one propagation fewer per sweep. At
+    /// `t = 0` there is no parent and the sweep of the prior's noise stays.
+    #[serde(default)]
+    pub lookback_only: bool,
 }
 
 impl Default for Tempering {
@@ -71,7 +77,7 @@ impl Default for Tempering {
     /// SMC samplers), two sweeps of moves, at most 64 stages, no origin moves
     /// ([`Tempering::for_observations`] adds them where the data call for them).
     fn default() -> Self {
-        Tempering { ess_fraction: 0.5, moves: 2, max_stages: 64, origin_steps: 0 }
+        Tempering { ess_fraction: 0.5, moves: 2, max_stages: 64, origin_steps: 0, lookback_only: false }
     }
 }
 
@@ -445,21 +451,23 @@ impl Temperer {
             log_w.fill(-(n as f64).ln());
 
             for _ in 0..self.config.moves {
-                let parent_states = parent.as_ref().map_or(&[][..], |p| &p.states[..]);
-                let accepted = self.sweep(
-                    model,
-                    at,
-                    beta,
-                    step_current,
-                    Drawn { next: states, actions },
-                    parent_states,
-                    rng,
-                    scratch,
-                );
-                out.evaluations += 1;
-                out.proposed += n;
-                out.accepted += accepted;
-                step_current = adapt(step_current, accepted, n);
+                if parent.is_none() || !self.config.lookback_only {
+                    let parent_states = parent.as_ref().map_or(&[][..], |p| &p.states[..]);
+                    let accepted = self.sweep(
+                        model,
+                        at,
+                        beta,
+                        step_current,
+                        Drawn { next: states, actions },
+                        parent_states,
+                        rng,
+                        scratch,
+                    );
+                    out.evaluations += 1;
+                    out.proposed += n;
+                    out.accepted += accepted;
+                    step_current = adapt(step_current, accepted, n);
+                }
                 if let Some(p) = &mut parent {
                     let (accepted, evaluations) =
                         self.lookback(model, at, beta, step_lookback, Drawn { next: states, actions }, p, rng, scratch);
