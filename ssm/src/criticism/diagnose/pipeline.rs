@@ -23,7 +23,7 @@ use super::fits::{fit, learned, natural_params, start_from_nested, FitSchedule, 
 use super::judge::gain_bar;
 use super::progress::Stage;
 use super::references::{Reference, ReferenceFit};
-use super::report::{CandidateReport, CheckReport, NotAdmitted, Report, ReseededReport};
+use super::report::{CandidateReport, CheckReport, NotAdmitted, Report, ReseededReport, REPORT_FORMAT_VERSION};
 use super::rules::{
     beats_reseeded, choose, nested_comparisons, outcome_without_cause, reference_tests, FITTED_SCREEN_PERMUTATIONS,
 };
@@ -391,6 +391,7 @@ pub(super) fn run(
     let units = reference_eval.units.max(1) as f64;
     let base_mll = reference_eval.object_ll.iter().sum::<f64>() / units;
     Ok(Report {
+        format_version: REPORT_FORMAT_VERSION,
         cause,
         gain: winner.map_or(0.0, |i| candidates[i].gain),
         gain_se: winner.map_or(0.0, |i| candidates[i].gain_se),
