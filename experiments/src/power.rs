@@ -1,7 +1,8 @@
 //! `sefi power-study`: how often `diagnose` names a hidden effect (SPEC §7, the
 //! criticism's power and false-cause rate). For every effect, strength and seed it
 //! generates a dataset with that effect hidden ([`ssm::criticism::hidden`]), runs
-//! the quick diagnosis, and tabulates the share of seeds on which the cause is
+//! the quick diagnosis under the study's protocol (`--protocol`), and tabulates
+//! the share of seeds on which the cause is
 //! named, the share of false causes (on the controls, any catalogue cause) and
 //! the error of the learned magnitude. Every finished diagnosis keeps its
 //! `report.json` and each fit's evaluation log (the rest of its training runs
