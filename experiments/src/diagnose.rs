@@ -10,7 +10,7 @@ use indicatif::ProgressBar;
 use plotters::prelude::*;
 use ssm::criticism::checks::{format_z, z_bound};
 use ssm::criticism::diagnose::{
-    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Protocol, Report, Screen, Stage, DEFAULT_PROTOCOL, NO_CAUSE,
+    diagnose, diagnose_split, CheckReport, DiagnoseConfig, Protocol, Report, Stage, DEFAULT_PROTOCOL, NO_CAUSE,
     PROTOCOLS, UNEXPLAINED,
 };
 use ssm::data::Dataset;
@@ -67,29 +67,6 @@ pub struct DiagnoseArgs {
     seed: u64,
     #[command(flatten)]
     protocol: ProtocolArg,
-    /// Fit every extension that applies to the data, not only those the checks make plausible.
-    #[arg(long, hide = true)]
-    fit_all: bool,
-    /// Fit also the extensions no check flagged whose start raises the check objects' likelihood over the base's
-    /// (one-sided sign-flip p below 0.2); such an extension must raise it again after its fit, over the
-    /// reference's, to be named.
-    #[arg(long, hide = true, conflicts_with = "fit_all")]
-    likelihood_screen: bool,
-    /// Fit every extension no check flagged, and keep one as a candidate only when its fitted model raises the check
-    /// objects' likelihood over its reference's (one-sided sign-flip p below 0.2): a screen by the fitted model's
-    /// likelihood rather than a summary statistic, at the cost of fitting every extension.
-    #[arg(long, hide = true, conflicts_with_all = ["fit_all", "likelihood_screen"])]
-    fitted_screen: bool,
-    /// With --fitted-screen: pause each extension the screen fits at the first evaluation after this share of its
-    /// steps, and continue it only where its best check-part evaluation is above the base's (0: fit each to its end)
-    /// [default: 1/3].
-    #[arg(long, hide = true, requires = "fitted_screen")]
-    screen_futility: Option<f64>,
-    /// Fit a nesting extension (persistent_flip) from the base, as every other, instead of where its nested
-    /// extension's fit (heading_flip) ended (the base's parameters and the fraction from that fit, the
-    /// persistence from the checks).
-    #[arg(long, hide = true)]
-    no_nesting_from_nested: bool,
     /// PF-SEFI steps of the base fit.
     #[arg(long)]
     base_steps: Option<usize>,
@@ -105,113 +82,25 @@ pub struct DiagnoseArgs {
     /// Filter runs averaged per evaluated object (the same seeds for every model).
     #[arg(long)]
     eval_runs: Option<usize>,
-    /// Train with the bootstrap filter instead of the tempered one (the checks and the evaluation stay tempered).
-    #[arg(long, hide = true)]
-    bootstrap_training: bool,
-    /// The smallest gain that names a cause (nats per observed unit).
-    #[arg(long, hide = true)]
-    min_gain: Option<f64>,
-    /// Smoother draws per held-out object.
-    #[arg(long, hide = true)]
-    draws: Option<usize>,
-    /// Scenes per training step.
-    #[arg(long, hide = true)]
-    scenes_per_step: Option<usize>,
-    /// Fraction of the objects that fit the models.
-    #[arg(long, hide = true)]
-    fit_fraction: Option<f64>,
-    /// Fraction of the objects that check the base and start the candidates (the rest evaluate the gain).
-    #[arg(long, hide = true)]
-    check_fraction: Option<f64>,
-    /// Adam learning rate of the base fit.
-    #[arg(long, hide = true)]
-    lr: Option<f64>,
-    /// Adam learning rate of the candidates' fits and the reference's.
-    #[arg(long, hide = true)]
-    candidate_lr: Option<f64>,
-    /// Adam learning rate at which the refits move the base's parameters (the extensions' own parameters stay at
-    /// --candidate-lr) [default: --candidate-lr for all; the base's final rate, --lr / 10, continues the base
-    /// where it ended].
-    #[arg(long, hide = true)]
-    refit_base_lr: Option<f64>,
-    /// Evaluate every fit on the check objects every this many steps and keep its best parameters (0: keep the
-    /// last) [default: 25].
-    #[arg(long, hide = true)]
-    keep_best_every: Option<usize>,
-    /// Average the iterates of every fit's last this share of steps and keep their mean (Polyak–Ruppert tail
-    /// averaging; 0: keep the iterate) [default: 0].
-    #[arg(long, hide = true)]
-    average_tail: Option<f64>,
-    /// Learn only the extensions' parameters on top of the fixed base (the base is the reference), instead of
-    /// refitting every parameter with them beside the base refitted alone.
-    #[arg(long, hide = true)]
-    no_refit: bool,
-    /// Do not refit the base a second time with another seed to measure the refits' own noise (a cause's gain
-    /// must then exceed only --min-gain).
-    #[arg(long, hide = true)]
-    no_refit_noise: bool,
-    /// Refit every candidate (and its reference) in every parameter, the extensions of the dynamics (heavy tails)
-    /// included, instead of those in the policy alone with the observation network held (protocol v5 and earlier).
-    #[arg(long, hide = true)]
-    no_scoped_refits: bool,
-    /// Keep every evaluation object (protocol v6 and earlier) instead of setting aside those on which
-    /// the models cannot be compared: whose held-out log-likelihood has a Monte Carlo sd above --min-gain times the
-    /// evaluation part's units under some model, after a refinement (listed in the report).
-    #[arg(long, hide = true, conflicts_with = "set_aside_unmeasured")]
-    keep_unmeasured: bool,
-    /// Set aside the objects no model measures: the default, accepted for older commands.
-    #[arg(long, hide = true)]
-    set_aside_unmeasured: bool,
-    /// Every model filters an object it did not measure again with this many times the evaluation particles
-    /// before it is set aside, and an object brought under the bar stays (1: no refinement) [default: 8].
-    #[arg(long, hide = true)]
-    refine_factor: Option<usize>,
 }
 
 impl DiagnoseArgs {
-    /// The diagnosis's settings: the scale (`--quick` or the default), the
-    /// protocol's rules, then every expert override given.
+    /// The diagnosis's settings: the scale (`--quick` or the default) with
+    /// the scale options given, under the protocol's rules.
     fn config(&self) -> Result<DiagnoseConfig, String> {
         let mut c = if self.quick { DiagnoseConfig::quick() } else { DiagnoseConfig::default() };
         self.protocol.protocol()?.apply(&mut c);
         c.seed = self.seed;
-        for (on, screen) in [
-            (self.fit_all, Screen::FitAll),
-            (self.likelihood_screen, Screen::Likelihood),
-            (self.fitted_screen, Screen::Fitted),
-        ] {
-            if on {
-                screen.apply_to(&mut c);
-            }
-        }
-        c.nesting_from_nested &= !self.no_nesting_from_nested;
         fn set<T>(target: &mut T, v: Option<T>) {
             if let Some(v) = v {
                 *target = v;
             }
         }
-        set(&mut c.screen_futility, self.screen_futility);
         set(&mut c.base_steps, self.base_steps);
         set(&mut c.candidate_steps, self.candidate_steps);
         set(&mut c.particles, self.particles);
         set(&mut c.eval_particles, self.eval_particles);
         set(&mut c.eval_runs, self.eval_runs);
-        c.train_tempered = !self.bootstrap_training;
-        set(&mut c.min_gain, self.min_gain);
-        set(&mut c.fit_fraction, self.fit_fraction);
-        set(&mut c.check_fraction, self.check_fraction);
-        set(&mut c.draws, self.draws);
-        set(&mut c.scenes_per_step, self.scenes_per_step);
-        set(&mut c.lr, self.lr);
-        set(&mut c.candidate_lr, self.candidate_lr);
-        c.refit_base_lr = self.refit_base_lr.or(c.refit_base_lr);
-        set(&mut c.keep_best_every, self.keep_best_every);
-        set(&mut c.average_tail, self.average_tail);
-        c.refit &= !self.no_refit;
-        c.refit_noise &= !self.no_refit_noise;
-        c.scoped_refits &= !self.no_scoped_refits;
-        c.set_aside_unmeasured &= !self.keep_unmeasured;
-        set(&mut c.refine_factor, self.refine_factor);
         Ok(c)
     }
 }
@@ -509,7 +398,7 @@ fn markdown(r: &Report, data: &Path, plots: &[(String, String)]) -> String {
     s
 }
 
-/// `report.md`'s table of the likelihood screen (`--likelihood-screen`): each
+/// `report.md`'s table of the likelihood screen (protocol `v4-likelihood-screen`): each
 /// extension no check flagged, at its start against the base on the check part.
 fn screen_table(s: &mut String, r: &Report) {
     if r.likelihood_screen.is_empty() {
@@ -517,7 +406,7 @@ fn screen_table(s: &mut String, r: &Report) {
     }
     let _ = writeln!(
         s,
-        "\nThe likelihood screen (`--likelihood-screen`): each extension no check flagged, at its start on the \
+        "\nThe likelihood screen (protocol `v4-likelihood-screen`): each extension no check flagged, at its start on the \
          base's parameters against the base, filtered on the check objects with the same seeds; admitted (fitted) \
          when the one-sided sign-flip p over those objects is below {}. Rule (d) for an admitted extension: after \
          its fit it must raise the check objects' likelihood over the reference's.\n",
@@ -531,7 +420,7 @@ fn screen_table(s: &mut String, r: &Report) {
     }
 }
 
-/// `report.md`'s table of the extensions the fitted screen (`--fitted-screen`)
+/// `report.md`'s table of the extensions the fitted screen (protocols `v7-fitted-screen`, `v7-fitted-screen-full`)
 /// fitted and did not admit; nothing where there are none.
 fn not_admitted_table(s: &mut String, r: &Report) {
     if r.not_admitted.is_empty() {
@@ -561,7 +450,7 @@ fn not_admitted_table(s: &mut String, r: &Report) {
     }
 }
 
-/// What `report.md` says of the fitted screen (`--fitted-screen`) where it ran;
+/// What `report.md` says of the fitted screen (protocols `v7-fitted-screen`, `v7-fitted-screen-full`) where it ran;
 /// empty otherwise.
 fn fitted_screen_note(r: &Report) -> String {
     if !r.config.fitted_screen {
@@ -868,7 +757,7 @@ mod tests {
         let clutter = report.candidates.iter().find(|c| c.cause == "clutter").unwrap();
         assert!(clutter.flagged_by.is_empty() && clutter.check_part_gain.is_some_and(|g| g > 0.0));
         assert_eq!(report.decided(true).0, "clutter");
-        // Without rule (d)'s check-part gain it would be a candidate of --fit-all: turned away.
+        // Without rule (d)'s check-part gain it would be a candidate as under `v4-fit-all`: turned away.
         let mut unscreened = report.clone();
         unscreened.candidates.iter_mut().for_each(|c| c.check_part_gain = None);
         assert_ne!(unscreened.decided(true).0, "clutter");
@@ -1005,6 +894,32 @@ mod tests {
             "{section}"
         );
         assert!(!section.contains("| extension |") && !section.contains("uncertain by"), "{section}");
+    }
+
+    /// `report.md` on a committed diagnosis under the fitted screen with its
+    /// futility stop, with an object set aside as unmeasured (the Student-t
+    /// tails, seed 2): it lists the object with its refinement against the bar
+    /// it was flagged at, and each extension the screen turned away, the one the
+    /// stop ended with its step; the sections are those its `report.md` was
+    /// written with.
+    #[test]
+    fn report_md_lists_the_unmeasured_objects_and_what_the_futility_stop_ended() {
+        let report = committed_in("diagnose-student-t-default", "seed2");
+        assert!(report.config.fitted_screen && report.config.screen_futility > 0.0);
+        let md = markdown(&report, Path::new("data"), &[]);
+        let written = std::fs::read_to_string(
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/diagnose-student-t-default/seed2/report.md"),
+        )
+        .unwrap();
+        let unmeasured = md.lines().find(|l| l.starts_with("Objects a model did not measure")).expect("the objects");
+        assert!(unmeasured.contains(&format!("exceeded {:.1} nats", report.unmeasured_bar())), "{unmeasured}");
+        assert!(unmeasured.contains("8 times the particles: scene 10 object 4 (191 units"), "{unmeasured}");
+        assert!(written.contains(unmeasured), "{unmeasured}");
+        let stopped = report.not_admitted.iter().find(|n| n.stopped_at.is_some()).expect("a stopped fit");
+        let row = format!("| {} | stopped at step {} | - |", stopped.cause, stopped.stopped_at.unwrap());
+        assert!(md.contains(&row) && written.contains(&row), "{row}");
+        let screen = md.lines().find(|l| l.starts_with("Fitted and not admitted by the fitted screen")).unwrap();
+        assert!(screen.contains("futility stop") && written.contains(screen), "{screen}");
     }
 
     /// The table of the parameters each fit kept marks a fit that kept its

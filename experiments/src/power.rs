@@ -1,7 +1,8 @@
 //! `sefi power-study`: how often `diagnose` names a hidden effect (SPEC §7, the
 //! criticism's power and false-cause rate). For every effect, strength and seed it
 //! generates a dataset with that effect hidden ([`ssm::criticism::hidden`]), runs
-//! the quick diagnosis, and tabulates the share of seeds on which the cause is
+//! the quick diagnosis under the study's protocol (`--protocol`), and tabulates
+//! the share of seeds on which the cause is
 //! named, the share of false causes (on the controls, any catalogue cause) and
 //! the error of the learned magnitude. Every finished diagnosis keeps its
 //! `report.json` and each fit's evaluation log (the rest of its training runs
@@ -15,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
-use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report, Screen, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
+use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Protocol, Report, NO_CAUSE, TRAINING_RUN_DIRS, UNEXPLAINED};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
 use ssm::stats::wilson_interval;
@@ -49,51 +50,6 @@ pub struct PowerArgs {
     scenes: Option<usize>,
     #[command(flatten)]
     protocol: ProtocolArg,
-    /// Adam's learning rate of every diagnosis's refits (the reference's and the
-    /// candidates'), in place of the quick diagnosis's: the study at another
-    /// refit rate. Use a fresh `--out` for it.
-    #[arg(long, hide = true)]
-    candidate_lr: Option<f64>,
-    /// Adam's learning rate of the base model's parameters in every refit, while
-    /// an extension's learn at the refit rate (`sefi diagnose --refit-base-lr`):
-    /// the study with the base refitted at its own rate. Use a fresh `--out` for it.
-    #[arg(long, hide = true)]
-    refit_base_lr: Option<f64>,
-    /// Every diagnosis runs the likelihood screen (`sefi diagnose
-    /// --likelihood-screen`): the study with extensions no check flagged screened
-    /// in by their start's likelihood. Use a fresh `--out` for it.
-    #[arg(long, hide = true)]
-    likelihood_screen: bool,
-    /// Every diagnosis runs the fitted screen (`sefi diagnose --fitted-screen`):
-    /// every extension fitted, those no check flagged kept as candidates by their
-    /// fitted model's likelihood on the check objects. Use a fresh `--out` for it.
-    #[arg(long, hide = true, conflicts_with = "likelihood_screen")]
-    fitted_screen: bool,
-    /// With --fitted-screen: the futility stop's share of a fit's steps (`sefi diagnose --screen-futility`; 0: every
-    /// screened extension fitted to its end, protocol v7-fitted-screen-full) [default: 1/3].
-    #[arg(long, hide = true, requires = "fitted_screen")]
-    screen_futility: Option<f64>,
-    /// Every diagnosis fits a nesting extension from the base (`sefi diagnose
-    /// --no-nesting-from-nested`; protocol v4 and earlier).
-    #[arg(long, hide = true)]
-    no_nesting_from_nested: bool,
-    /// Every diagnosis refits its candidates in every parameter (`sefi diagnose
-    /// --no-scoped-refits`; protocol v5 and earlier).
-    #[arg(long, hide = true)]
-    no_scoped_refits: bool,
-    /// Every diagnosis keeps every evaluation object (`sefi diagnose
-    /// --keep-unmeasured`; protocol v6 and earlier).
-    #[arg(long, hide = true, conflicts_with = "set_aside_unmeasured")]
-    keep_unmeasured: bool,
-    /// Every diagnosis sets aside the evaluation objects no model measures: the
-    /// default, accepted for older commands.
-    #[arg(long, hide = true)]
-    set_aside_unmeasured: bool,
-    /// Every fit of every diagnosis returns the mean of its last this share of
-    /// iterates (`sefi diagnose --average-tail`): the study with tail-averaged
-    /// fits. Use a fresh `--out` for it.
-    #[arg(long, hide = true)]
-    average_tail: Option<f64>,
     /// Rebuild power.csv and power.md from the finished diagnoses only (run none). The
     /// tables always cover every finished diagnosis under --out, of any effect and
     /// strength, whichever process ran it.
@@ -102,24 +58,9 @@ pub struct PowerArgs {
 }
 
 impl PowerArgs {
-    /// The study's setting: the protocol's rules, then every expert override given.
-    fn setting(&self) -> Result<StudySetting, String> {
-        let mut c = DiagnoseConfig::quick();
-        self.protocol.protocol()?.apply(&mut c);
-        if self.likelihood_screen {
-            Screen::Likelihood.apply_to(&mut c);
-        }
-        if self.fitted_screen {
-            Screen::Fitted.apply_to(&mut c);
-        }
-        if let Some(futility) = self.screen_futility {
-            c.screen_futility = futility;
-        }
-        c.nesting_from_nested &= !self.no_nesting_from_nested;
-        c.scoped_refits &= !self.no_scoped_refits;
-        c.set_aside_unmeasured &= !self.keep_unmeasured;
-        let setting = StudySetting::new(&c, self.candidate_lr, self.refit_base_lr, self.average_tail)?;
-        Ok(setting)
+    /// The study's protocol: every cell's diagnosis runs under it.
+    fn protocol(&self) -> Result<&'static Protocol, String> {
+        self.protocol.protocol()
     }
 }
 
@@ -187,129 +128,12 @@ fn true_magnitudes(effect: &HiddenEffect) -> Vec<(&'static str, f64)> {
     }
 }
 
-/// The diagnosis settings every cell of a study shares (`--candidate-lr`,
-/// `--refit-base-lr`, `--likelihood-screen`, `--no-nesting-from-nested`,
-/// `--average-tail`, `--no-scoped-refits`, `--keep-unmeasured`): a study's
-/// directory holds one setting.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct StudySetting {
-    /// Adam's rate of every refit (an extension's parameters).
-    candidate_lr: f64,
-    /// The base's parameters' rate in the refits; `None`: `candidate_lr`.
-    refit_base_lr: Option<f64>,
-    /// Whether each diagnosis runs the likelihood screen (`sefi diagnose
-    /// --likelihood-screen`).
-    likelihood_screen: bool,
-    /// Whether each diagnosis runs the fitted screen (`sefi diagnose
-    /// --fitted-screen`).
-    fitted_screen: bool,
-    /// The fitted screen's futility stop (`sefi diagnose --screen-futility`;
-    /// 0: none); read as 0 without the fitted screen, where it does nothing.
-    screen_futility: f64,
-    /// Whether a nesting extension's fit starts where its nested one's ended
-    /// (the default; `sefi diagnose --no-nesting-from-nested` turns it off).
-    nesting_from_nested: bool,
-    /// The share of every fit's last iterates averaged (`sefi diagnose
-    /// --average-tail`; 0: none).
-    average_tail: f64,
-    /// Whether each candidate is refitted within its extension's refit scope
-    /// (the default; `sefi diagnose --no-scoped-refits` turns it off).
-    scoped_refits: bool,
-    /// Whether each diagnosis sets aside the evaluation objects no model
-    /// measures (the default; `sefi diagnose --keep-unmeasured` turns it off).
-    set_aside_unmeasured: bool,
-}
-
-impl StudySetting {
-    /// The quick diagnosis under a protocol, `quick`, with the given rates in
-    /// place of its own (its screen and nesting start as they are), checked by
-    /// the diagnosis's own [`DiagnoseConfig::validate`] (an error names the
-    /// flag: `--refit-base-lr = 0: expected positive and finite`).
-    fn new(
-        quick: &DiagnoseConfig,
-        candidate_lr: Option<f64>,
-        refit_base_lr: Option<f64>,
-        average_tail: Option<f64>,
-    ) -> Result<StudySetting, String> {
-        let quick = quick.clone();
-        let config = DiagnoseConfig {
-            candidate_lr: candidate_lr.unwrap_or(quick.candidate_lr),
-            refit_base_lr: refit_base_lr.or(quick.refit_base_lr),
-            average_tail: average_tail.unwrap_or(quick.average_tail),
-            ..quick
-        };
-        config.validate().map_err(|e| {
-            format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
-        })?;
-        Ok(StudySetting::of(&config))
-    }
-
-    /// The setting a diagnosis ran with.
-    fn of(config: &DiagnoseConfig) -> StudySetting {
-        StudySetting {
-            candidate_lr: config.candidate_lr,
-            refit_base_lr: config.refit_base_lr,
-            likelihood_screen: config.likelihood_screen,
-            fitted_screen: config.fitted_screen,
-            screen_futility: if config.fitted_screen { config.screen_futility } else { 0.0 },
-            nesting_from_nested: config.nesting_from_nested,
-            average_tail: config.average_tail,
-            scoped_refits: config.scoped_refits,
-            set_aside_unmeasured: config.set_aside_unmeasured,
-        }
-    }
-
-    /// The quick diagnosis of one cell under this setting.
-    fn diagnose_config(self, seed: u64) -> DiagnoseConfig {
-        DiagnoseConfig {
-            seed,
-            candidate_lr: self.candidate_lr,
-            refit_base_lr: self.refit_base_lr,
-            likelihood_screen: self.likelihood_screen,
-            fitted_screen: self.fitted_screen,
-            screen_futility: self.screen_futility,
-            nesting_from_nested: self.nesting_from_nested,
-            average_tail: self.average_tail,
-            scoped_refits: self.scoped_refits,
-            set_aside_unmeasured: self.set_aside_unmeasured,
-            ..DiagnoseConfig::quick()
-        }
-    }
-}
-
-impl std::fmt::Display for StudySetting {
-    /// `learning rate 0.01 (base's rate 0.001)`, `... (base's rate off)`, then
-    /// `, likelihood screen on` where it ran and `, nesting fits from the base`
-    /// where a nesting extension was not started from its nested fit.
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "learning rate {} (base's rate ", self.candidate_lr)?;
-        match self.refit_base_lr {
-            Some(base) => write!(f, "{base})"),
-            None => write!(f, "off)"),
-        }?;
-        if self.likelihood_screen {
-            write!(f, ", likelihood screen on")?;
-        }
-        if self.fitted_screen {
-            write!(f, ", fitted screen on")?;
-            if self.screen_futility > 0.0 {
-                write!(f, " (futility stop at {:.0}% of a fit)", 100.0 * self.screen_futility)?;
-            }
-        }
-        if !self.nesting_from_nested {
-            write!(f, ", nesting fits from the base")?;
-        }
-        if !self.scoped_refits {
-            write!(f, ", every refit in every parameter")?;
-        }
-        if self.average_tail > 0.0 {
-            write!(f, ", each fit's last {} of iterates averaged", self.average_tail)?;
-        }
-        if !self.set_aside_unmeasured {
-            write!(f, ", every evaluation object kept")?;
-        }
-        Ok(())
-    }
+/// The quick diagnosis of one cell of a study under `protocol`, seeded with `seed`.
+fn cell_config(protocol: &Protocol, seed: u64) -> DiagnoseConfig {
+    let mut config = DiagnoseConfig::quick();
+    protocol.apply(&mut config);
+    config.seed = seed;
+    config
 }
 
 /// One diagnosis of the study.
@@ -342,10 +166,7 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
     if args.seeds == 0 || args.strengths.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
         return Err("power-study: seeds must be positive and strengths positive and finite".into());
     }
-    let setting = args.setting()?;
-    setting.diagnose_config(0).validate().map_err(|e| {
-        format!("power-study: --{} = {}: expected {}", e.setting.replace('_', "-"), e.value, e.expected)
-    })?;
+    let protocol = args.protocol()?;
     ensure_dir(&args.out)?;
     let strengths = middle_out(&args.strengths);
     if !args.table_only {
@@ -362,17 +183,17 @@ pub fn run(args: &PowerArgs) -> Result<(), String> {
                 bar.inc(1);
                 continue;
             }
-            if run_cell(&args.out, e, strength, seed, setting, false)?.is_none() {
+            if run_cell(&args.out, e, strength, seed, protocol, false)?.is_none() {
                 continue;
             }
             // The tables so far after every diagnosis: an interrupted study
             // shows what it has.
-            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, setting)?;
+            write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, protocol)?;
             bar.inc(1);
         }
         bar.finish_and_clear();
     }
-    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, setting)?);
+    print!("{}", write_study_tables(&args.out, &effects, &strengths, args.seeds, args.scenes, protocol)?);
     println!("wrote {} (power.csv, power.md)", args.out.display());
     Ok(())
 }
@@ -431,7 +252,7 @@ fn write_study_tables(
     strengths: &[f64],
     seeds: u64,
     scenes: Option<usize>,
-    setting: StudySetting,
+    protocol: &'static Protocol,
 ) -> Result<String, String> {
     let mut ids: Vec<String> = effects.iter().map(|e| e.id.clone()).collect();
     let (mut strengths, mut seeds) = (strengths.to_vec(), seeds);
@@ -450,7 +271,7 @@ fn write_study_tables(
     let effects = study_effects(ids.iter().map(String::as_str), scenes)?;
     let mut cells = Vec::new();
     for (e, strength, seed) in plan(&effects, &strengths, seeds) {
-        cells.extend(run_cell(out, e, strength, seed, setting, true)?);
+        cells.extend(run_cell(out, e, strength, seed, protocol, true)?);
     }
     write_tables(out, &effects, &strengths, &cells)
 }
@@ -569,7 +390,7 @@ fn run_cell(
     e: &StudyEffect,
     strength: f64,
     seed: u64,
-    setting: StudySetting,
+    protocol: &'static Protocol,
     table_only: bool,
 ) -> Result<Option<Cell>, String> {
     let effect = HiddenEffect::at_strength(e.effect_id, strength).map_err(|err| err.to_string())?;
@@ -591,10 +412,10 @@ fn run_cell(
             };
             if report_path.is_file() {
                 // Finished by another process between the read and the claim.
-                return run_cell(out, e, strength, seed, setting, table_only);
+                return run_cell(out, e, strength, seed, protocol, table_only);
             }
             let data = generate_hidden(&config).map_err(|err| err.to_string())?;
-            let diagnose_config = setting.diagnose_config(seed);
+            let diagnose_config = cell_config(protocol, seed);
             let report = diagnose(&data, &diagnose_config, &dir, &Cluster::single().collective(), &mut |_| {})?;
             let value = serde_json::to_value(&report).map_err(|err| err.to_string())?;
             write_json(&report_path, &value)?;
@@ -614,16 +435,17 @@ fn run_cell(
             config.objects_per_scene
         ));
     }
-    // Nor is a report of another setting (an `--out` reused with another
-    // `--candidate-lr`, `--refit-base-lr`, `--likelihood-screen`, `--fitted-screen`,
-    // `--no-nesting-from-nested`, `--average-tail`, `--no-scoped-refits` or `--keep-unmeasured`).
-    let found = StudySetting::of(&report.config);
-    if found != setting {
+    // Nor is a report of another protocol (an `--out` reused with another `--protocol`).
+    let found = Protocol::of(&report.config);
+    if found.map(|p| p.name) != Some(protocol.name) {
+        let found =
+            found.map_or("rules no protocol has".to_string(), |p| format!("protocol {} ({})", p.name, p.summary));
         return Err(format!(
-            "{}: a diagnosis refitted at {found}, where this study's refit at {setting} (another --candidate-lr, \
-             --refit-base-lr, --likelihood-screen, --fitted-screen, --screen-futility, --no-nesting-from-nested, \
-             --average-tail, --no-scoped-refits or --keep-unmeasured? use another --out)",
+            "{}: a diagnosis under {found}, where this study's is protocol {} ({}) (another --protocol? use another \
+             --out)",
             report_path.display(),
+            protocol.name,
+            protocol.summary,
         ));
     }
     // Decided again under the current rules: cells diagnosed under an earlier
@@ -788,6 +610,7 @@ fn summarise(effects: &[StudyEffect], strengths: &[f64], cells: &[Cell]) -> Stri
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ssm::criticism::diagnose::PROTOCOLS;
     use ssm::criticism::hidden::HIDDEN_FLIP_PERSISTENCE;
 
     /// Copies the reports of `cells` (`effect/xS/seedN`) of the committed study
@@ -800,78 +623,38 @@ mod tests {
         }
     }
 
-    /// The setting of the committed studies, run before a nesting extension's
-    /// fit started from its nested one's, before refits had scopes and before
-    /// unmeasured objects were set aside.
-    fn before_nesting() -> StudySetting {
-        StudySetting {
-            nesting_from_nested: false,
-            scoped_refits: false,
-            set_aside_unmeasured: false,
-            ..StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap()
-        }
+    /// The protocol called `name`.
+    fn named(name: &str) -> &'static Protocol {
+        Protocol::named(name).unwrap()
     }
 
-    /// A finished cell is read back and decided again; a report of another data
-    /// size or setting in the same study directory (an `--out` reused with
-    /// another `--scenes`, `--candidate-lr`, `--refit-base-lr`,
-    /// `--likelihood-screen` or `--no-nesting-from-nested`) is refused
-    /// with its path, not mixed into the table; a rate that is not positive and
-    /// finite is refused by its flag.
+    /// A finished cell is read back and decided again under the study's
+    /// protocol; a report of another data size or protocol in the same study
+    /// directory (an `--out` reused with another `--scenes` or `--protocol`) is
+    /// refused with its path and both protocols, not mixed into the table; and
+    /// each cell is diagnosed at the quick scale under the study's protocol.
     #[test]
-    fn a_report_of_another_data_size_or_refit_rate_is_refused() {
+    fn a_report_of_another_data_size_or_protocol_is_refused() {
         let out = std::env::temp_dir().join(format!("sefi-power-scenes-{}", std::process::id()));
-        // A report of the committed study: 16 scenes of 6 objects.
+        // A report of the committed study (protocol v3): 16 scenes of 6 objects.
         copy_committed_cells(&out, "power-study", &["heavy_tailed_accel/x1/seed0"]);
         let mut effect = StudyEffect::of("heavy_tailed_accel").unwrap();
-        let setting = before_nesting();
-        let lr = setting.candidate_lr;
-        let read = run_cell(&out, &effect, 1.0, 0, setting, true).unwrap().expect("the finished cell is read back");
+        let v3 = named("v3");
+        let read = run_cell(&out, &effect, 1.0, 0, v3, true).unwrap().expect("the finished cell is read back");
         assert_eq!((read.effect.as_str(), read.seed), ("heavy_tailed_accel", 0));
-        let other_rate = StudySetting { candidate_lr: lr / 5.0, ..setting };
-        let err = run_cell(&out, &effect, 1.0, 0, other_rate, true).err().expect("a report of another refit rate");
-        assert!(err.contains("report.json") && err.contains(&format!("learning rate {lr} (base's rate off)")), "{err}");
-        let base_rate = StudySetting { refit_base_lr: Some(lr / 10.0), ..setting };
-        let err = run_cell(&out, &effect, 1.0, 0, base_rate, true).err().expect("a report of another base rate");
-        assert!(err.contains(&format!("(base's rate {})", lr / 10.0)), "{err}");
-        // Each cell is diagnosed with the study's setting, not the quick default's.
-        let cell_config = base_rate.diagnose_config(4);
-        assert_eq!((cell_config.seed, cell_config.refit_base_lr), (4, Some(lr / 10.0)));
-        assert!(!cell_config.nesting_from_nested && !cell_config.likelihood_screen);
-        let screened = StudySetting { likelihood_screen: true, ..setting };
-        let err =
-            run_cell(&out, &effect, 1.0, 0, screened, true).err().expect("an unscreened report in a screened study");
-        assert!(err.contains("likelihood screen on") && err.contains("--likelihood-screen"), "{err}");
-        assert!(screened.diagnose_config(3).likelihood_screen && screened.diagnose_config(3).seed == 3);
-        let fitted = StudySetting { fitted_screen: true, ..setting };
-        let err = run_cell(&out, &effect, 1.0, 0, fitted, true).err().expect("an unscreened report in a fitted study");
-        assert!(err.contains("fitted screen on") && err.contains("--fitted-screen"), "{err}");
-        assert!(fitted.diagnose_config(3).fitted_screen && !setting.diagnose_config(3).fitted_screen);
-        // The committed report fitted the nesting extension from the base, as
-        // every study before the nesting start did; today's default is refused.
-        let today = StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap();
-        assert!(today.nesting_from_nested && today.diagnose_config(0).nesting_from_nested);
-        let err = run_cell(&out, &effect, 1.0, 0, today, true).err().expect("a report from before the nesting start");
-        assert!(err.contains("nesting fits from the base") && err.contains("--no-nesting-from-nested"), "{err}");
-        // Nor is a study of refits in every parameter mixed with one of scoped refits.
-        let scoped = StudySetting { scoped_refits: true, ..setting };
-        let err = run_cell(&out, &effect, 1.0, 0, scoped, true).err().expect("a report from before scoped refits");
-        assert!(err.contains("every refit in every parameter") && err.contains("--no-scoped-refits"), "{err}");
-        assert!(today.scoped_refits && today.diagnose_config(0).scoped_refits);
-        // Nor one that kept every evaluation object with one that set aside
-        // those no model measures (today's default).
-        let set_aside = StudySetting { set_aside_unmeasured: true, ..setting };
-        let err = run_cell(&out, &effect, 1.0, 0, set_aside, true).err().expect("a report that kept every object");
-        assert!(err.contains("every evaluation object kept") && err.contains("--keep-unmeasured"), "{err}");
-        assert!(today.set_aside_unmeasured && today.diagnose_config(0).set_aside_unmeasured);
-        assert!(StudySetting::new(&DiagnoseConfig::quick(), None, Some(0.0), None)
-            .unwrap_err()
-            .contains("--refit-base-lr"));
-        assert!(StudySetting::new(&DiagnoseConfig::quick(), Some(f64::NAN), None, None)
-            .unwrap_err()
-            .contains("--candidate-lr"));
+        for other in PROTOCOLS.iter().filter(|p| p.name != v3.name) {
+            let err = run_cell(&out, &effect, 1.0, 0, other, true).err().expect(other.name);
+            assert!(err.contains("report.json") && err.contains("a diagnosis under protocol v3 ("), "{err}");
+            assert!(err.contains(&format!("this study's is protocol {} ({})", other.name, other.summary)), "{err}");
+        }
+        let quick = DiagnoseConfig::quick();
+        for p in PROTOCOLS {
+            let cell = cell_config(p, 4);
+            assert_eq!(Protocol::of(&cell).map(|q| q.name), Some(p.name));
+            assert_eq!((cell.seed, cell.base_steps, cell.particles), (4, quick.base_steps, quick.particles));
+        }
         effect.scenes = 32;
-        let err = run_cell(&out, &effect, 1.0, 0, setting, true).err().expect("a 16-scene report in a 32-scene study");
+        let err = run_cell(&out, &effect, 1.0, 0, v3, true).err().expect("a 16-scene report in a 32-scene study");
         assert!(err.contains("report.json") && err.contains("96 objects") && err.contains("32 scenes"), "{err}");
         std::fs::remove_dir_all(&out).unwrap();
     }
@@ -907,20 +690,22 @@ mod tests {
     }
 
     /// A fitted-screen study's reports record the futility stop they ran with:
-    /// those of the study before it (every screened fit run to its end) are
-    /// read back by a study without the stop and refused by one with it.
+    /// those of the study without it (every screened fit run to its end,
+    /// protocol v7-fitted-screen-full) are read back by a study under that
+    /// protocol and refused by one with the stop (v7-fitted-screen).
     #[test]
     fn a_fitted_screen_report_without_the_futility_stop_is_refused_by_a_study_with_it() {
         let out = std::env::temp_dir().join(format!("sefi-power-futility-{}", std::process::id()));
         copy_committed_cells(&out, "power-study-fitted-screen", &["none-points/x1/seed0"]);
         let effect = StudyEffect::of("none-points").unwrap();
-        let today = StudySetting::new(&DiagnoseConfig::quick(), None, None, None).unwrap();
-        let whole = StudySetting { fitted_screen: true, screen_futility: 0.0, ..today };
+        let whole = named("v7-fitted-screen-full");
         assert!(run_cell(&out, &effect, 1.0, 0, whole, true).unwrap().is_some());
-        let stopped = StudySetting { screen_futility: DiagnoseConfig::quick().screen_futility, ..whole };
+        let stopped = named("v7-fitted-screen");
         let err = run_cell(&out, &effect, 1.0, 0, stopped, true).err().expect("a report without the stop");
-        assert!(err.contains("futility stop at 33% of a fit") && err.contains("--screen-futility"), "{err}");
-        assert_eq!(stopped.diagnose_config(2).screen_futility, 1.0 / 3.0);
+        assert!(
+            err.contains("under protocol v7-fitted-screen-full (") && err.contains("is protocol v7-fitted-screen (")
+        );
+        assert_eq!((cell_config(stopped, 2).screen_futility, cell_config(whole, 2).screen_futility), (1.0 / 3.0, 0.0));
         std::fs::remove_dir_all(&out).unwrap();
     }
 
@@ -938,7 +723,7 @@ mod tests {
         // Every id of the study's order is a known effect.
         assert!(STUDY_EFFECTS.split(',').all(|id| StudyEffect::of(id).is_ok()));
         let latency = vec![StudyEffect::of("latency").unwrap()];
-        let table = write_study_tables(&out, &latency, &[1.0], 1, None, before_nesting()).unwrap();
+        let table = write_study_tables(&out, &latency, &[1.0], 1, None, named("v3")).unwrap();
         let rows: Vec<&str> = table.lines().filter(|l| l.starts_with("| ") && !l.starts_with("| effect")).collect();
         let lead: Vec<String> = rows.iter().map(|r| r.split(" | ").take(3).collect::<Vec<_>>().join(" | ")).collect();
         assert_eq!(
@@ -976,7 +761,7 @@ mod tests {
         ];
         copy_committed_cells(&out, "power-study-eval-crn", &cells);
         let effects = study_effects(["heavy_tailed_accel", "latency", "none-points"], None).unwrap();
-        let table = write_study_tables(&out, &effects, &[1.0], 5, None, before_nesting()).unwrap();
+        let table = write_study_tables(&out, &effects, &[1.0], 5, None, named("v4")).unwrap();
         let mut reader = csv::Reader::from_path(out.join("power.csv")).unwrap();
         let rows: Vec<csv::StringRecord> = reader.records().map(Result::unwrap).collect();
         let why = |effect: &str, seed: &str| {
@@ -1070,7 +855,7 @@ mod tests {
         let cell = "persistent_flip/x1/seed0";
         copy_committed_cells(&out, "power-study-persistent-flip", &[cell]);
         let effect = StudyEffect::of("persistent_flip").unwrap();
-        let read = run_cell(&out, &effect, 1.0, 0, before_nesting(), true).unwrap().unwrap();
+        let read = run_cell(&out, &effect, 1.0, 0, named("v4"), true).unwrap().unwrap();
         assert!(read.named);
         let names: Vec<&str> = read.relative_errors.iter().map(|e| e.0).collect();
         assert_eq!(names, ["fraction", "persistence"]);
@@ -1081,7 +866,7 @@ mod tests {
         let learned = |name: &str| chain.params.iter().find(|p| p.0 == name).unwrap().1;
         assert!((read.relative_errors[0].1 - (learned("fraction") / 0.2 - 1.0)).abs() < 1e-12);
         assert!((read.relative_errors[1].1 - (learned("persistence") / HIDDEN_FLIP_PERSISTENCE - 1.0)).abs() < 1e-12);
-        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, before_nesting()).unwrap();
+        let table = write_study_tables(&out, &[effect], &[1.0], 1, None, named("v4")).unwrap();
         let row = table.lines().find(|l| l.starts_with("| persistent_flip")).unwrap();
         assert!(row.contains("| fraction ") && row.contains(", persistence "), "{row}");
         // One cell: each median is that cell's |error|.

@@ -12,9 +12,15 @@
 use crate::common::{failed, ok, s, sefi, temp};
 use autodiff::nn::ParamStore;
 use serde_json::Value;
-use ssm::criticism::diagnose::{beats_reseeded, Report};
+use ssm::criticism::diagnose::{
+    beats_reseeded, diagnose as diagnose_data, DiagnoseConfig, Protocol, Report, Screen, REPORT_FORMAT_VERSION,
+};
+use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
+use ssm::reduce::{Collective, SingleProcess};
 use ssm::training::{Checkpoint, CHECKPOINT_FILE, EVAL_LOG};
+use std::path::Path;
+use std::sync::Arc;
 
 /// Generates data with `effect` hidden at `strength` (seed `seed`, extra
 /// `generate` arguments such as `--boxes --scenes 32`), runs `diagnose --quick`
@@ -33,6 +39,7 @@ fn diagnose(effect: &str, strength: &str, seed: &str, extra: &[&str]) -> (Value,
     // as `sefi power-study` does when it resumes.
     let typed: Result<Report, _> = serde_json::from_str(&text);
     let typed = typed.unwrap_or_else(|err| panic!("report.json does not read back as a Report: {err}"));
+    assert_eq!(report["format_version"], REPORT_FORMAT_VERSION, "report.json's format version");
     // Deciding again from the report's own candidates and checks (as the power
     // study does with reports of earlier rules) gives the outcome it names.
     let (again, chosen) = typed.decided(true);
@@ -351,14 +358,12 @@ fn bad_input_is_a_clear_error() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("strength"));
 }
 
-/// `sefi power-study`'s flags reach every cell's setting: a table rebuilt over a
-/// committed cell of the first study (before nesting starts, refit scopes and
-/// setting aside unmeasured objects) is refused by today's defaults, naming the
-/// flag of the last, and rebuilt with the three flags that restore its setting;
-/// `--keep-unmeasured` and the old `--set-aside-unmeasured` exclude each other.
+/// `sefi power-study --protocol` reaches every cell: a table rebuilt over a
+/// committed cell of the first study (protocol v3) is refused under the
+/// default protocol, naming both, and rebuilt under v3.
 #[test]
-fn power_study_flags_set_the_study_setting() {
-    let out = temp("power", "flags");
+fn power_study_protocol_sets_the_study_protocol() {
+    let out = temp("power", "protocol");
     let cell = out.join("latency/x1/seed0");
     std::fs::create_dir_all(&cell).unwrap();
     let committed =
@@ -366,23 +371,87 @@ fn power_study_flags_set_the_study_setting() {
     std::fs::copy(committed, cell.join("report.json")).unwrap();
     let table = ["power-study", "--table-only", "--effects", "latency", "--strengths", "1", "--seeds", "1"];
     let table = [table.as_slice(), &["--out", s(&out)]].concat();
-    let err = failed(&sefi(&[table.as_slice(), &["--no-nesting-from-nested", "--no-scoped-refits"]].concat()));
-    assert!(err.contains("every evaluation object kept") && err.contains("--keep-unmeasured"), "{err}");
-    let old = [table.as_slice(), &["--no-nesting-from-nested", "--no-scoped-refits", "--keep-unmeasured"]].concat();
-    ok(&sefi(&old));
+    let err = failed(&sefi(&table));
+    assert!(err.contains("under protocol v3 (") && err.contains("this study's is protocol v7 ("), "{err}");
+    ok(&sefi(&[table.as_slice(), &["--protocol", "v3"]].concat()));
     assert!(std::fs::read_to_string(out.join("power.csv")).unwrap().contains("latency,1,0,"));
-    let err = failed(&sefi(&[old.as_slice(), &["--set-aside-unmeasured"]].concat()));
-    assert!(err.contains("--set-aside-unmeasured") && err.contains("--keep-unmeasured"), "{err}");
     std::fs::remove_dir_all(&out).unwrap();
+}
+
+/// The options of `sefi diagnose` are what a user sets: the study switches are
+/// gone (a study names a protocol), and no help text cites a date.
+#[test]
+fn diagnose_shows_only_the_options_a_user_sets() {
+    let help = ok(&sefi(&["diagnose", "--help"]));
+    // An option's line starts at the second column (`-h, --help`) or the sixth (`--data <DATA>`); a
+    // description's continuation is indented further.
+    let mut options: Vec<&str> = help
+        .lines()
+        .filter_map(|l| l.strip_prefix("  -h, ").or_else(|| l.strip_prefix("      ")))
+        .filter_map(|l| l.strip_prefix("--"))
+        .map(|l| l.split([' ', '<']).next().unwrap())
+        .collect();
+    options.sort_unstable();
+    let expected = [
+        "base-steps",
+        "candidate-steps",
+        "data",
+        "eval-particles",
+        "eval-runs",
+        "heldout",
+        "help",
+        "out",
+        "particles",
+        "protocol",
+        "quick",
+        "seed",
+    ];
+    assert_eq!(options, expected, "{help}");
+    // A date as `2026-12-07`: `20`, two digits and a dash.
+    let dated = |text: &str| {
+        text.as_bytes()
+            .windows(5)
+            .any(|w| w.starts_with(b"20") && w[2..4].iter().all(u8::is_ascii_digit) && w[4] == b'-')
+    };
+    for command in [["diagnose", "--help"], ["power-study", "--help"]] {
+        let help = ok(&sefi(&command));
+        assert!(!help.contains("session") && !dated(&help), "{help}");
+    }
+    for switch in ["--fit-all", "--fitted-screen", "--keep-unmeasured", "--refine-factor", "--min-gain"] {
+        let err = failed(&sefi(&["diagnose", "--data", "missing", switch]));
+        assert!(err.contains(&format!("unexpected argument '{switch}'")), "{err}");
+    }
+}
+
+/// Diagnoses the data in `data` into `out` in this process, under `config`,
+/// as `sefi diagnose` does (its fits resume from `out`). For the tests whose
+/// settings no protocol names (a scale small enough for a test, a bar set
+/// from a first run's numbers).
+fn diagnose_in_process(data: &Path, out: &Path, config: &DiagnoseConfig) -> Report {
+    let data = Dataset::read(data).unwrap();
+    let comm: Arc<dyn Collective> = Arc::new(SingleProcess);
+    diagnose_data(&data, config, out, &comm, &mut |_| {}).unwrap()
+}
+
+/// The quick diagnosis under protocol `protocol` with `screen`, seed `seed`,
+/// at a test's scale: `base_steps` and `candidate_steps`, 32 particles.
+fn small(protocol: &str, screen: Screen, seed: u64, base_steps: usize, candidate_steps: usize) -> DiagnoseConfig {
+    let mut config = DiagnoseConfig::quick();
+    Protocol::named(protocol).unwrap().apply(&mut config);
+    screen.apply_to(&mut config);
+    config.seed = seed;
+    (config.base_steps, config.candidate_steps) = (base_steps, candidate_steps);
+    (config.particles, config.eval_particles) = (32, 32);
+    config
 }
 
 /// Setting aside the objects no model measures (the default), at a small scale
 /// with every extension fitted (so that every model compared is in the
-/// report): a first diagnosis with `--keep-unmeasured` gives every model's
-/// per-object Monte Carlo sds; a second, by default and resumed from the
+/// report): a first diagnosis under protocol v6 (every object kept) gives every
+/// model's per-object Monte Carlo sds; a second, under v7 and resumed from the
 /// same fits with the bar set between two of the objects' largest sds, flags
 /// exactly the objects over it (the evaluation is deterministic), refilters
-/// them at `--refine-factor` times the particles and sets aside exactly those
+/// them at 4 times the particles and sets aside exactly those
 /// that stay over it; the objects set aside leave the evaluation part's keys,
 /// units and every gain, and every model's estimates of the others are the
 /// first run's, refined ones excepted.
@@ -391,13 +460,9 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     let dir = temp("diagnose", "set-aside");
     let (data, out) = (dir.join("data"), dir.join("out"));
     ok(&sefi(&["generate", "--hidden", "latency", "--scenes", "4", "--out", s(&data), "--seed", "3"]));
-    let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "3", "--fit-all"];
-    command.extend(["--base-steps", "12", "--candidate-steps", "6", "--particles", "32", "--eval-particles", "32"]);
-    let read =
-        || -> Report { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
-    ok(&sefi(&[command.as_slice(), &["--keep-unmeasured"]].concat()));
-    let first = read();
-    assert!(!first.config.set_aside_unmeasured, "--keep-unmeasured");
+    // Protocol v6 keeps every object; v7, the default, sets aside the unmeasured ones.
+    let first = diagnose_in_process(&data, &out, &small("v6", Screen::FitAll, 3, 12, 6));
+    assert!(!first.config.set_aside_unmeasured, "protocol v6 keeps every object");
     assert!(first.eval_imprecise.is_empty() && first.eval_object_keys.len() == first.eval_objects);
     let every_model = |r: &Report| -> Vec<Vec<f64>> {
         let mut sds: Vec<Vec<f64>> = r.candidates.iter().map(|c| c.object_mc_sd.clone()).collect();
@@ -414,10 +479,9 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     sorted.sort_by(f64::total_cmp);
     let bar = 0.5 * (sorted[sorted.len() / 2] + sorted[sorted.len() / 2 + 1]);
     assert!(sorted[sorted.len() / 2 + 1] > sorted[sorted.len() / 2], "two objects' sds apart: {sorted:?}");
-    let min_gain = format!("{:e}", bar / first.eval_units as f64);
-    command.extend(["--refine-factor", "4", "--min-gain", &min_gain]);
-    ok(&sefi(&command));
-    let second = read();
+    let mut config = small("v7", Screen::FitAll, 3, 12, 6);
+    (config.refine_factor, config.min_gain) = (4, bar / first.eval_units as f64);
+    let second = diagnose_in_process(&data, &out, &config);
     assert!(second.config.set_aside_unmeasured && second.config.refine_factor == 4);
     let flagged: Vec<(i64, i64)> = second.eval_imprecise.iter().map(|o| (o.scene, o.id)).collect();
     let over: Vec<(i64, i64)> =
@@ -446,14 +510,12 @@ fn objects_a_model_does_not_measure_are_refined_then_set_aside() {
     for c in &second.candidates {
         assert_eq!(c.object_gains.len(), second.eval_object_keys.len(), "{}", c.cause);
     }
-    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
     // The report's bar is the one the objects were flagged against, its set-aside units included.
     assert!((second.unmeasured_bar() - bar).abs() <= 1e-9 * bar, "{} against {bar}", second.unmeasured_bar());
-    assert!(md.contains(&format!("exceeded {:.1} nats", second.unmeasured_bar())), "{md}");
-    assert!(md.contains("Objects a model did not measure") && md.contains("4 times the particles"), "{md}");
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The fitted screen at a small scale, resumed from a `--fit-all` diagnosis of
+/// The fitted screen at a small scale, resumed from a diagnosis that fits every extension, of
 /// the same data (the same fits, every extension evaluated): every extension is
 /// fitted; those no check flagged and the screen did not admit are reported as
 /// not admitted (check-part p at or over the plausibility level) and are
@@ -466,15 +528,9 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
     let dir = temp("diagnose", "fitted-screen");
     let (data, out) = (dir.join("data"), dir.join("out"));
     ok(&sefi(&["generate", "--hidden", "latency", "--scenes", "4", "--out", s(&data), "--seed", "1"]));
-    let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", "1"];
-    command.extend(["--base-steps", "12", "--candidate-steps", "6", "--particles", "32", "--eval-particles", "32"]);
-    command.push("--keep-unmeasured");
-    let read =
-        || -> Report { serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap() };
-    ok(&sefi(&[command.as_slice(), &["--fit-all"]].concat()));
-    let every = read();
-    ok(&sefi(&[command.as_slice(), &["--fitted-screen"]].concat()));
-    let screened = read();
+    // Protocol v6 keeps every object, so that the two diagnoses evaluate the same ones.
+    let every = diagnose_in_process(&data, &out, &small("v6", Screen::FitAll, 1, 12, 6));
+    let screened = diagnose_in_process(&data, &out, &small("v6", Screen::Fitted, 1, 12, 6));
     let plausible_p = screened.config.plausible_p;
     assert!(screened.config.fitted_screen && screened.not_fitted.is_empty());
     // The data exercise a screen that turns extensions away, in one scope all of them.
@@ -508,12 +564,10 @@ fn the_fitted_screen_evaluates_only_what_it_admits() {
         let why = screened.why_not(expected).unwrap();
         assert!(why.contains(&format!("`{expected}` fitted, not admitted by the fitted screen")), "{why}");
     }
-    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(md.contains("Fitted and not admitted by the fitted screen"), "{md}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The fitted screen's futility stop (`--screen-futility`): a screened
+/// The fitted screen's futility stop: a screened
 /// extension whose best check-part evaluation by the stop is not above the
 /// base's is stopped there (its checkpoint at that step, listed as not
 /// admitted with the step, not tested); every other fit is the same run as
@@ -549,18 +603,16 @@ fn futility_stop_on(effect: &str, seed: &str) -> DynamicsUnderTheStop {
     let dir = temp("diagnose", &format!("screen-futility-{effect}-{seed}"));
     let data = dir.join("data");
     ok(&sefi(&["generate", "--hidden", effect, "--scenes", "4", "--out", s(&data), "--seed", seed]));
-    let run = |name: &str, futility: &str| -> (Report, std::path::PathBuf) {
+    // Protocol v6 keeps every object; every fit keeps its best of an evaluation every 2 steps, so that
+    // the stop falls within a test's short fits.
+    let run = |name: &str, futility: f64| -> (Report, std::path::PathBuf) {
         let out = dir.join(name);
-        let mut command = vec!["diagnose", "--data", s(&data), "--out", s(&out), "--quick", "--seed", seed];
-        command.extend(["--base-steps", "40", "--candidate-steps", "12", "--keep-best-every", "2"]);
-        command.extend(["--particles", "32", "--eval-particles", "32", "--keep-unmeasured", "--fitted-screen"]);
-        command.extend(["--screen-futility", futility]);
-        ok(&sefi(&command));
-        let text = std::fs::read_to_string(out.join("report.json")).unwrap();
-        (serde_json::from_str(&text).unwrap(), out)
+        let mut config = small("v6", Screen::Fitted, seed.parse().unwrap(), 40, 12);
+        (config.keep_best_every, config.screen_futility) = (2, futility);
+        (diagnose_in_process(&data, &out, &config), out)
     };
-    let (whole, _) = run("whole", "0");
-    let (stopped, out) = run("stopped", "0.3");
+    let (whole, _) = run("whole", 0.0);
+    let (stopped, out) = run("stopped", 0.3);
     // 30% of 12 steps is 3.6: the first evaluation after it is at step 4.
     let stop_step = 4;
     let base_value = stopped.base_kept.as_ref().unwrap().value;
@@ -611,8 +663,6 @@ fn futility_stop_on(effect: &str, seed: &str) -> DynamicsUnderTheStop {
     assert_eq!(dynamics_reference, went_on_in(RefitScope::Dynamics), "{effect}: the dynamics reference");
     assert!(whole.reference_in(RefitScope::Dynamics).is_some(), "{effect}: without the stop every extension goes on");
     assert_eq!(stopped.cause, whole.cause, "the same outcome");
-    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(md.contains(&format!("stopped at step {stop_step}")) && md.contains("futility stop"), "{md}");
     std::fs::remove_dir_all(&dir).unwrap();
     let dynamics_stopped =
         stopped.not_admitted.iter().any(|n| n.refit_scope == RefitScope::Dynamics && n.stopped_at.is_some());

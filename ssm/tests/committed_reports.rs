@@ -1,7 +1,7 @@
 //! Every diagnosis report committed under `results/` reads back under the
 //! current schema and names the protocol it was made with.
 
-use ssm::criticism::diagnose::{Protocol, Report};
+use ssm::criticism::diagnose::{Protocol, Report, REPORT_FORMAT_VERSION};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -29,6 +29,13 @@ fn every_committed_report_reads_back_under_a_named_protocol() {
     for path in &paths {
         let text = std::fs::read_to_string(path).unwrap();
         let report: Report = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        // Every committed report predates the format version: it reads back as version 0.
+        assert_eq!(
+            report.format_version,
+            if text.contains("\"format_version\"") { REPORT_FORMAT_VERSION } else { 0 },
+            "{}",
+            path.display()
+        );
         let protocol = Protocol::of(&report.config)
             .unwrap_or_else(|| panic!("{}: no protocol has the rules {:?}", path.display(), report.config));
         let study = path.strip_prefix(&results).unwrap().components().next().unwrap();

@@ -354,8 +354,38 @@ impl DiagnoseConfig {
         self.min_gain * units as f64
     }
 
-    /// The filter of the checks and of the evaluation, with run `run`'s seed.
-    pub(super) fn eval_filter(&self, run: usize) -> FilterConfig {
-        FilterConfig::new(Sampling::new(self.eval_particles, Some(self.tempering())), 0, self.seed + run as u64)
+    /// What the checks and the evaluation filter with ([`Evaluation`]).
+    pub(super) fn evaluation(&self) -> Evaluation {
+        Evaluation {
+            particles: self.eval_particles,
+            runs: self.eval_runs,
+            tempering: self.tempering(),
+            seed: self.seed,
+            draws: self.draws,
+        }
+    }
+}
+
+/// The part of a [`DiagnoseConfig`] that the checks' replicates and the
+/// held-out likelihoods read: their filter and how often it runs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Evaluation {
+    /// Particles of each filter run ([`DiagnoseConfig::eval_particles`]).
+    pub(super) particles: usize,
+    /// Filter runs whose likelihood estimates are averaged per object
+    /// ([`DiagnoseConfig::eval_runs`]); run `r` is seeded `seed + r`.
+    pub(super) runs: usize,
+    /// The filter's tempering ([`DiagnoseConfig::tempering`], resolved).
+    pub(super) tempering: Tempering,
+    /// The seed of the first run and of the smoother draws.
+    pub(super) seed: u64,
+    /// Paths drawn from the smoother per checked object ([`DiagnoseConfig::draws`]).
+    pub(super) draws: usize,
+}
+
+impl Evaluation {
+    /// The filter of run `run`.
+    pub(super) fn filter(&self, run: usize) -> FilterConfig {
+        FilterConfig::new(Sampling::new(self.particles, Some(self.tempering)), 0, self.seed + run as u64)
     }
 }

@@ -81,8 +81,8 @@ impl ModelVisitor for OnModel<'_> {
             return Err("the criticism does not model a detector drift: diagnose parameters without one".into());
         }
         Ok(match self.task {
-            Task::Checks => TaskOutput::Checks(posterior_predictive_checks(&model, self.config)),
-            Task::Likelihoods => TaskOutput::Likelihoods(likelihoods(&model, self.config)?),
+            Task::Checks => TaskOutput::Checks(posterior_predictive_checks(&model, &self.config.evaluation())),
+            Task::Likelihoods => TaskOutput::Likelihoods(likelihoods(&model, &self.config.evaluation())?),
         })
     }
 }
@@ -122,7 +122,7 @@ mod tests {
             type Output = f64;
             fn visit<O: ExtensibleObservation>(self, base: &VehicleSsm<'_, AnyPolicy, O>) -> f64 {
                 let steps = ParticleModel::num_steps(base);
-                let run = run_filter(base, &self.0.eval_filter(0), |o| PathRecorder::new(steps, 4, o as u64));
+                let run = run_filter(base, &self.0.evaluation().filter(0), |o| PathRecorder::new(steps, 4, o as u64));
                 let motion = base.motion();
                 let mut worst: f64 = 0.0;
                 for rec in &run.observers {

@@ -7,7 +7,7 @@ use rand::rngs::SmallRng;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::DiagnoseConfig;
+use super::config::Evaluation;
 use crate::filter::run_filter;
 use crate::models::ParticleModel;
 use crate::stats::{log_sum_exp, sd};
@@ -63,14 +63,14 @@ pub(super) fn unmeasured_objects(models: &[&EvalLikelihoods], bar: f64) -> Vec<u
 }
 
 /// The log-likelihoods of `model` on its data: each object's likelihood
-/// estimates of [`DiagnoseConfig::eval_runs`] filter runs, averaged.
-pub(super) fn likelihoods<M: ParticleModel>(model: &M, config: &DiagnoseConfig) -> Result<EvalLikelihoods, String> {
+/// estimates of [`Evaluation::runs`] filter runs, averaged.
+pub(super) fn likelihoods<M: ParticleModel>(model: &M, eval: &Evaluation) -> Result<EvalLikelihoods, String> {
     let mut per_object: Vec<Vec<f64>> = Vec::new();
     let mut units = 0;
-    for r in 0..config.eval_runs {
-        let run = run_filter(model, &config.eval_filter(r), |_| ());
+    for r in 0..eval.runs {
+        let run = run_filter(model, &eval.filter(r), |_| ());
         if r == 0 {
-            per_object = vec![Vec::with_capacity(config.eval_runs); run.objects.len()];
+            per_object = vec![Vec::with_capacity(eval.runs); run.objects.len()];
             units = run.observed_units();
         }
         per_object.iter_mut().zip(&run.objects).for_each(|(l, o)| l.push(o.log_likelihood));

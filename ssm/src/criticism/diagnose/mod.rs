@@ -120,7 +120,10 @@ pub use heldout::{gains_by_group, paired_gain, sign_flip_p, GroupGain};
 pub use judge::{EvalPart, StudyDecision};
 pub use progress::Stage;
 pub use protocol::{Protocol, Screen, DEFAULT_PROTOCOL, PROTOCOLS};
-pub use report::{CandidateReport, CheckReport, ImpreciseObject, NotAdmitted, ReferenceReport, Report, ReseededReport};
+pub use report::{
+    CandidateReport, CheckReport, ImpreciseObject, NotAdmitted, ReferenceReport, Report, ReseededReport,
+    REPORT_FORMAT_VERSION,
+};
 pub use rules::{
     beats_reseeded, flagged_check_moves, improves_flagged_checks, nested_comparisons, FailedRule, NestedComparison,
     NO_FLAGGING_CHECK,

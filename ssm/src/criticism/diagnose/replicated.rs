@@ -5,7 +5,7 @@
 use rand::rngs::SmallRng;
 use rand::SeedableRng;
 
-use super::DiagnoseConfig;
+use super::config::Evaluation;
 use crate::criticism::checks::statistics;
 use crate::criticism::ObjectSample;
 use crate::data::{Action, Dataset, State};
@@ -30,15 +30,15 @@ impl ModelChecks {
 }
 
 /// Filters every object of `model`'s data once with the tempered filter, draws
-/// `config.draws` paths per object from its smoother (the filter's genealogy),
+/// [`Evaluation::draws`] paths per object from its smoother (the filter's genealogy),
 /// and evaluates the checks' statistics on measured and replicated data per draw.
 pub(super) fn posterior_predictive_checks<P: GaussianPolicy, O: ExtensibleObservation>(
     model: &ExtendedSsm<'_, '_, P, O>,
-    config: &DiagnoseConfig,
+    eval: &Evaluation,
 ) -> ModelChecks {
-    let (draws, seed) = (config.draws, config.seed);
+    let (draws, seed) = (eval.draws, eval.seed);
     let steps = ParticleModel::num_steps(model);
-    let run = run_filter(model, &config.eval_filter(0), |object| {
+    let run = run_filter(model, &eval.filter(0), |object| {
         PathRecorder::new(steps, draws, stream_seed(seed ^ 0xd1a6, object as u64))
     });
     let data = model.data();

@@ -284,9 +284,18 @@ pub struct ReseededReport {
     pub kept: Option<KeptBest>,
 }
 
+/// The version of `report.json`'s format that this code writes
+/// ([`Report::format_version`]). Reports written before the field existed
+/// read back as version 0, with the defaults of the fields they predate.
+pub const REPORT_FORMAT_VERSION: u32 = 1;
+
 /// The result of [`diagnose`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Report {
+    /// The format of the report as written ([`REPORT_FORMAT_VERSION`]; 0 for
+    /// a report written before the field).
+    #[serde(default)]
+    pub format_version: u32,
     /// The chosen extension's id, [`UNEXPLAINED`] or [`NO_CAUSE`].
     pub cause: String,
     /// Its gain on the evaluation part (nats per observed unit; 0 without a cause).

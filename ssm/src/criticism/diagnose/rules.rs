@@ -309,7 +309,7 @@ pub fn flagged_check_moves(flagged_by: &[String], reference: &[CheckResult], ext
 }
 
 /// What [`flagged_check_moves`] says of a candidate no check flagged.
-pub const NO_FLAGGING_CHECK: &str = "no check flagged it (fitted by --fit-all)";
+pub const NO_FLAGGING_CHECK: &str = "no check flagged it (fitted by the protocol's screen)";
 
 /// The check called `name` among `results`.
 pub(super) fn check_named<'a>(results: &'a [CheckResult], name: &str) -> Option<&'a CheckResult> {
@@ -503,7 +503,7 @@ mod tests {
         assert_eq!(flagged_check_moves(&far, &reference, &overshoot), "far_point_fraction z 1.27 → -1.46");
         assert_eq!(flagged_check_moves(&far, &reference, &failing), "far_point_fraction z 1.27 → -4.00, failed");
         assert_eq!(flagged_check_moves(&far, &reference, &[]), "far_point_fraction z 1.27 → -");
-        assert_eq!(flagged_check_moves(&[], &reference, &failing), NO_FLAGGING_CHECK, "a candidate of --fit-all");
+        assert_eq!(flagged_check_moves(&[], &reference, &failing), NO_FLAGGING_CHECK, "a candidate of the screen");
     }
 
     /// Rule (d) of a candidate the likelihood screen admitted (no check
