@@ -8,9 +8,11 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
-use ssm::calibration::{complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
+use ssm::evaluation::calibration::{
+    complete_data_score_at, likelihood_precision, score_at, LikelihoodPrecision, ScoreAt,
+};
 use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 
 use crate::output::{ensure_dir, write_json};

@@ -31,10 +31,10 @@ use serde_json::json;
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
+use ssm::evaluation::metrics::{metrics_of, track, Metrics};
 use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
-use ssm::metrics::{metrics_of, track, Metrics};
 use ssm::models::params::{ModelAdditions, Models};
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
+use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
 
 use crate::birdseye;
 use crate::calibrate::{FilterArgs, FilterKind};
@@ -180,7 +180,7 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
         "particles", "MLL", "ADE smooth", "ADE filter", "AYE smooth", "AYE filter", "seconds"
     );
     for &particles in particle_counts {
-        let mut cfg = ssm::metrics::eval_config(ssm::metrics::EVAL_LAG, seed);
+        let mut cfg = ssm::evaluation::metrics::eval_config(ssm::evaluation::metrics::EVAL_LAG, seed);
         cfg.sampling.particles = particles;
         let t = Instant::now();
         let tracks = track(data, &truth.policy, &truth.obs, &truth.params, ModelAdditions::NONE, &cfg)?;

@@ -25,10 +25,11 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::Dataset;
+use ssm::evaluation::metrics::Metrics;
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{Metrics, Summary};
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
+use ssm::stats::Summary;
 use ssm::training::PARAMS_FILE;
 
 use crate::calibrate::check_method;
@@ -158,7 +159,7 @@ fn median_curve(curves: &[Curve]) -> Curve {
         .enumerate()
         .filter_map(|(i, &(x, _))| {
             let ys: Vec<f64> = curves.iter().filter_map(|c| c.get(i)).map(|p| p.1).filter(|y| y.is_finite()).collect();
-            ssm::metrics::median(&ys).map(|m| (x, m))
+            ssm::stats::median(&ys).map(|m| (x, m))
         })
         .collect()
 }

@@ -4,7 +4,8 @@
 
 use std::fmt::Write as _;
 
-use ssm::metrics::{summarise_runs, Metrics, Summary};
+use ssm::evaluation::metrics::{summarise_runs, Metrics};
+use ssm::stats::Summary;
 
 use crate::calibrate::FilterArgs;
 
