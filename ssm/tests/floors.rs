@@ -97,7 +97,9 @@ fn paths_after(code: &str, prefix: &str) -> Vec<Vec<String>> {
     while let Some(k) = code[from..].find(prefix) {
         let start = from + k;
         from = start + prefix.len();
-        if start > 0 && (bytes[start - 1].is_ascii_alphanumeric() || bytes[start - 1] == b'_' || bytes[start - 1] == b':') {
+        if start > 0
+            && (bytes[start - 1].is_ascii_alphanumeric() || bytes[start - 1] == b'_' || bytes[start - 1] == b':')
+        {
             continue;
         }
         let rest = &code[from..];

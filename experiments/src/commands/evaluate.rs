@@ -19,8 +19,8 @@ use ssm::models::drift::DetectorDrift;
 use ssm::models::extended::ExtensibleObservation;
 use ssm::models::params::{AnyObservation, Models, ObservationVisitor};
 
+use crate::args::FilterArgs;
 use crate::birdseye;
-use crate::calibrate::FilterArgs;
 use crate::output::{ensure_dir, write_atomic, write_json};
 
 /// Arguments of `sefi eval`.

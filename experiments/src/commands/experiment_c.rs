@@ -69,14 +69,14 @@ use ssm::stats::Summary;
 use ssm::training::supervised::{fit_observation, fit_observation_with_flips, SupervisedReport};
 use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
-use crate::calibrate::check_method;
+use crate::args::check_method;
 use crate::cluster::Cluster;
-use crate::evaluate::{aotll_by_part_table, aotll_terms, metric_runs};
-use crate::import;
+use crate::commands::evaluate::{aotll_by_part_table, aotll_terms, metric_runs};
+use crate::commands::import;
+use crate::commands::train::{self, read_eval_curve, RunScale, TrainArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, TableArgs, CSV_HEADER};
-use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi experiment-c`.
 #[derive(clap::Args)]

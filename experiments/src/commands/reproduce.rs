@@ -32,14 +32,14 @@ use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 use ssm::stats::Summary;
 use ssm::training::PARAMS_FILE;
 
-use crate::calibrate::check_method;
+use crate::args::check_method;
 use crate::cluster::Cluster;
-use crate::evaluate::metric_runs;
-use crate::generate::{self, GenerateArgs};
+use crate::commands::evaluate::metric_runs;
+use crate::commands::generate::{self, GenerateArgs};
+use crate::commands::train::{self, read_eval_curve, RunScale, TrainArgs};
 use crate::output::{claim_dir, claim_or_refuse, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
-use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
 #[derive(clap::Args)]

@@ -25,7 +25,7 @@ use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::training::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
-use crate::calibrate::{method_settings, FilterArgs, FilterKind};
+use crate::args::{method_settings, FilterArgs, FilterKind};
 use crate::cluster::Cluster;
 use crate::output::{claim_or_refuse, ensure_dir, write_json};
 use crate::plot::{line_chart, Curve, Series};
