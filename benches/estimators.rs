@@ -75,7 +75,7 @@ use ssm::filter::{run_filter, FilterPurpose, Sampling, Tempering};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::ParticleModel;
-use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
+use ssm::simulation::synthetic::{generate_dataset, SceneConfig, TrueModel};
 
 /// Particles per object.
 const PARTICLES: usize = 1024;

@@ -17,7 +17,7 @@ use rand::SeedableRng;
 use ssm::filter::{run_filter, FilterConfig, PhaseTimes, Sampling};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
-use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
+use ssm::simulation::synthetic::{generate_dataset, SceneConfig, TrueModel};
 
 const OBJECTS_STEPS: usize = 26; // T + 1 for 25 transitions
 /// Particles of the `--once` profiling run (experiment A's size).

@@ -12,7 +12,7 @@ use std::sync::Arc;
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig, Report};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::ObservationKind;
-use ssm::reduce::{Collective, SingleProcess};
+use ssm::util::reduce::{Collective, SingleProcess};
 
 /// Diagnoses generated data with a hidden lag at `scenes` scenes of `steps`
 /// steps, fitting the base for `base_steps` and each candidate for half as many

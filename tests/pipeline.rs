@@ -6,8 +6,8 @@
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
-use ssm::metrics::{eval_config, evaluate, Metrics};
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, TrueModel};
+use ssm::evaluation::metrics::{eval_config, evaluate, Metrics};
+use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig, TrueModel};
 
 fn metrics(data: &Dataset, truth: &TrueModel, particles: usize, seed: u64) -> Metrics {
     let mut cfg = eval_config(4, seed);

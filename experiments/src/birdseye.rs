@@ -8,7 +8,7 @@ use std::path::Path;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use ssm::data::{BoxDetection, Dataset, State};
-use ssm::metrics::Tracks;
+use ssm::evaluation::metrics::Tracks;
 
 use crate::plot::write_svg;
 

@@ -1,12 +1,12 @@
 //! Data-parallel training over MPI (cargo feature `mpi`): the job's communicator
-//! as an [`ssm::reduce::Collective`], the rule that only the first process
+//! as an [`ssm::util::reduce::Collective`], the rule that only the first process
 //! writes, and a failing process ending the whole job.
 //!
 //! Launch: `mpiexec -n 4 sefi train ...` (or `reproduce`, `experiment-c`,
 //! `diagnose`) with a binary built with `--features mpi`. Every process reads
-//! only its blocks of the training objects ([`ssm::objective::owned_objects`],
+//! only its blocks of the training objects ([`ssm::training::objective::owned_objects`],
 //! [`ssm::data::Dataset::read_shard`]) and steps in lock-step; the
-//! exact reduction of [`ssm::reduce`] gives every process, for any number of
+//! exact reduction of [`ssm::util::reduce`] gives every process, for any number of
 //! processes, the parameters a single process computes, bit for bit. A panic on
 //! any process aborts the communicator (no process waits forever in a
 //! collective), as does an error returned by a command.
@@ -16,7 +16,7 @@
 
 use std::sync::Arc;
 
-use ssm::reduce::{Collective, SingleProcess};
+use ssm::util::reduce::{Collective, SingleProcess};
 
 /// The job this process belongs to.
 pub struct Cluster {
@@ -143,7 +143,7 @@ mod mpi_backend {
     use mpi::environment::Threading;
     use mpi::topology::SimpleCommunicator;
     use mpi::traits::*;
-    use ssm::reduce::Collective;
+    use ssm::util::reduce::Collective;
 
     use super::Cluster;
 

@@ -1,30 +1,31 @@
 //! `sefi`: the command-line program of the PF-SEFI workspace. It parses arguments,
 //! shows progress and writes files and plots; the mathematics lives in the
 //! `autodiff` and `ssm` libraries.
+//!
+//! * [`commands`]: what a user runs (demo, import, generate, train, evaluate,
+//!   diagnose, the paper's experiments, parameter files).
+//! * [`instruments`]: research instruments that study the method itself (the
+//!   criticism's power, a diagnosis's stability, the estimators' bias and the
+//!   filter's precision); `sefi --help` lists them under their own heading.
+//! * Shared by both: [`args`] (options several commands take, declared once),
+//!   [`output`] (files), [`plot`], [`birdseye`] and [`table`] (figures and
+//!   tables), [`cluster`] (MPI).
 
+mod args;
 mod birdseye;
-mod calibrate;
 mod cluster;
-mod demo;
-mod diagnose;
-mod evaluate;
-mod experiment_c;
-mod generate;
-mod import;
+mod commands;
+mod instruments;
 mod output;
-mod params_npz;
 mod plot;
-mod power;
-mod reproduce;
-mod score_check;
-mod stability;
 mod table;
-mod train;
+
+use commands::{demo, diagnose, evaluate, experiment_c, generate, import, params_npz, reproduce, train};
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, FromArgMatches, Parser, Subcommand};
 
 /// Particle-filter score estimation with Fisher's identity (PF-SEFI), in Rust.
 #[derive(Parser)]
@@ -87,32 +88,35 @@ enum Command {
     Train(Box<train::TrainArgs>),
     /// Reproduce the paper's synthetic experiment A or B: train every estimator, table and curves.
     Reproduce(reproduce::ReproduceArgs),
-    /// Exact linear-Gaussian log-likelihood and score, and every estimator's bias and spread.
-    ScoreCheck(score_check::ScoreCheckArgs),
     /// The paper's experiment C on KITTI: train every estimator on the train sequences, evaluate on val,
     /// compare with a supervised observation model.
     ExperimentC(experiment_c::ExperimentCArgs),
-    /// An estimator's mean score at given parameters over filter runs and objects, with its standard
-    /// error and z per parameter (zero within noise at the truth of generated data).
-    ScoreAt(calibrate::ScoreAtArgs),
-    /// The precision of the filter's likelihood estimate: each object's spread across runs, and the
-    /// effective sample size per step.
-    Precision(calibrate::PrecisionArgs),
     /// Model criticism: what the fitted simulation gets wrong, its cause among the catalogue's extensions,
     /// and the held-out gain of the extended model.
     Diagnose(diagnose::DiagnoseArgs),
-    /// How often `diagnose` names a hidden effect: effects x strengths x seeds of generated data (the criticism's
-    /// power and false-cause rate).
-    PowerStudy(power::PowerArgs),
-    /// Whether a diagnosis's finding hinges on its held-out set: several diagnoses' outcomes, candidates and
-    /// gains by part (KITTI sequence or scene) side by side, with a forest plot.
-    Stability(stability::StabilityArgs),
     /// Parameter files to and from NumPy's `.npz` (`export`, `import`).
     Params(params_npz::ParamsArgs),
+    /// The research instruments (listed apart in `--help`).
+    #[command(flatten)]
+    Instrument(instruments::Instrument),
+}
+
+/// The command line: the user's commands in the list of commands, the research
+/// instruments (hidden there) under a heading of their own after it, each with
+/// its one-line description. Every name parses alike.
+fn command_line() -> clap::Command {
+    let mut cli = Cli::command();
+    let mut listing = String::from("Research instruments (studies of the method itself; `sefi help <NAME>`):\n");
+    for name in instruments::Instrument::NAMES {
+        let about = cli.find_subcommand(name).and_then(|c| c.get_about()).map(|a| a.to_string()).unwrap_or_default();
+        listing.push_str(&format!("  {name:<13} {about}\n"));
+        cli = cli.mut_subcommand(name, |c| c.hide(true));
+    }
+    cli.after_help(listing)
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = Cli::from_arg_matches(&command_line().get_matches()).unwrap_or_else(|e| e.exit());
     let cluster = cluster::Cluster::join();
     let distributed = matches!(
         cli.command,
@@ -150,14 +154,10 @@ fn main() -> ExitCode {
         Command::Track(args) => evaluate::track(&args),
         Command::Train(args) => train::run(&args, &cluster),
         Command::Reproduce(args) => reproduce::run(&args, &cluster),
-        Command::ScoreCheck(args) => score_check::run(&args),
         Command::ExperimentC(args) => experiment_c::run(&args, &cluster),
         Command::Diagnose(args) => diagnose::run(&args, &cluster),
-        Command::ScoreAt(args) => calibrate::run_score_at(&args),
-        Command::Precision(args) => calibrate::run_precision(&args),
-        Command::PowerStudy(args) => power::run(&args),
-        Command::Stability(args) => stability::run(&args),
         Command::Params(args) => params_npz::run(&args),
+        Command::Instrument(instrument) => instrument.run(),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -4,9 +4,10 @@
 
 use std::fmt::Write as _;
 
-use ssm::metrics::{summarise_runs, Metrics, Summary};
+use ssm::evaluation::metrics::{summarise_runs, Metrics};
+use ssm::stats::Summary;
 
-use crate::calibrate::FilterArgs;
+use crate::args::FilterArgs;
 
 /// The methods a Table 1 run trains by default, in the table's order: the
 /// estimators on the bootstrap filter (the paper's setting), then PF-SEFI on the

@@ -14,6 +14,26 @@ fn help_lists_the_subcommands() {
     assert!(text.contains("demo"), "{text}");
 }
 
+/// The user's commands come first in `sefi --help`; the research instruments
+/// follow under their own heading, and every command name still runs.
+#[test]
+fn help_lists_the_instruments_after_the_commands() {
+    let out = sefi().arg("--help").output().expect("runs");
+    assert!(out.status.success());
+    let text = String::from_utf8_lossy(&out.stdout);
+    let heading = text.find("Research instruments").unwrap_or_else(|| panic!("no instruments heading: {text}"));
+    for command in ["demo", "import-kitti", "generate", "eval", "track", "train", "reproduce", "diagnose", "params"] {
+        let at = text.find(&format!("\n  {command} ")).unwrap_or_else(|| panic!("`{command}` not listed: {text}"));
+        assert!(at < heading, "`{command}` is listed among the instruments: {text}");
+    }
+    for instrument in ["power-study", "stability", "score-check", "score-at", "precision"] {
+        let at = text.find(&format!("\n  {instrument} ")).unwrap_or_else(|| panic!("`{instrument}` not listed: {text}"));
+        assert!(at > heading, "`{instrument}` is listed among the user's commands: {text}");
+        let sub = sefi().args([instrument, "--help"]).output().expect("runs");
+        assert!(sub.status.success(), "`sefi {instrument} --help`: {}", String::from_utf8_lossy(&sub.stderr));
+    }
+}
+
 #[test]
 fn quick_demo_writes_its_results() {
     let dir = std::env::temp_dir().join(format!("sefi-demo-{}", std::process::id()));

@@ -17,7 +17,7 @@ use ssm::criticism::diagnose::{
 };
 use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
-use ssm::reduce::{Collective, SingleProcess};
+use ssm::util::reduce::{Collective, SingleProcess};
 use ssm::training::{Checkpoint, CHECKPOINT_FILE, EVAL_LOG};
 use std::path::Path;
 use std::sync::Arc;

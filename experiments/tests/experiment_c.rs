@@ -199,8 +199,8 @@ fn windows_follow_stride_and_steps_and_a_mismatched_import_is_refused() {
 #[test]
 fn quick_experiment_c_learns_and_scores_reversed_headings() {
     use ssm::data::{BoxDetection, Dataset};
-    use ssm::metrics::labelled_steps;
     use ssm::models::extended::Extension;
+    use ssm::models::observation::labelled_steps;
     use ssm::models::observation::BoxObservationModel;
     use ssm::models::params::AnyObservation;
 

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use ssm::data::Dataset;
-use ssm::synthetic::TrueModel;
+use ssm::simulation::synthetic::TrueModel;
 
 fn generate(dir: &Path, seed: u64) {
     let out = Command::new(env!("CARGO_BIN_EXE_sefi"))

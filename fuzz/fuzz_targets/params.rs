@@ -19,7 +19,7 @@ fuzz_target!(|data: &[u8]| {
             assert_eq!(again.policy, models.policy);
         }
     }
-    let _ = ssm::synthetic::TrueModel::from_store(store.clone());
+    let _ = ssm::simulation::synthetic::TrueModel::from_store(store.clone());
     let _ = store.num_scalars();
     let _ = store.cast::<f32>();
 });

@@ -24,7 +24,7 @@ use ssm::data::{
     self, import_kitti, Action, BoxDetection, Dataset, Meta, Object, ObservationKind, Observations, Pose, Prior, State,
     ACTION_COLUMNS, AV_COLUMNS, BOX_COLUMNS, OBJECT_COLUMNS, POINT_COLUMNS, STATE_COLUMNS,
 };
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig};
+use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig};
 
 use crate::convert::{check, finite, float_array, guard};
 
@@ -531,7 +531,7 @@ pub fn generate_experiment_data<'py>(
 ) -> PyResult<(PyDataset, PyDataset, Bound<'py, PyDict>)> {
     let experiment: Experiment = experiment
         .parse()
-        .map_err(|e: ssm::synthetic::SyntheticError| PyValueError::new_err(format!("experiment: {e}")))?;
+        .map_err(|e: ssm::simulation::synthetic::SyntheticError| PyValueError::new_err(format!("experiment: {e}")))?;
     let config = if quick { ExperimentConfig::quick(experiment) } else { ExperimentConfig::paper(experiment) };
     let data = py.detach(|| {
         guard("generate_experiment", || {

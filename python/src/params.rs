@@ -1,5 +1,5 @@
 //! Parameter files from Python: the project's versioned bincode files and `.npz`
-//! archives (`ssm::npz`), both read into and written from a dict of float64
+//! archives (`ssm::util::npz`), both read into and written from a dict of float64
 //! arrays by parameter name. The format follows the file's extension.
 
 use std::path::Path;
@@ -10,7 +10,7 @@ use numpy::{PyArray, PyArrayMethods};
 use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use ssm::npz::{self, NpzError};
+use ssm::util::npz::{self, NpzError};
 
 use crate::convert::{check, float_array};
 

@@ -16,7 +16,7 @@ use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, Scor
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::policy::HandCraftedPolicy;
 use ssm::models::DifferentiableModel;
-use ssm::synthetic::{generate_dataset, SceneConfig, TrueModel};
+use ssm::simulation::synthetic::{generate_dataset, SceneConfig, TrueModel};
 
 use crate::convert::{check, guard};
 use crate::sampling::sampling;

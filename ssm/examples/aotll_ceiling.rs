@@ -20,12 +20,12 @@ use std::path::Path;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Dataset, ObservationKind};
-use ssm::metrics::models_aotll;
+use ssm::evaluation::metrics::models_aotll;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::FitConfig;
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::neural::NeuralPolicy;
-use ssm::supervised::fit_observation_with_flips;
+use ssm::training::supervised::fit_observation_with_flips;
 
 fn main() -> Result<(), String> {
     let args: Vec<String> = std::env::args().collect();

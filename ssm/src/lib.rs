@@ -20,10 +20,32 @@
 //! 3. [`estimators`]: [`estimators::PfSefi`] and the baselines behind one
 //!    trait, [`estimators::ScoreEstimator`]; an estimate is a
 //!    [`estimators::ScoreEstimate`] (the log-likelihood and the score).
-//! 4. [`training`]: the Adam loop with logs and checkpoints; [`objective`]
-//!    learns the road-user model of a [`data::Dataset`].
+//! 4. [`training`]: the Adam loop with logs and checkpoints;
+//!    [`training::objective`] learns the road-user model of a [`data::Dataset`].
 //! 5. [`criticism`]: checks of a fitted model and the diagnosis
 //!    ([`criticism::diagnose::diagnose`]).
+//!
+//! # Floors
+//!
+//! The modules stand on one another in this order, bottom to top; a module
+//! imports only from its own floor or the floors below it (`ssm/tests/floors.rs`
+//! checks the sources):
+//!
+//! 0. [`util`] and [`stats`]: seeds, the settings error, exact sums across
+//!    blocks and processes, `.npz` parameter files, angles; the statistics
+//!    helpers (moments, quantiles, the normal law). They know nothing of data
+//!    or models.
+//! 1. [`data`]: datasets, their file formats and the KITTI import.
+//! 2. [`models`]: every model the filter and the estimators run (the model
+//!    arithmetic, the parameter-file convention).
+//! 3. [`simulation`]: data drawn from the models (the paper's synthetic scenes).
+//! 4. [`filter`]: the particle filters.
+//! 5. [`estimators`]: the score estimators.
+//! 6. [`training`]: the Adam loop, the road-user objective and the supervised
+//!    observation fit.
+//! 7. [`evaluation`]: metrics of a fitted model and the calibration of an
+//!    estimator at given parameters.
+//! 8. [`criticism`]: checks of a fitted model and the diagnosis.
 //!
 //! The examples of the repository (`cargo run --release --example NAME`) run
 //! each of these: `quickstart`, `stochastic_volatility`, `kalman_scores`,
@@ -55,19 +77,13 @@
 //! ```
 #![deny(missing_docs)]
 
-pub mod calibration;
 pub mod criticism;
 pub mod data;
 pub mod estimators;
+pub mod evaluation;
 pub mod filter;
-pub mod metrics;
 pub mod models;
-pub mod npz;
-pub mod objective;
-pub mod reduce;
-pub mod seed;
-pub mod setting;
+pub mod simulation;
 pub mod stats;
-pub mod supervised;
-pub mod synthetic;
 pub mod training;
+pub mod util;

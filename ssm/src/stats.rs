@@ -1,7 +1,17 @@
-//! Small statistical helpers shared by the filter, tests and diagnostics: the
-//! sample mean and sd, a stable log-sum-exp, the standard normal CDF and the
-//! Kolmogorov–Smirnov distance of a sample from N(0, 1), and the Wilson interval
-//! of a binomial share.
+//! The one home of the statistical helpers shared by the filter, the metrics,
+//! the calibration and the diagnosis: the sample mean and sd, quantiles, the
+//! median and the interquartile range ([`Summary`]), a stable log-sum-exp, the
+//! standard normal CDF and quantile, the Kolmogorov–Smirnov distance of a sample
+//! from N(0, 1), the Wilson interval of a binomial share, and the serde helpers
+//! that read `null` as NaN.
+//!
+//! ```
+//! use ssm::stats::Summary;
+//! let s = Summary::of(&[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
+//! assert_eq!((s.median, s.q1, s.q3, s.iqr), (3.0, 2.0, 4.0, 2.0));
+//! ```
+
+use serde::Serialize;
 
 /// Mean; NaN when empty.
 pub fn mean(xs: impl IntoIterator<Item = f64>) -> f64 {
@@ -147,4 +157,66 @@ pub fn pairs_nan_from_null<'de, D: serde::Deserializer<'de>>(deserializer: D) ->
 /// (`#[serde(default = "crate::stats::nan")]`).
 pub fn nan() -> f64 {
     f64::NAN
+}
+
+/// Median and interquartile range of repeated measurements. Quartiles are by
+/// linear interpolation between order statistics (NumPy's default, "type 7").
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Summary {
+    /// The median.
+    pub median: f64,
+    /// The first quartile (25th percentile).
+    pub q1: f64,
+    /// The third quartile (75th percentile).
+    pub q3: f64,
+    /// `q3 - q1`.
+    pub iqr: f64,
+    /// Number of values summarised.
+    pub n: usize,
+}
+
+impl Summary {
+    /// The summary of the finite values of `values`; `None` if there are none.
+    pub fn of(values: &[f64]) -> Option<Summary> {
+        let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let (q1, median, q3) = (quantile_sorted(&v, 0.25), quantile_sorted(&v, 0.5), quantile_sorted(&v, 0.75));
+        Some(Summary { median, q1, q3, iqr: q3 - q1, n: v.len() })
+    }
+}
+
+/// The `q`-quantile (`0 <= q <= 1`) of sorted, non-empty values by linear
+/// interpolation (the caller sorts once for several quantiles; [`quantile`]
+/// takes any values).
+#[track_caller]
+pub fn quantile_sorted(v: &[f64], q: f64) -> f64 {
+    let h = q * (v.len() - 1) as f64;
+    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
+    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
+}
+
+/// The `q`-quantile of the finite values (linear interpolation); `None` if there
+/// are none. Panics unless `0 <= q <= 1`.
+#[track_caller]
+pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
+    assert!((0.0..=1.0).contains(&q), "quantile: q = {q} is outside [0, 1]");
+    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(quantile_sorted(&v, q))
+}
+
+/// The median of the finite values; `None` if there are none.
+pub fn median(values: &[f64]) -> Option<f64> {
+    quantile(values, 0.5)
+}
+
+/// The interquartile range of the finite values; `None` if there are none.
+pub fn iqr(values: &[f64]) -> Option<f64> {
+    Summary::of(values).map(|s| s.iqr)
 }

@@ -480,7 +480,7 @@ fn extensions_apply_to_their_kinds_and_describe_themselves() {
 fn flip_log_likelihood(data: &Dataset, extension: Extension, natural: &[f64]) -> (f64, f64) {
     use ssm::filter::{FilterConfig, Sampling, Tempering};
     use ssm::models::params::FittedExtension;
-    use ssm::objective::LogLikelihood;
+    use ssm::training::objective::LogLikelihood;
     let mut m = models(ObservationKind::Boxes);
     m.extension = Some(FittedExtension { extension, raw: extension.stored(natural).unwrap() });
     let store = m.to_store();
@@ -528,7 +528,7 @@ fn persistent_flips_without_persistence_filter_as_independent_flips() {
 #[test]
 fn a_refit_moves_the_base_at_its_rate_and_the_extension_at_the_full_rate() {
     use ssm::estimators::{Estimator, EstimatorConfig};
-    use ssm::objective::{ObjectiveConfig, SceneObjective};
+    use ssm::training::objective::{ObjectiveConfig, SceneObjective};
     use ssm::training::{train, Objective, TrainConfig};
     let kind = ObservationKind::Points;
     let data = data(kind);

@@ -72,7 +72,7 @@ fn report_counts_are_plausible() {
         // detector reverses cars in bursts: fewer cars with a reversal than
         // independent reversals would give, and over-dispersed counts.
         let reversals = r.reversals.expect("labelled box detections");
-        assert_eq!(Some(reversals), ssm::metrics::heading_reversals(ds), "{name}");
+        assert_eq!(Some(reversals), ssm::data::heading_reversals(ds), "{name}");
         assert_eq!(reversals.detections, r.boxes, "{name}: every written box has a label");
         assert!((reversals.objects_with_any as f64) < 0.7 * reversals.objects_with_any_if_independent, "{name}");
         assert!(reversals.dispersion.unwrap() > 2.0, "{name}: {reversals:?}");

@@ -10,7 +10,7 @@ use autodiff::{Tape, Tensor, Var};
 use rand::SeedableRng;
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
-use ssm::metrics::model_aotll;
+use ssm::evaluation::metrics::model_aotll;
 use ssm::models::drift::{DetectorDrift, DRIFT_DIMS};
 use ssm::models::extended::{ExtendedSsm, ExtensibleObservation, Extension};
 use ssm::models::params::{AnyPolicy, ModelVisitor, Models};
@@ -202,7 +202,10 @@ impl ModelVisitor for Grid {
             let m = ExtendedSsm::new(base, None, &[]).and_then(|m| m.with_drift(Some(&raw))).expect("drift");
             let aotll = |nodes| model_aotll(base.data(), &m, nodes).mean.expect("labelled");
             // Richardson over 12 and 24 nodes against 24 and 48.
-            let (coarse, fine) = (aotll(ssm::metrics::DRIFT_AOTLL_NODES), aotll(2 * ssm::metrics::DRIFT_AOTLL_NODES));
+            let (coarse, fine) = (
+                aotll(ssm::evaluation::metrics::DRIFT_AOTLL_NODES),
+                aotll(2 * ssm::evaluation::metrics::DRIFT_AOTLL_NODES),
+            );
             eprintln!("drift sds scale {scale}: AOTLL {coarse} on the default grids, {fine} on grids twice as fine");
             assert!((coarse - fine).abs() < 0.005, "sd scale {scale}: {coarse} vs {fine}");
             // The drift is integrated out, not ignored: the larger one moves the

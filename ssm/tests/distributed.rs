@@ -14,9 +14,9 @@ use ssm::estimators::{Estimator, EstimatorConfig};
 use ssm::filter::Sampling;
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
-use ssm::reduce::ThreadGroup;
+use ssm::training::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::Objective;
+use ssm::util::reduce::ThreadGroup;
 
 /// Every batch's log-likelihood and score, as bits, for one process of a job.
 fn step_bits(objective: &mut SceneObjective, params: &ParamStore<f64>) -> Vec<Vec<u64>> {

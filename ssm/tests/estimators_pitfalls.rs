@@ -711,7 +711,7 @@ mod vehicle {
     use ssm::models::observation::PointGenerator;
     use ssm::models::params::{AnyObservation, Models};
     use ssm::models::road_user::VehicleSsm;
-    use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TruthConfig};
+    use ssm::simulation::synthetic::{fit_true_model, generate_dataset, SceneConfig, TruthConfig};
 
     /// On the vehicle model (hand-crafted policy, fitted point network, 3 objects,
     /// T = 11, N = 64): every estimator gives a finite gradient with one tensor per

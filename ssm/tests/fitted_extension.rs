@@ -11,15 +11,17 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, Meta, Object, ObservationKind, Prior, State};
+use ssm::evaluation::metrics::{aotll, extended_aotll, model_aotll, track};
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{aotll, extended_aotll, labelled_steps, model_aotll, track};
 use ssm::models::extended::{ExtendedSsm, Extension};
+use ssm::models::observation::labelled_steps;
+use ssm::models::observation::OBS_PREFIX;
 use ssm::models::observation::{BoxObservationModel, FitConfig, ObservationModel, PointObservationModel};
-use ssm::models::params::{AnyObservation, AnyPolicy, FittedExtension, ModelAdditions, Models, OBS_PREFIX};
+use ssm::models::params::{AnyObservation, AnyPolicy, FittedExtension, ModelAdditions, Models};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::HandCraftedPolicy;
 use ssm::models::ParticleModel;
-use ssm::supervised::fit_observation_with_flips;
+use ssm::training::supervised::fit_observation_with_flips;
 
 fn hidden_boxes(effect: HiddenEffect, seed: u64) -> Dataset {
     generate_hidden(&HiddenConfig { scenes: 4, ..HiddenConfig::quick(ObservationKind::Boxes, effect, seed) }).unwrap()

@@ -602,7 +602,7 @@ fn params_target(data: &[u8]) -> Result<ParamStore<f64>, String> {
             assert_eq!(again.policy, models.policy);
         }
     }
-    let _ = ssm::synthetic::TrueModel::from_store(store.clone());
+    let _ = ssm::simulation::synthetic::TrueModel::from_store(store.clone());
     Ok(store)
 }
 

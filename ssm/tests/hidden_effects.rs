@@ -11,7 +11,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::StandardNormal;
 use ssm::criticism::hidden::{generate_hidden, BoxGenerator, HiddenConfig, HiddenEffect, HIDDEN_EFFECT_IDS};
 use ssm::data::{Dataset, ObservationKind, Pose, State};
-use ssm::metrics::wrapped_abs_diff;
+use ssm::evaluation::metrics::wrapped_abs_diff;
 use ssm::models::observation::{ObsContext, PointGenerator};
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
 
@@ -337,7 +337,7 @@ fn shared_residuals(d: &Dataset) -> [(f64, f64); 3] {
     let mut by_step: std::collections::BTreeMap<(usize, usize), Vec<[f64; 3]>> = Default::default();
     for (o, t, b) in boxes.iter() {
         let x = truth(d, o, t);
-        let dyaw = ssm::models::observation::boxes::wrap_angle(b.yaw - x.yaw);
+        let dyaw = ssm::util::angles::wrap_angle(b.yaw - x.yaw);
         by_step.entry((d.object_scene(o), t)).or_default().push([b.x - x.x, b.y - x.y, dyaw]);
     }
     let mut products: [Vec<f64>; 3] = Default::default();
@@ -477,11 +477,11 @@ fn generation_is_deterministic() {
 /// The hidden `persistent_flip` reverses detections in runs: at two fractions
 /// and persistences, the reversed share is the chain's stationary fraction and
 /// the chance that a reversed detection follows a reversed one is
-/// `1 - (1 - p)(1 - lambda)` (measured by `metrics::heading_reversals`, which
+/// `1 - (1 - p)(1 - lambda)` (measured by `data::heading_reversals`, which
 /// reads reversals against the labels), far above the rate.
 #[test]
 fn hidden_persistent_flips_come_in_runs_of_the_chains_persistence() {
-    use ssm::metrics::heading_reversals;
+    use ssm::data::heading_reversals;
     for (fraction, persistence, seed) in [(0.2, 0.8, 31), (0.1, 0.5, 32)] {
         let effect = HiddenEffect::PersistentFlip { fraction, persistence };
         let config = HiddenConfig { scenes: 24, ..HiddenConfig::quick(ObservationKind::Boxes, effect, seed) };

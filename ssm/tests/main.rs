@@ -17,6 +17,7 @@ mod estimators_pitfalls;
 mod filter_lgssm;
 mod filter_tempered;
 mod fitted_extension;
+mod floors;
 mod hidden_effects;
 mod lgssm;
 mod metrics;

@@ -9,21 +9,20 @@ use autodiff::Tensor;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Action, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
-use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{
-    aotll, aptll, box_aotll_terms, evaluate, iqr, labelled_steps, median, mll, quantile, state_errors, summarise_runs,
-    track, wrapped_abs_diff, MeanOver, Summary,
+use ssm::evaluation::metrics::{
+    aotll, aptll, box_aotll_terms, evaluate, mll, state_errors, summarise_runs, track, wrapped_abs_diff, MeanOver,
 };
+use ssm::filter::{FilterConfig, Sampling};
+use ssm::models::observation::{labelled_steps, OBS_PREFIX};
 use ssm::models::observation::{
     BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, Scratch,
 };
-use ssm::models::params::{
-    AnyObservation, AnyPolicy, ModelAdditions, Models, ParamsError, HAND_CRAFTED_PARAM, OBS_PREFIX,
-};
+use ssm::models::params::{AnyObservation, AnyPolicy, ModelAdditions, Models, ParamsError, HAND_CRAFTED_PARAM};
 use ssm::models::vehicle::{
     Action as VAction, ActionGaussians, ActionsMut, GaussianPolicy, HandCraftedPolicy, MotionModel, NeuralPolicy,
     VehicleState,
 };
+use ssm::stats::{iqr, median, quantile, Summary};
 
 const DT: f64 = 1.0 / 3.0;
 
@@ -502,7 +501,7 @@ fn box_aotll_terms_count_reversed_headings_and_add_up_to_aotll() {
 #[test]
 fn heading_reversals_tell_independent_flips_from_persistent_ones() {
     use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
-    use ssm::metrics::heading_reversals;
+    use ssm::data::heading_reversals;
     let recount = |data: &Dataset| -> usize {
         labelled_steps::<BoxObservationModel>(data, data.states().unwrap())
             .map(|(_, pose, items)| items.iter().filter(|d| (d.yaw - pose.yaw).cos() < 0.0).count())
@@ -563,7 +562,7 @@ fn heading_reversals_tell_independent_flips_from_persistent_ones() {
 #[test]
 fn persistent_flips_have_the_aotll_of_independent_flips_at_their_fraction() {
     use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
-    use ssm::metrics::models_aotll;
+    use ssm::evaluation::metrics::models_aotll;
     use ssm::models::extended::Extension;
     use ssm::models::params::FittedExtension;
     let effect = HiddenEffect::at_strength("heading_flip", 1.0).unwrap();

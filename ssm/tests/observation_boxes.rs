@@ -15,8 +15,8 @@ use autodiff::Tape;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use ssm::data::{BoxDetection, Pose};
-use ssm::models::observation::boxes::wrap_angle;
 use ssm::models::observation::{BoxObservationModel, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
+use ssm::util::angles::wrap_angle;
 
 fn model(seed: u64) -> (BoxObservationModel, ParamStore<f64>) {
     let mut store = ParamStore::new();
@@ -302,7 +302,8 @@ fn huge_headings_get_a_bounded_density() {
 fn centred_model_has_zero_offsets_matches_its_reference_and_is_read_back_as_centred() {
     use ssm::data::ObservationKind;
     use ssm::models::observation::boxes::DetectionOffsets;
-    use ssm::models::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+    use ssm::models::observation::OBS_PREFIX;
+    use ssm::models::params::{AnyObservation, AnyPolicy, Models};
     use ssm::models::vehicle::HandCraftedPolicy;
 
     for seed in [11, 12] {
@@ -393,7 +394,7 @@ fn density_terms_sum_to_the_density_and_give_the_offsets() {
 /// around again is the heading itself; at the wrap's edges too.
 #[test]
 fn reversed_heading_turns_around_within_the_wrapped_range() {
-    use ssm::models::observation::boxes::reversed_heading;
+    use ssm::util::angles::reversed_heading;
     for &yaw in &[0.0, 0.3, -0.3, 3.0, -3.0, std::f64::consts::PI, -std::f64::consts::PI + 1e-12, 1e-15] {
         let r = reversed_heading(yaw);
         assert!(r > -std::f64::consts::PI && r <= std::f64::consts::PI, "{yaw} -> {r}");

@@ -25,14 +25,14 @@ use autodiff::nn::ParamStore;
 use autodiff::Tensor;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use ssm::calibration::{complete_data_score_at, sample_dataset, score_at, ScoreAt};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
 use ssm::estimators::{Estimator, EstimatorConfig};
+use ssm::evaluation::calibration::{complete_data_score_at, sample_dataset, score_at, ScoreAt};
 use ssm::filter::{Sampling, Tempering};
 use ssm::models::params::{AnyPolicy, Models, HAND_CRAFTED_PARAM as POLICY_LOG_SD};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use ssm::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
+use ssm::simulation::synthetic::{fit_true_model, generate_dataset, SceneConfig, TrueModel, TruthConfig};
 
 /// The smallest Bonferroni p-value a tensor may have at the truth.
 const P_FLOOR: f64 = 1e-3;

@@ -1,20 +1,21 @@
-//! The supervised observation model (`ssm::supervised`): fitting a network to
+//! The supervised observation model (`ssm::training::supervised`): fitting a network to
 //! labelled states by maximum AOTLL raises the AOTLL of the training data and of
 //! held-out data, for points and for box detections, reports what
-//! `ssm::metrics::aotll` measures, and refuses data it cannot fit.
+//! `ssm::evaluation::metrics::aotll` measures, and refuses data it cannot fit.
 
 use autodiff::nn::ParamStore;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::{Dataset, ObservationKind, Pose};
-use ssm::metrics::aotll;
+use ssm::evaluation::metrics::aotll;
+use ssm::models::observation::OBS_PREFIX;
 use ssm::models::observation::{BoxObservationModel, FitConfig, ObsContext, ObservationModel, PointObservationModel};
-use ssm::models::params::{AnyObservation, AnyPolicy, Models, OBS_PREFIX};
+use ssm::models::params::{AnyObservation, AnyPolicy, Models};
 use ssm::models::vehicle::HandCraftedPolicy;
-use ssm::supervised::{
+use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment};
+use ssm::training::supervised::{
     fit_observation, fit_supervised, labelled_examples, SupervisedConfig, SupervisedError, SupervisedReport,
 };
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment};
 
 /// The quick synthetic experiment (2 train and 1 test scene, 6 steps) with
 /// `objects` objects per scene: point observations with labelled states.

@@ -7,11 +7,12 @@
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use ssm::data::Dataset;
+use ssm::models::observation::OBS_PREFIX;
 use ssm::models::observation::{ObsContext, ObservationModel, PointGenerator};
 use ssm::models::vehicle::{Action, GaussianPolicy, HandCraftedPolicy, MotionModel, VehicleState};
-use ssm::synthetic::{
+use ssm::simulation::synthetic::{
     build_dataset, fit_true_model, generate_dataset, generate_experiment, simulate_scene, summarize, Experiment,
-    ExperimentConfig, SceneConfig, TrueModel, TruthConfig, OBS_PREFIX, POLICY_LOG_SD,
+    ExperimentConfig, SceneConfig, TrueModel, TruthConfig, POLICY_LOG_SD,
 };
 
 /// Statistical checks allow 4 standard errors: with the fixed seeds below a false

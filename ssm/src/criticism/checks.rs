@@ -20,9 +20,9 @@ use serde::{Deserialize, Serialize};
 
 use super::{ObjectObservations, ObjectSample};
 use crate::data::{Dataset, ObservationKind, Pose};
-use crate::models::observation::boxes::wrap_angle;
 use crate::models::observation::edges::to_box_frame;
 use crate::stats::{mean, normal_cdf, sd};
+use crate::util::angles::wrap_angle;
 
 /// Fewest points of an object-step for its extents to count (`*_extent_ratio`).
 pub const MIN_EXTENT_POINTS: usize = 4;

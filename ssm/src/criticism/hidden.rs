@@ -6,7 +6,7 @@
 //!
 //! # How the data are made
 //!
-//! * **Scenes** as in [`crate::synthetic`] ([`SceneConfig::paper`]: the AV drives
+//! * **Scenes** as in [`crate::simulation::synthetic`] ([`SceneConfig::paper`]: the AV drives
 //!   along +x at 5 m/s, car-sized objects with their priors), but with
 //!   [`HiddenConfig::objects_per_scene`] objects placed at 5–35 m so that point sets
 //!   are plentiful ([`HiddenConfig::scene_config`]).
@@ -54,15 +54,15 @@ use serde::{Deserialize, Serialize};
 use crate::data::{BoxDetection, Dataset, Meta, ObservationKind, Pose, State};
 use crate::models::extended::lagged_pose;
 use crate::models::flip_chain::FlipChain;
-use crate::models::observation::boxes::{reversed_heading, wrap_angle};
 use crate::models::observation::edges::sample_laplace;
 use crate::models::observation::{ObsContext, PointGenerator};
 use crate::models::vehicle::HandCraftedPolicy;
-use crate::stats::log_sum_exp;
-use crate::synthetic::{
+use crate::simulation::synthetic::{
     build_dataset, ground_truth_builder, scene_motion, simulate_object, SceneConfig, SimulatedObject, SyntheticError,
     SyntheticScene,
 };
+use crate::stats::log_sum_exp;
+use crate::util::angles::{reversed_heading, wrap_angle};
 
 /// The ids of the hidden effects, in catalogue order (`none` first), then the
 /// effects that no catalogue extension models (`student_t_accel`, another tail

@@ -52,6 +52,7 @@ mod error;
 mod format;
 pub mod kitti;
 mod meta;
+mod reversals;
 mod table;
 
 pub use builder::DatasetBuilder;
@@ -60,6 +61,7 @@ pub use kitti::{
     import_kitti, KittiImport, KittiOptions, KittiReport, KittiSplitReport, KITTI_FRAME_DT, KITTI_SCENE_ID_BASE,
     KITTI_VAL_SEQUENCES,
 };
+pub use reversals::{heading_reversals, HeadingReversals};
 pub use table::{PointSets, StepTable};
 
 use serde::{Deserialize, Serialize};

@@ -19,7 +19,7 @@
 //! rayon pool by object (PF-SEFI) or by chunk (baselines). Each estimator returns
 //! one partial sum per *block* of [`EstimatorConfig::chunk_objects`] consecutive
 //! objects (a [`PartialEstimate`]), and [`PartialEstimate::reduce`] adds the blocks
-//! exactly ([`crate::reduce`]): the estimate has the same bits for any number of
+//! exactly ([`crate::util::reduce`]): the estimate has the same bits for any number of
 //! threads, and for any number of processes that each hold some of the blocks.
 //!
 //! The estimate of each is the gradient of the total log-likelihood of the
@@ -35,8 +35,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::filter::{FilterConfig, Sampling};
 use crate::models::DifferentiableModel;
-use crate::reduce::{exact_sum, Collective, SingleProcess};
-use crate::setting::SettingError;
+use crate::util::reduce::{exact_sum, Collective, SingleProcess};
+use crate::util::setting::SettingError;
 
 pub use replay::{ThroughFilter, ThroughFilterKind};
 pub use sefi::PfSefi;

@@ -40,7 +40,7 @@ use tempering::{reweight, ParentStep, StepParticles, Temperer};
 pub use tempering::{FilterPurpose, Tempering, BOX_ORIGIN_STEPS};
 
 use crate::models::{Batch, Drawn, ParticleModel};
-use crate::seed::splitmix64;
+use crate::util::seed::splitmix64;
 
 /// How a filter draws and resamples its particles: the settings a filter run
 /// ([`FilterConfig`]) and a score estimator

@@ -41,7 +41,7 @@ use serde::{Deserialize, Serialize};
 use super::resample::Resampling;
 use crate::data::ObservationKind;
 use crate::models::{Batch, Drawn, NoiseDims, ParticleModel};
-use crate::setting::SettingError;
+use crate::util::setting::SettingError;
 
 /// Settings of the tempered filter (see the module documentation).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]

@@ -31,9 +31,10 @@
 use autodiff::{Float, Tensor, Var};
 
 use crate::data::{Dataset, ObservationKind, Pose};
-use crate::models::observation::boxes::{los_offsets, wrap_angle, BOX_MIN_SCALE, BOX_MIN_YAW_SCALE, LOS_EPS};
+use crate::models::observation::boxes::{los_offsets, BOX_MIN_SCALE, BOX_MIN_YAW_SCALE, LOS_EPS};
 use crate::models::observation::{BoxObservationModel, ObservationModel};
 use crate::models::ModelError;
+use crate::util::angles::wrap_angle;
 
 /// Name of the drift's parameter tensor in a parameter store.
 pub const DRIFT_PARAM: &str = "drift";

@@ -6,7 +6,7 @@ use std::fmt;
 use crate::data::ObservationKind;
 use crate::models::extended::Extension;
 use crate::models::vehicle::motion::MotionError;
-use crate::setting::SettingError;
+use crate::util::setting::SettingError;
 
 /// Why a model could not be built.
 #[derive(Clone, Debug, PartialEq)]

@@ -62,18 +62,18 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{Action, BoxDetection, Dataset, ObservationKind, Pose, State};
 use crate::models::drift::{DetectorDrift, DriftVars, DRIFT_DIMS, DRIFT_PARAM};
-use crate::models::flip_chain::{is_reversed, FlipChain, FlipChainVars};
-use crate::models::observation::boxes::{reversed_heading, wrap_angle};
+use crate::models::flip_chain::{is_reversed, FlipChain, FlipChainVars, LOGIT_SCALE};
 use crate::models::observation::points::Clutter;
 use crate::models::observation::{
-    BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch,
+    BoxObservationModel, ObsContext, ObservationModel, PointObservationModel, PosesRef, RowVars, Scratch, OBS_PREFIX,
 };
 use crate::models::road_user::{states_mut, states_ref, VehicleScratch, VehicleSsm, YAW};
 use crate::models::vehicle::policy::{ActionGaussians, GaussianPolicy};
 use crate::models::vehicle::state::{ActionVars, ActionsMut, STATE_DIM};
 use crate::models::{Batch, Block, DifferentiableModel, Drawn, ModelError, NoiseDims, ParticleModel};
-use crate::setting::SettingError;
 use crate::stats::{bisect_increasing, log_sum_exp, normal_cdf};
+use crate::util::angles::reversed_heading;
+use crate::util::setting::SettingError;
 
 /// One object's observations, per step `t = 0..T`, of either kind.
 #[derive(Clone, Debug, PartialEq)]
@@ -96,8 +96,6 @@ pub fn lagged_pose(state: &State, delay: f64) -> Pose {
 /// Name prefix of the extensions' parameters.
 pub const EXTENSION_PREFIX: &str = "ext";
 
-/// Stored logits are multiplied by this: a fraction is `sigmoid(LOGIT_SCALE r)`.
-pub(crate) const LOGIT_SCALE: f64 = 8.0;
 /// Stored log-scales are multiplied by this: a positive quantity is `exp(LOG_SCALE r)`.
 const LOG_SCALE: f64 = 2.0;
 /// A delay is `softplus(DELAY_SHARPNESS r) / DELAY_SHARPNESS` seconds: never
@@ -165,7 +163,7 @@ impl RefitScope {
         match self {
             RefitScope::All => Vec::new(),
             RefitScope::Dynamics => {
-                let prefix = format!("{}.", crate::models::params::OBS_PREFIX);
+                let prefix = format!("{OBS_PREFIX}.");
                 store.iter().map(|(name, _)| name).filter(|n| n.starts_with(&prefix)).map(String::from).collect()
             }
         }
@@ -587,7 +585,7 @@ impl ExtensibleObservation for BoxObservationModel {
     }
 
     fn heading_reversed(item: &BoxDetection, pose: Pose) -> bool {
-        wrap_angle(item.yaw - pose.yaw).abs() > std::f64::consts::FRAC_PI_2
+        item.reversed_against(pose)
     }
 
     fn to_observations(per_step: Vec<Vec<BoxDetection>>) -> ObjectObservations {
@@ -1623,7 +1621,7 @@ impl<P: GaussianPolicy, O: ExtensibleObservation> DifferentiableModel for Extend
     /// The base model's reparameterised transition. A drift's offsets and a
     /// flip chain's indicator are held where they were: their noise is not
     /// recorded in the actions, so the through-filter baselines, the only users,
-    /// refuse a drifting model and a persistent flip ([`crate::objective`]).
+    /// refuse a drifting model and a persistent flip ([`crate::training::objective`]).
     fn propagate_on_tape<'t, F: Float>(
         &self,
         params: &[Var<'t, F>],

@@ -24,7 +24,10 @@
 
 use autodiff::{Float, Var};
 
-use crate::models::extended::LOGIT_SCALE;
+/// Stored logits are multiplied by this: a fraction is `sigmoid(LOGIT_SCALE r)`
+/// (the chain's two probabilities here, and every other fraction of the
+/// catalogue's extensions, [`crate::models::extended`]).
+pub(crate) const LOGIT_SCALE: f64 = 8.0;
 
 /// Probabilities are kept in `[GUARD, 1 - GUARD]` on the plain paths.
 const GUARD: f64 = 1e-12;

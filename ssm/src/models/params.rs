@@ -50,7 +50,7 @@ use crate::data::{Dataset, ObservationKind};
 use crate::models::drift::{DetectorDrift, DRIFT_PARAM};
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation, Extension, EXTENSION_PREFIX};
 use crate::models::observation::boxes::DetectionOffsets;
-use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel};
+use crate::models::observation::{BoxObservationModel, ObservationModel, PointObservationModel, OBS_PREFIX};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::policy::{ActionGaussianVars, ActionGaussians, GaussianPolicy, PolicyError};
 use crate::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
@@ -58,8 +58,6 @@ use crate::models::ModelError;
 
 /// Name prefix of the policy's parameters.
 pub const POLICY_PREFIX: &str = "policy";
-/// Name prefix of the observation network's parameters.
-pub const OBS_PREFIX: &str = "obs";
 pub use crate::models::vehicle::policy::HAND_CRAFTED_PARAM;
 
 /// What is wrong with a parameter store.

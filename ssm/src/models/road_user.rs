@@ -235,7 +235,7 @@ impl<P: GaussianPolicy, O: ObservationModel> ParticleModel for VehicleSsm<'_, P,
 
     fn stream_key(&self, object: usize) -> u64 {
         let o = &self.data.objects()[object];
-        crate::seed::splitmix64(o.scene as u64 ^ 0x5ce4_e1d5) ^ o.id as u64
+        crate::util::seed::splitmix64(o.scene as u64 ^ 0x5ce4_e1d5) ^ o.id as u64
     }
 
     fn num_steps(&self) -> usize {

@@ -40,6 +40,9 @@
 //! The loop lives here; its settings ([`TrainConfig`], `config.rs`), its errors
 //! (`error.rs`), its seeds and batch orders (`seeds.rs`) and its files
 //! ([`Checkpoint`] and the CSV logs, `checkpoint.rs`) each have their own file.
+//! Two learners stand on it: [`objective`], the road-user model of a dataset
+//! learned through a score estimator, and [`supervised`], an observation network
+//! fitted to a dataset's labelled states.
 //!
 //! ```
 //! use autodiff::nn::ParamStore;
@@ -81,7 +84,9 @@
 mod checkpoint;
 mod config;
 mod error;
+pub mod objective;
 mod seeds;
+pub mod supervised;
 
 pub use checkpoint::Checkpoint;
 use checkpoint::{num, truncate_log, CsvLog};

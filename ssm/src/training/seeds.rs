@@ -1,8 +1,8 @@
 //! The seeds and batch orders of a run, each a fixed function of the run's seed
-//! (through [`crate::seed::splitmix64`]), so a resumed run repeats an
+//! (through [`crate::util::seed::splitmix64`]), so a resumed run repeats an
 //! uninterrupted one.
 
-use crate::seed::splitmix64;
+use crate::util::seed::splitmix64;
 
 /// Stream tags, so the step seeds, evaluation seeds and batch orders of one run
 /// are unrelated.

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::filter::{FilterConfig, Sampling, Tempering};
-use crate::setting::SettingError;
+use crate::util::setting::SettingError;
 
 /// Settings of a diagnosis.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -9,9 +9,9 @@ use autodiff::nn::ParamStore;
 use crate::estimators::{Estimator, EstimatorConfig};
 use crate::filter::Sampling;
 use crate::models::extended::Extension;
-use crate::objective::{ObjectiveConfig, SceneObjective};
-use crate::reduce::Collective;
+use crate::training::objective::{ObjectiveConfig, SceneObjective};
 use crate::training::{train_until, KeptBest, TrainConfig, TrainEvent, CHECKPOINT_FILE};
+use crate::util::reduce::Collective;
 
 use super::config::DiagnoseConfig;
 use super::progress::Stage;
@@ -162,7 +162,7 @@ pub(super) fn fit(
         checkpoint_every: 25,
         seed: config.seed,
         shuffle: true,
-        keep_best: (config.keep_best_every > 0).then(|| crate::objective::TEST_MLL.to_string()),
+        keep_best: (config.keep_best_every > 0).then(|| crate::training::objective::TEST_MLL.to_string()),
         average_tail: config.average_tail,
     };
     // `base`, `reference` or the extension's id: the run's directory names it.

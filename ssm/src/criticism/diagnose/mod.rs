@@ -139,7 +139,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 
 use crate::data::Dataset;
-use crate::reduce::Collective;
+use crate::util::reduce::Collective;
 
 use pipeline::run;
 use split::Parts;
@@ -152,7 +152,7 @@ pub const NO_CAUSE: &str = "none";
 
 /// Runs the diagnosis of `data`, writing training runs under `out_dir`
 /// (`base/`, `candidates/<id>/`), as one process of the job `comm`
-/// ([`SingleProcess`](crate::reduce::SingleProcess) alone). In a job of many,
+/// ([`SingleProcess`](crate::util::reduce::SingleProcess) alone). In a job of many,
 /// every process runs the whole diagnosis on the whole data; each fit's
 /// training steps are shared between the processes (each holds its share of
 /// the fit part's objects, [`SceneObjective::for_process`]), the checks and held-out

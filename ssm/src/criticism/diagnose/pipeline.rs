@@ -18,7 +18,7 @@ use crate::filter::{stream_seed, FilterPurpose, Tempering};
 use crate::models::extended::{Extension, RefitScope};
 use crate::models::params::{AnyPolicy, Models};
 use crate::models::vehicle::NeuralPolicy;
-use crate::reduce::Collective;
+use crate::util::reduce::Collective;
 
 use super::config::DiagnoseConfig;
 use super::dispatch::{check_model, eval_likelihoods};

@@ -10,7 +10,7 @@ use autodiff::nn::ParamStore;
 
 use crate::criticism::checks::{calibrate, CheckDef, CheckResult};
 use crate::models::extended::RefitScope;
-use crate::reduce::Collective;
+use crate::util::reduce::Collective;
 
 use super::config::DiagnoseConfig;
 use super::dispatch::{check_model, eval_likelihoods};

@@ -72,7 +72,7 @@ use tracks::{associate, speed_curvature};
 
 use super::error::{DataError, Place, Problem};
 use super::{Action, BoxDetection, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
-use crate::metrics::{heading_reversals, HeadingReversals};
+use crate::data::{heading_reversals, HeadingReversals};
 use std::collections::{BTreeMap, HashSet};
 use std::fmt;
 use std::fs;
@@ -196,7 +196,7 @@ pub struct KittiSplitReport {
     /// Box detections written.
     pub boxes: usize,
     /// How the written detections reversed against their labels fall over
-    /// objects and steps ([`crate::metrics::heading_reversals`]; `None` until the
+    /// objects and steps ([`crate::data::heading_reversals`]; `None` until the
     /// split's dataset is built).
     pub reversals: Option<HeadingReversals>,
 }

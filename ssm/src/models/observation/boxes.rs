@@ -44,6 +44,7 @@ use super::edges::sample_laplace;
 use super::features::{av_features_on_tape, NUM_FEATURES};
 use super::{detection_items, fit_len, net, ObsContext, ObservationModel, PosesRef, RowVars, Scratch};
 use crate::data::{BoxDetection, Dataset, ObservationKind, Pose};
+use crate::util::angles::wrap_angle;
 
 /// Widths of the box network, input first.
 pub const BOX_NET_LAYERS: [usize; 4] = [NUM_FEATURES, 16, 16, 6];
@@ -514,20 +515,4 @@ impl ObservationModel for BoxObservationModel {
             });
         }
     }
-}
-
-/// An angle wrapped to `(-pi, pi]`.
-pub fn wrap_angle(a: f64) -> f64 {
-    let w = a - TAU * (a / TAU).round();
-    if w <= -PI {
-        w + TAU
-    } else {
-        w
-    }
-}
-
-/// The heading `yaw` turned around, wrapped to `(-pi, pi]`: how a detector that
-/// reverses a box reports it, and how a reversed state or prior draw is turned.
-pub fn reversed_heading(yaw: f64) -> f64 {
-    wrap_angle(yaw + PI)
 }

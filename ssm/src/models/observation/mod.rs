@@ -50,7 +50,7 @@ use autodiff::nn::{BoundParams, ParamStore};
 use autodiff::{Float, Tape, Tensor, Var};
 use rand::Rng;
 
-use crate::data::{BoxDetection, Dataset, Object, ObservationKind, Pose};
+use crate::data::{BoxDetection, Dataset, Object, ObservationKind, Pose, State, StepTable};
 
 /// What an observation depends on besides the object's state: the AV's pose and the
 /// object's known extents.
@@ -375,6 +375,28 @@ pub trait ObservationModel: Clone + Send + Sync {
 }
 
 /// A detection's items: the detection, if any, as a slice of length 0 or 1.
+/// Every object-step of `data` with a true state (from `truth`) and observations
+/// (of `O`'s kind), object by object and step by step: the observation context,
+/// the true pose and the observed items.
+pub fn labelled_steps<'d, O: ObservationModel<Item: 'd>>(
+    data: &'d Dataset,
+    truth: &'d StepTable<State>,
+) -> impl Iterator<Item = (ObsContext, Pose, &'d [O::Item])> + 'd {
+    data.objects().iter().enumerate().flat_map(move |(object, obj)| {
+        let scene = &data.scenes()[data.object_scene(object)];
+        (0..data.steps()).filter_map(move |t| {
+            let s = truth.get(object, t)?;
+            let items = O::items(data, object, t);
+            (!items.is_empty())
+                .then(|| (ObsContext::of_object(scene.av[t], obj), Pose { x: s.x, y: s.y, yaw: s.yaw }, items))
+        })
+    })
+}
+
+/// Name prefix of the observation network's parameters in a parameter store
+/// (`obs.0.w`, `obs.0.b`, ...; the convention of [`crate::models::params`]).
+pub const OBS_PREFIX: &str = "obs";
+
 pub(crate) fn detection_items(d: Option<&BoxDetection>) -> &[BoxDetection] {
     match d {
         Some(d) => std::slice::from_ref(d),

@@ -25,20 +25,21 @@ use autodiff::nn::ParamStore;
 use serde::Serialize;
 use serde_json::json;
 use ssm::data::Dataset;
+use ssm::evaluation::metrics::Metrics;
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{Metrics, Summary};
 use ssm::models::params::{AnyPolicy, Models};
 use ssm::models::vehicle::{GaussianPolicy, HandCraftedPolicy};
+use ssm::stats::Summary;
 use ssm::training::PARAMS_FILE;
 
-use crate::calibrate::check_method;
+use crate::args::check_method;
 use crate::cluster::Cluster;
-use crate::evaluate::metric_runs;
-use crate::generate::{self, GenerateArgs};
+use crate::commands::evaluate::metric_runs;
+use crate::commands::generate::{self, GenerateArgs};
+use crate::commands::train::{self, read_eval_curve, RunScale, TrainArgs};
 use crate::output::{claim_dir, claim_or_refuse, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, summary_cell, TableArgs, CSV_HEADER, DEFAULT_METHODS};
-use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi reproduce`.
 #[derive(clap::Args)]
@@ -158,7 +159,7 @@ fn median_curve(curves: &[Curve]) -> Curve {
         .enumerate()
         .filter_map(|(i, &(x, _))| {
             let ys: Vec<f64> = curves.iter().filter_map(|c| c.get(i)).map(|p| p.1).filter(|y| y.is_finite()).collect();
-            ssm::metrics::median(&ys).map(|m| (x, m))
+            ssm::stats::median(&ys).map(|m| (x, m))
         })
         .collect()
 }

@@ -23,14 +23,13 @@ use serde::Serialize;
 use crate::data::Dataset;
 use crate::estimators::{Estimator, EstimatorConfig, ScoreEstimator};
 use crate::filter::{effective_sample_size, run_filter, FilterConfig, Observer, StepView};
-use crate::metrics::quantile;
 use crate::models::extended::ExtensibleObservation;
 use crate::models::params::{AnyPolicy, ModelAdditions, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::DifferentiableModel;
 use crate::models::ParticleModel;
-use crate::objective::gradient_in_store_order;
-use crate::stats::normal_cdf;
+use crate::stats::{normal_cdf, quantile};
+use crate::training::objective::gradient_in_store_order;
 
 /// One entry of a parameter tensor's mean score.
 #[derive(Clone, Debug, PartialEq, Serialize)]

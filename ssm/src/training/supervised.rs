@@ -24,14 +24,14 @@
 //!   fit is the network fitted to every detection with the flipped ones turned
 //!   back, and the flip fraction is their share.
 //!
-//! The AOTLL reported is the one [`crate::metrics::aotll`] computes on the same
+//! The AOTLL reported is the one [`crate::evaluation::metrics::aotll`] computes on the same
 //! dataset (the same items, the same per-item densities).
 //!
 //! ```
 //! use rand::{rngs::StdRng, SeedableRng};
 //! use ssm::models::observation::PointObservationModel;
-//! use ssm::supervised::{fit_supervised, SupervisedConfig};
-//! use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig};
+//! use ssm::training::supervised::{fit_supervised, SupervisedConfig};
+//! use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig};
 //!
 //! let data = generate_experiment(&ExperimentConfig::quick(Experiment::A), &mut StdRng::seed_from_u64(0), &mut |_| {})
 //!     .unwrap();
@@ -50,10 +50,9 @@ use rand::SeedableRng;
 use serde::Serialize;
 
 use crate::data::{Dataset, ObservationKind};
-use crate::metrics::labelled_steps;
 use crate::models::extended::{ExtensibleObservation, Extension};
-use crate::models::observation::{fit_network, Example, FitConfig, ObservationModel};
-use crate::models::params::{FittedExtension, Models, ObservationVisitor, OBS_PREFIX};
+use crate::models::observation::{fit_network, labelled_steps, Example, FitConfig, ObservationModel, OBS_PREFIX};
+use crate::models::params::{FittedExtension, Models, ObservationVisitor};
 
 /// Why a supervised fit cannot run.
 #[derive(Clone, Debug, PartialEq, Eq)]

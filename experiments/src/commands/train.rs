@@ -1,6 +1,6 @@
 //! `sefi train`: learns a dataset's policy and observation network with a score
 //! estimator (SPEC §6) through [`ssm::training::train`] and
-//! [`ssm::objective::SceneObjective`].
+//! [`ssm::training::objective::SceneObjective`].
 //!
 //! Writes into `--out DIR`: `run.json` (every setting; a resumed run must match
 //! it), `train.csv` and `eval.csv` (the logs), `checkpoint.bin` and `params.bin`
@@ -22,10 +22,10 @@ use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::params::{drift_in_store, AnyPolicy, FittedExtension, Models};
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
-use ssm::objective::{owned_objects, ObjectiveConfig, SceneObjective};
+use ssm::training::objective::{owned_objects, ObjectiveConfig, SceneObjective};
 use ssm::training::{train, TrainConfig, TrainEvent, TrainOutcome, EVAL_LOG};
 
-use crate::calibrate::{method_settings, FilterArgs, FilterKind};
+use crate::args::{method_settings, FilterArgs, FilterKind};
 use crate::cluster::Cluster;
 use crate::output::{claim_or_refuse, ensure_dir, write_json};
 use crate::plot::{line_chart, Curve, Series};
@@ -428,7 +428,7 @@ pub fn train_claimed_run(args: &TrainArgs, bar: &ProgressBar, cluster: &Cluster)
         checkpoint_every: args.checkpoint_every.max(1),
         seed: args.seed,
         shuffle: true,
-        keep_best: args.keep_best.then(|| ssm::objective::TEST_MLL.to_string()),
+        keep_best: args.keep_best.then(|| ssm::training::objective::TEST_MLL.to_string()),
         average_tail: args.average_tail,
     };
     let description = serde_json::to_value(args).map_err(|e| e.to_string())?;

@@ -148,7 +148,7 @@ impl Collective for ThreadMember {
 /// never changes the sum, only how long the step takes.
 ///
 /// ```
-/// use ssm::reduce::assign_blocks;
+/// use ssm::util::reduce::assign_blocks;
 /// // 5 -> 0, 4 -> 1, 2 -> 1 (4 < 5), 1 -> 0 (5 < 6)
 /// assert_eq!(assign_blocks(&[5.0, 1.0, 4.0, 2.0], 2), vec![0, 0, 1, 1]);
 /// assert_eq!(assign_blocks(&[1.0, 1.0, 1.0], 1), vec![0, 0, 0]);
@@ -186,7 +186,7 @@ fn scale_pow2(x: f64, e: i32) -> f64 {
 /// with the same `dim`.
 ///
 /// ```
-/// use ssm::reduce::{exact_sum, SingleProcess};
+/// use ssm::util::reduce::{exact_sum, SingleProcess};
 /// let blocks = vec![vec![1e16, 1.0], vec![1.0, -3.0], vec![-1e16, 0.5]];
 /// let fwd = exact_sum(&blocks, 2, &SingleProcess);
 /// let rev: Vec<Vec<f64>> = blocks.iter().rev().cloned().collect();

@@ -13,7 +13,7 @@
 //!    The test MLL during training is measured on val.
 //! 3. Fits the **supervised** observation network: the same network, from the same
 //!    initial weights, fitted by maximum AOTLL to the labelled train states
-//!    ([`ssm::supervised`]). It is paired with the policy PF-SEFI learned (the
+//!    ([`ssm::training::supervised`]). It is paired with the policy PF-SEFI learned (the
 //!    first trained method's if PF-SEFI is not run), so that its MLL, ADE and AYE
 //!    can be measured too; the comparison the paper makes is the AOTLL.
 //!    Written to `OUT/supervised/params.bin`.
@@ -58,24 +58,25 @@ use serde::Serialize;
 use serde_json::json;
 use ssm::data::kitti::KITTI_FRAME_DT;
 use ssm::data::{Dataset, KittiOptions, ObservationKind};
+use ssm::evaluation::metrics::{BoxAotllTerms, Metrics};
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{BoxAotllTerms, Metrics, Summary};
 use ssm::models::drift::{drift_from_labels, DetectorDrift};
 use ssm::models::extended::Extension;
 use ssm::models::observation::boxes::DetectionOffsets;
 use ssm::models::observation::{BoxObservationModel, FitConfig};
 use ssm::models::params::{FittedExtension, Models};
-use ssm::supervised::{fit_observation, fit_observation_with_flips, SupervisedReport};
+use ssm::stats::Summary;
+use ssm::training::supervised::{fit_observation, fit_observation_with_flips, SupervisedReport};
 use ssm::training::{PARAMS_FILE, SKIP_LOG, TRAIN_LOG};
 
-use crate::calibrate::check_method;
+use crate::args::check_method;
 use crate::cluster::Cluster;
-use crate::evaluate::{aotll_by_part_table, aotll_terms, metric_runs};
-use crate::import;
+use crate::commands::evaluate::{aotll_by_part_table, aotll_terms, metric_runs};
+use crate::commands::import;
+use crate::commands::train::{self, read_eval_curve, RunScale, TrainArgs};
 use crate::output::{ensure_dir, write_atomic, write_json};
 use crate::plot::{line_chart, Curve, Series};
 use crate::table::{csv_row, header, metric_cells, TableArgs, CSV_HEADER};
-use crate::train::{self, read_eval_curve, RunScale, TrainArgs};
 
 /// Arguments of `sefi experiment-c`.
 #[derive(clap::Args)]
@@ -373,7 +374,7 @@ fn extension_of(args: &ExperimentCArgs) -> Result<Option<Extension>, String> {
 
 /// AOTLL of `models`' observation network on `data`.
 fn aotll_on(data: &Dataset, models: &Models) -> Option<f64> {
-    ssm::metrics::models_aotll(data, models).mean
+    ssm::evaluation::metrics::models_aotll(data, models).mean
 }
 
 /// Sums of the `skipped` and `collapsed_steps` columns of a run's `train.csv`.
@@ -902,7 +903,7 @@ fn write_outputs(c: &Context<'_>, rows: &[Row], seconds: f64) -> Result<(), Stri
     let last = rows.iter().flat_map(|r| r.curve.last()).map(|p| p.0).fold(1.0, f64::max);
     if let Some(sup) = rows.last() {
         let mlls: Vec<f64> = sup.runs.iter().filter_map(|m| m.mll).collect();
-        if let Some(m) = ssm::metrics::median(&mlls) {
+        if let Some(m) = ssm::stats::median(&mlls) {
             series.push(Series { name: sup.method.clone(), points: vec![(0.0, m), (last, m)] });
         }
     }

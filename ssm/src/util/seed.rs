@@ -5,7 +5,7 @@
 /// SplitMix64's output function: a bijective 64-bit mixer.
 ///
 /// ```
-/// use ssm::seed::splitmix64;
+/// use ssm::util::seed::splitmix64;
 /// assert_eq!(splitmix64(0), 0xe220_a839_7b1d_cdaf);
 /// assert_ne!(splitmix64(1), splitmix64(2));
 /// ```

@@ -31,8 +31,8 @@ use crate::models::params::{AnyPolicy, ModelVisitor, Models};
 use crate::models::road_user::VehicleSsm;
 use crate::models::vehicle::GaussianPolicy;
 use crate::models::DifferentiableModel;
-use crate::reduce::{assign_blocks, Collective, SingleProcess};
 use crate::training::{BatchEstimate, EstimateError, Objective};
+use crate::util::reduce::{assign_blocks, Collective, SingleProcess};
 
 /// How the objective estimates and evaluates.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -283,7 +283,7 @@ impl Objective for SceneObjective {
     /// `test_mll` (nats per point, one filter run with `eval_particles`), the
     /// test's collapsed steps and, for the hand-crafted policy, its sds. In a
     /// distributed job only the first process runs the filter; the others receive
-    /// its two metrics ([`crate::reduce::Collective::share_first`]).
+    /// its two metrics ([`crate::util::reduce::Collective::share_first`]).
     fn evaluate(&mut self, params: &ParamStore<f64>, seed: u64) -> Result<Vec<(String, f64)>, String> {
         let models = self.models(params)?;
         let (ll, units, collapsed): (f64, usize, Option<usize>) = if self.is_root() {

@@ -31,18 +31,18 @@ use serde_json::json;
 use ssm::criticism::diagnose::{diagnose, DiagnoseConfig};
 use ssm::criticism::hidden::{generate_hidden, HiddenConfig, HiddenEffect};
 use ssm::data::{Dataset, ObservationKind};
+use ssm::evaluation::metrics::{metrics_of, track, Metrics};
 use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
-use ssm::metrics::{metrics_of, track, Metrics};
 use ssm::models::params::{ModelAdditions, Models};
-use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
+use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig, SyntheticExperiment, TruthConfig};
 
+use crate::args::{FilterArgs, FilterKind};
 use crate::birdseye;
-use crate::calibrate::{FilterArgs, FilterKind};
 use crate::cluster::Cluster;
-use crate::evaluate::metric_runs;
+use crate::commands::evaluate::metric_runs;
+use crate::commands::train::{read_eval_curve, train_run, TrainArgs};
 use crate::output::{ensure_dir, write_csv, write_json};
 use crate::plot::{line_chart, Series};
-use crate::train::{read_eval_curve, train_run, TrainArgs};
 
 const COMPONENTS: usize = 2;
 
@@ -180,7 +180,7 @@ fn model_stage(out: &Path, seed: u64, quick: bool) -> Result<(serde_json::Value,
         "particles", "MLL", "ADE smooth", "ADE filter", "AYE smooth", "AYE filter", "seconds"
     );
     for &particles in particle_counts {
-        let mut cfg = ssm::metrics::eval_config(ssm::metrics::EVAL_LAG, seed);
+        let mut cfg = ssm::evaluation::metrics::eval_config(ssm::evaluation::metrics::EVAL_LAG, seed);
         cfg.sampling.particles = particles;
         let t = Instant::now();
         let tracks = track(data, &truth.policy, &truth.obs, &truth.params, ModelAdditions::NONE, &cfg)?;
@@ -297,7 +297,7 @@ fn learning_stage(
             seed,
             ..defaults
         };
-        let bar = crate::train::bar(name);
+        let bar = crate::commands::train::bar(name);
         let outcome = train_run(&args, &bar, &Cluster::single())?;
         bar.finish_and_clear();
         let curve = read_eval_curve(&args.out, "test_mll")?;
@@ -359,17 +359,17 @@ fn criticism_stage(out: &Path, seed: u64, quick: bool) -> Result<serde_json::Val
         "criticising {} objects of point data with a hidden sensor lag of 0.15 s (the diagnosis is told nothing of it):",
         data.objects().len()
     );
-    let bar = crate::train::bar("diagnose");
+    let bar = crate::commands::train::bar("diagnose");
     let report = diagnose(
         &data,
         &config,
         &dir.join("runs"),
         &Cluster::single().collective(),
-        &mut crate::diagnose::stage_progress(&bar),
+        &mut crate::commands::diagnose::stage_progress(&bar),
     )?;
     bar.finish_and_clear();
-    crate::diagnose::write_report(&dir, &report, &data_dir)?;
-    crate::diagnose::print_outcome(&report, &dir);
+    crate::commands::diagnose::write_report(&dir, &report, &data_dir)?;
+    crate::commands::diagnose::print_outcome(&report, &dir);
     Ok(json!({
         "hidden": "latency 0.15 s", "cause": report.cause, "finding": report.finding,
         "gain": report.gain, "gain_se": report.gain_se, "gain_p": report.gain_p, "seconds": report.seconds,

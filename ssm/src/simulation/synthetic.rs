@@ -49,7 +49,7 @@
 //!
 //! ```
 //! use rand::{rngs::StdRng, SeedableRng};
-//! use ssm::synthetic::{generate_experiment, Experiment, ExperimentConfig};
+//! use ssm::simulation::synthetic::{generate_experiment, Experiment, ExperimentConfig};
 //!
 //! let config = ExperimentConfig::quick(Experiment::A);
 //! let data = generate_experiment(&config, &mut StdRng::seed_from_u64(7), &mut |_| {}).unwrap();
@@ -72,16 +72,13 @@ use rand_distr::{Distribution, Poisson, StandardNormal};
 use crate::data::{Action, DataError, Dataset, DatasetBuilder, Meta, Object, ObservationKind, Pose, Prior, State};
 use crate::models::observation::{
     aotll, fit_network, random_point_examples, FitConfig, FitReport, ObsContext, ObservationModel, PointGenerator,
-    PointObservationModel, SceneRanges,
+    PointObservationModel, SceneRanges, OBS_PREFIX,
 };
 use crate::models::vehicle::{
     Action as VAction, ActionGaussians, GaussianPolicy, HandCraftedPolicy, MotionModel, Quadrature, VehicleState,
     DEFAULT_DT,
 };
 
-/// Name prefix of the observation network's entries in a [`TrueModel`]'s store
-/// (`obs.0.w`, `obs.0.b`, ...).
-pub const OBS_PREFIX: &str = "obs";
 /// Name of the hand-crafted policy's parameter (shape `[2]`: log sd of accel,
 /// log sd of pinch) in a [`TrueModel`]'s store.
 pub const POLICY_LOG_SD: &str = "policy.log_sd";

@@ -13,15 +13,13 @@
 //! * For box detections, AOTLL split into the reversed headings and the density's
 //!   factors ([`box_aotll_terms`]).
 //!
-//! [`evaluate`] computes all of them with one filter run ([`track`]); [`Summary`]
-//! and [`summarise_runs`] give the median and interquartile range of each over
+//! [`evaluate`] computes all of them with one filter run ([`track`]);
+//! [`summarise_runs`] (a [`Summary`] per metric) give the median and interquartile range of each over
 //! repeated runs (different seeds).
 //!
 //! ```
-//! use ssm::metrics::{wrapped_abs_diff, Summary};
+//! use ssm::evaluation::metrics::wrapped_abs_diff;
 //! assert!((wrapped_abs_diff(3.1, -3.1) - (2.0 * std::f64::consts::PI - 6.2)).abs() < 1e-12);
-//! let s = Summary::of(&[1.0, 2.0, 3.0, 4.0, 5.0]).unwrap();
-//! assert_eq!((s.median, s.q1, s.q3, s.iqr), (3.0, 2.0, 4.0, 2.0));
 //! ```
 
 use std::f64::consts::{PI, TAU};
@@ -29,17 +27,17 @@ use std::f64::consts::{PI, TAU};
 use autodiff::nn::ParamStore;
 use serde::Serialize;
 
-use crate::data::{Dataset, ObservationKind, Pose, State, StepTable};
+use crate::data::{Dataset, ObservationKind, State, StepTable};
 use crate::filter::{run_filter, FilterConfig, Moments, ObjectSummary, Sampling};
 use crate::models::drift::DRIFT_DIMS;
 use crate::models::extended::{ExtendedSsm, ExtensibleObservation};
 use crate::models::observation::boxes::{BoxObservationModel, DetectionDistribution, DetectionTerms};
-use crate::models::observation::{ObsContext, ObservationModel};
+use crate::models::observation::{labelled_steps, ObservationModel};
 use crate::models::params::{ModelAdditions, Models, ObservationVisitor};
 use crate::models::road_user::{VehicleSsm, YAW};
 use crate::models::vehicle::{ActionGaussians, ActionsRef, GaussianPolicy, STATE_DIM};
 use crate::models::{Batch, ParticleModel};
-use crate::stats::{log_sum_exp, normal_quantile};
+use crate::stats::{log_sum_exp, normal_quantile, quantile_sorted, Summary};
 
 /// Particles of an evaluation run (SPEC §5).
 pub const EVAL_PARTICLES: usize = 4096;
@@ -391,120 +389,6 @@ pub fn box_aotll_terms(data: &Dataset, model: &BoxObservationModel, params: &Par
     })
 }
 
-/// How the detections of a labelled box dataset that report their heading
-/// reversed against the label (more than pi/2 from it, the rule of
-/// [`BoxObservationModel::heading_reversed`]) fall over objects and steps, beside
-/// what independent reversals at the same rate would give. The catalogue's
-/// `heading_flip` reverses each detection independently; a detector that
-/// reverses some cars for many frames shows as `objects_with_any` well below
-/// `objects_with_any_if_independent`, a `dispersion` above 1 and a
-/// `persistence` above the rate.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct HeadingReversals {
-    /// Detections at labelled steps.
-    pub detections: usize,
-    /// Of those, reversed against the label.
-    pub reversed: usize,
-    /// Objects with a labelled detection.
-    pub objects: usize,
-    /// Of those, objects with a reversed detection.
-    pub objects_with_any: usize,
-    /// Their expected number if every detection were reversed independently at
-    /// the data's rate: the sum over objects of `1 - (1 - rate)^n`.
-    pub objects_with_any_if_independent: f64,
-    /// The dispersion index of the per-object counts, the mean over objects of
-    /// `(k - n rate)^2 / (n rate (1 - rate))`: about 1 for independent
-    /// reversals (`None` at a rate of 0 or 1).
-    pub dispersion: Option<f64>,
-    /// The share of steps with a reversed detection among the steps whose
-    /// previous step had one (same object; a step is reversed if any of its
-    /// detections is): the rate for independent reversals (`None` without such
-    /// pairs).
-    pub persistence: Option<f64>,
-    /// Steps that count towards `persistence`.
-    pub persistence_pairs: usize,
-}
-
-impl HeadingReversals {
-    /// The share of detections reversed.
-    pub fn rate(&self) -> f64 {
-        self.reversed as f64 / self.detections.max(1) as f64
-    }
-}
-
-/// [`HeadingReversals`] of `data`; `None` without labels or box detections.
-pub fn heading_reversals(data: &Dataset) -> Option<HeadingReversals> {
-    let truth = data.states()?;
-    if data.kind() != ObservationKind::Boxes {
-        return None;
-    }
-    // Per object with a labelled detection: (detections, reversed).
-    let mut counts: Vec<(usize, usize)> = Vec::new();
-    let (mut pairs, mut pairs_reversed) = (0usize, 0usize);
-    for object in 0..data.objects().len() {
-        let (mut n, mut k) = (0usize, 0usize);
-        let mut previous_reversed = false;
-        for t in 0..data.steps() {
-            let labelled = truth
-                .get(object, t)
-                .map(|s| (s, BoxObservationModel::items(data, object, t)))
-                .filter(|(_, items)| !items.is_empty());
-            let Some((s, items)) = labelled else {
-                previous_reversed = false;
-                continue;
-            };
-            let pose = Pose { x: s.x, y: s.y, yaw: s.yaw };
-            let reversed = items.iter().filter(|d| BoxObservationModel::heading_reversed(d, pose)).count();
-            if previous_reversed {
-                pairs += 1;
-                pairs_reversed += usize::from(reversed > 0);
-            }
-            previous_reversed = reversed > 0;
-            n += items.len();
-            k += reversed;
-        }
-        if n > 0 {
-            counts.push((n, k));
-        }
-    }
-    let detections: usize = counts.iter().map(|c| c.0).sum();
-    let reversed: usize = counts.iter().map(|c| c.1).sum();
-    let rate = reversed as f64 / detections.max(1) as f64;
-    let dispersion = (rate > 0.0 && rate < 1.0).then(|| {
-        let chi2: f64 =
-            counts.iter().map(|&(n, k)| (k as f64 - n as f64 * rate).powi(2) / (n as f64 * rate * (1.0 - rate))).sum();
-        chi2 / counts.len() as f64
-    });
-    Some(HeadingReversals {
-        detections,
-        reversed,
-        objects: counts.len(),
-        objects_with_any: counts.iter().filter(|c| c.1 > 0).count(),
-        objects_with_any_if_independent: counts.iter().map(|&(n, _)| 1.0 - (1.0 - rate).powi(n as i32)).sum(),
-        dispersion,
-        persistence: (pairs > 0).then(|| pairs_reversed as f64 / pairs as f64),
-        persistence_pairs: pairs,
-    })
-}
-
-/// Every object-step of `data` with a true state (from `truth`) and observations
-/// (of `O`'s kind), object by object and step by step: the observation context,
-/// the true pose and the observed items.
-pub fn labelled_steps<'d, O: ObservationModel<Item: 'd>>(
-    data: &'d Dataset,
-    truth: &'d StepTable<State>,
-) -> impl Iterator<Item = (ObsContext, Pose, &'d [O::Item])> + 'd {
-    data.objects().iter().enumerate().flat_map(move |(object, obj)| {
-        let scene = &data.scenes()[data.object_scene(object)];
-        (0..data.steps()).filter_map(move |t| {
-            let s = truth.get(object, t)?;
-            let items = O::items(data, object, t);
-            (!items.is_empty())
-                .then(|| (ObsContext::of_object(scene.av[t], obj), Pose { x: s.x, y: s.y, yaw: s.yaw }, items))
-        })
-    })
-}
-
 /// APTLL: the mean `log pi(true a_t | true x_{t-1})` over the steps `t >= 1` with a
 /// true action and a true previous state.
 pub fn aptll<P: GaussianPolicy>(data: &Dataset, policy: &P) -> MeanOver {
@@ -677,66 +561,6 @@ pub fn metrics_of<P: GaussianPolicy, O: ExtensibleObservation>(
         lag: config.lag,
         seed: config.seed,
     }
-}
-
-/// Median and interquartile range of repeated measurements. Quartiles are by
-/// linear interpolation between order statistics (NumPy's default, "type 7").
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct Summary {
-    /// The median.
-    pub median: f64,
-    /// The first quartile (25th percentile).
-    pub q1: f64,
-    /// The third quartile (75th percentile).
-    pub q3: f64,
-    /// `q3 - q1`.
-    pub iqr: f64,
-    /// Number of values summarised.
-    pub n: usize,
-}
-
-impl Summary {
-    /// The summary of the finite values of `values`; `None` if there are none.
-    pub fn of(values: &[f64]) -> Option<Summary> {
-        let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-        if v.is_empty() {
-            return None;
-        }
-        v.sort_by(f64::total_cmp);
-        let (q1, median, q3) = (quantile_sorted(&v, 0.25), quantile_sorted(&v, 0.5), quantile_sorted(&v, 0.75));
-        Some(Summary { median, q1, q3, iqr: q3 - q1, n: v.len() })
-    }
-}
-
-/// The `q`-quantile (`0 <= q <= 1`) of sorted values by linear interpolation.
-#[track_caller]
-fn quantile_sorted(v: &[f64], q: f64) -> f64 {
-    let h = q * (v.len() - 1) as f64;
-    let (lo, hi) = (h.floor() as usize, h.ceil() as usize);
-    v[lo] + (h - lo as f64) * (v[hi] - v[lo])
-}
-
-/// The `q`-quantile of the finite values (linear interpolation); `None` if there
-/// are none. Panics unless `0 <= q <= 1`.
-#[track_caller]
-pub fn quantile(values: &[f64], q: f64) -> Option<f64> {
-    assert!((0.0..=1.0).contains(&q), "quantile: q = {q} is outside [0, 1]");
-    let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    Some(quantile_sorted(&v, q))
-}
-
-/// The median of the finite values; `None` if there are none.
-pub fn median(values: &[f64]) -> Option<f64> {
-    quantile(values, 0.5)
-}
-
-/// The interquartile range of the finite values; `None` if there are none.
-pub fn iqr(values: &[f64]) -> Option<f64> {
-    Summary::of(values).map(|s| s.iqr)
 }
 
 /// Median and IQR of each scalar metric ([`Metrics::scalars`]) over repeated runs,

@@ -17,9 +17,9 @@ use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
 
 use crate::cluster::Cluster;
+use crate::commands::train::bar;
 use crate::output::{claim_or_refuse, write_atomic, write_json};
 use crate::plot::write_svg;
-use crate::train::bar;
 
 /// Checks plotted in the report (the largest |z| first).
 const PLOTTED_CHECKS: usize = 4;

@@ -1,11 +1,11 @@
 //! `sefi generate`: the paper's synthetic datasets (SPEC §4), made by
-//! [`ssm::synthetic::generate_experiment`].
+//! [`ssm::simulation::synthetic::generate_experiment`].
 //!
 //! Writes into `--out DIR`:
 //!
 //! * `DIR/train`, `DIR/test`: point datasets with ground-truth `states.csv` and
 //!   `actions.csv` (training scene ids `0..10`, test ids `10, 11`);
-//! * `DIR/true_params.bin`: the true parameters ([`ssm::synthetic::TrueModel`]:
+//! * `DIR/true_params.bin`: the true parameters ([`ssm::simulation::synthetic::TrueModel`]:
 //!   the network under `obs.*`, the policy's log sds as `policy.log_sd`);
 //! * `DIR/generate.json`: the settings, seed, sizes, the fit's AOTLL (training
 //!   examples before/after, held-out generator examples), a summary of each split
@@ -22,7 +22,7 @@ use rand::rngs::StdRng;
 use rand::SeedableRng;
 use serde_json::json;
 use ssm::models::observation::ObservationModel;
-use ssm::synthetic::{generate_experiment, summarize, Experiment, ExperimentConfig, Progress};
+use ssm::simulation::synthetic::{generate_experiment, summarize, Experiment, ExperimentConfig, Progress};
 
 use crate::output::{ensure_dir, write_json};
 
@@ -111,7 +111,7 @@ fn run_sampled(args: &GenerateArgs, like: &std::path::Path) -> Result<(), String
             Models::initial(skeleton.kind(), AnyPolicy::Neural(policy), args.seed.wrapping_add(1)).to_store()
         }
     };
-    let data = ssm::calibration::sample_dataset(&skeleton, &store, args.seed)?;
+    let data = ssm::evaluation::calibration::sample_dataset(&skeleton, &store, args.seed)?;
     data.write(&args.out).map_err(|e| e.to_string())?;
     store.save(&args.out.join("true_params.bin")).map_err(|e| e.to_string())?;
     println!(
@@ -137,7 +137,8 @@ pub fn run(args: &GenerateArgs) -> Result<(), String> {
         return run_sampled(args, like);
     }
     let started = Instant::now();
-    let experiment: Experiment = args.exp.parse().map_err(|e: ssm::synthetic::SyntheticError| e.to_string())?;
+    let experiment: Experiment =
+        args.exp.parse().map_err(|e: ssm::simulation::synthetic::SyntheticError| e.to_string())?;
     let config = if args.quick { ExperimentConfig::quick(experiment) } else { ExperimentConfig::paper(experiment) };
     ensure_dir(&args.out)?;
 

@@ -39,12 +39,12 @@ pub fn run(args: &ParamsArgs) -> Result<(), String> {
     match &args.action {
         ParamsAction::Export { params, out } => {
             let store = ParamStore::<f64>::load(params).map_err(|e| e.to_string())?;
-            ssm::npz::write_params(&store, out).map_err(|e| e.to_string())?;
+            ssm::util::npz::write_params(&store, out).map_err(|e| e.to_string())?;
             println!("{}: {} parameters ({} values)", out.display(), store.len(), store.num_scalars());
         }
         ParamsAction::Import { npz, out, like } => {
             let like = like.as_ref().map(|p| ParamStore::<f64>::load(p)).transpose().map_err(|e| e.to_string())?;
-            let store = ssm::npz::read_params(npz, like.as_ref()).map_err(|e| e.to_string())?;
+            let store = ssm::util::npz::read_params(npz, like.as_ref()).map_err(|e| e.to_string())?;
             store.save(out).map_err(|e| e.to_string())?;
             println!("{}: {} parameters ({} values)", out.display(), store.len(), store.num_scalars());
         }

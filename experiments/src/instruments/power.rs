@@ -23,7 +23,7 @@ use ssm::stats::wilson_interval;
 use ssm::training::EVAL_LOG;
 
 use crate::cluster::Cluster;
-use crate::diagnose::ProtocolArg;
+use crate::commands::diagnose::ProtocolArg;
 use crate::output::{claim_dir, ensure_dir, write_atomic, write_json, Claim};
 use crate::plot::{share_chart, Share, ShareSeries};
 

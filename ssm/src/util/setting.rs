@@ -8,7 +8,7 @@ use std::fmt;
 /// A setting outside what it may be.
 ///
 /// ```
-/// use ssm::setting::SettingError;
+/// use ssm::util::setting::SettingError;
 /// let e = SettingError::new("tempering.ess_fraction", 1.5, "in (0, 1)");
 /// assert_eq!(e.setting, "tempering.ess_fraction");
 /// assert_eq!(e.to_string(), "tempering.ess_fraction = 1.5: expected in (0, 1)");

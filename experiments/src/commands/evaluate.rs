@@ -13,14 +13,14 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
+use ssm::evaluation::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
 use ssm::filter::{FilterConfig, Sampling};
-use ssm::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
 use ssm::models::drift::DetectorDrift;
 use ssm::models::extended::ExtensibleObservation;
 use ssm::models::params::{AnyObservation, Models, ObservationVisitor};
 
+use crate::args::FilterArgs;
 use crate::birdseye;
-use crate::calibrate::FilterArgs;
 use crate::output::{ensure_dir, write_atomic, write_json};
 
 /// Arguments of `sefi eval`.
