@@ -12,7 +12,7 @@ pub struct DiagnoseConfig {
     pub fit_fraction: f64,
     /// Fraction of the objects that check the base (and choose and start the
     /// candidates); the rest measure the gain. With a given held-out set
-    /// ([`diagnose_split`]) it is split in the ratio `check : (1 - fit - check)`.
+    /// ([`diagnose_split`](crate::criticism::diagnose::diagnose_split)) it is split in the ratio `check : (1 - fit - check)`.
     pub check_fraction: f64,
     /// Seed of the split, the initialisation, training and the checks.
     pub seed: u64,
@@ -79,7 +79,7 @@ pub struct DiagnoseConfig {
     #[serde(default)]
     pub keep_best_every: usize,
     /// The share of every fit's last steps whose iterates are averaged
-    /// ([`TrainConfig::average_tail`]; 0: none, as reports written before this
+    /// ([`TrainConfig::average_tail`](crate::training::TrainConfig::average_tail); 0: none, as reports written before this
     /// setting existed did). The fit then returns (and keep-best evaluates from
     /// the tail's start on) the mean of those iterates rather than the last one.
     #[serde(default)]
@@ -108,13 +108,13 @@ pub struct DiagnoseConfig {
     pub alpha: f64,
     /// An extension is fitted when a check that suggests it has an uncorrected p
     /// below this, one-sided in the direction the extension moves the check
-    /// ([`CheckResult::screen_p`]; two-sided for extents, which it moves either way).
+    /// ([`CheckResult::screen_p`](crate::criticism::checks::CheckResult::screen_p); two-sided for extents, which it moves either way).
     pub plausible_p: f64,
     /// Fit every extension that applies to the data, plausible or not (only a
     /// flagged one can be the cause).
     pub fit_all: bool,
     /// Screen the extensions no check flagged by the likelihood as well
-    /// ([`LikelihoodScreen`]): one that at its start raises the check part's
+    /// ([`LikelihoodScreen`](crate::criticism::diagnose::LikelihoodScreen)): one that at its start raises the check part's
     /// likelihood over the base's, with a one-sided sign-flip p over the check
     /// objects below [`DiagnoseConfig::plausible_p`], is fitted too. Off by
     /// default (measured on a few cells only; README, "A likelihood screen").
@@ -125,12 +125,12 @@ pub struct DiagnoseConfig {
     /// (tested in step 5's Holm family, rule (d) passed) only when its fitted
     /// model raises the check part's likelihood over its scope's reference
     /// with a one-sided sign-flip p over the check objects below
-    /// [`DiagnoseConfig::plausible_p`] ([`CandidateReport::check_part_p`]).
+    /// [`DiagnoseConfig::plausible_p`] ([`CandidateReport::check_part_p`](crate::criticism::diagnose::CandidateReport::check_part_p)).
     /// Plausibility still comes from the check part alone, and the gain from
     /// the evaluation part alone; what it adds over the checks is a screen
     /// that a summary statistic cannot miss, at the cost of fitting every
     /// extension (one it does not admit is not checked again nor evaluated:
-    /// [`NotAdmitted`]). Off by default; excludes [`DiagnoseConfig::fit_all`] and
+    /// [`NotAdmitted`](crate::criticism::diagnose::NotAdmitted)). Off by default; excludes [`DiagnoseConfig::fit_all`] and
     /// [`DiagnoseConfig::likelihood_screen`]; a report written before it reads
     /// `false`.
     #[serde(default)]
@@ -141,7 +141,7 @@ pub struct DiagnoseConfig {
     /// ([`DiagnoseConfig::keep_best_every`]); unless its best evaluation on the
     /// check part so far is above the base's (its reference's start: the same
     /// parameters, filter and seed), it is not continued and not admitted
-    /// ([`NotAdmitted::stopped_at`]). Otherwise it continues to the end, the
+    /// ([`NotAdmitted::stopped_at`](crate::criticism::diagnose::NotAdmitted::stopped_at)). Otherwise it continues to the end, the
     /// same run as without the stop, and the screen decides as before. An
     /// extension that another nests (`heading_flip`) is always fitted in full,
     /// since rule (e) may compare them; and the reference in the dynamics scope
@@ -155,13 +155,13 @@ pub struct DiagnoseConfig {
     /// extension's fit (`heading_flip`) ended, when both are fitted: the base's
     /// parameters as the nested fit left them and the values the two share (the
     /// fraction) from it, the rest (the persistence) from the checks
-    /// ([`Extension::start_from_nested`]). Rule (e) then compares the extra
+    /// ([`Extension::start_from_nested`](crate::models::extended::Extension::start_from_nested)). Rule (e) then compares the extra
     /// parameter rather than two optimisations from one start, of which the
     /// larger may stop short (README, "A nesting fit starts where its nested fit
     /// ended"). On by default; a report written before it reads `false`.
     #[serde(default)]
     pub nesting_from_nested: bool,
-    /// Refit each candidate within its extension's [`RefitScope`] and compare
+    /// Refit each candidate within its extension's [`RefitScope`](crate::models::extended::RefitScope) and compare
     /// it with the base refitted alone within the same scope: a dynamics
     /// extension (heavy tails) and its reference move the policy and hold the
     /// observation network at the base's fit; every other extension and its
@@ -180,7 +180,7 @@ pub struct DiagnoseConfig {
     /// estimate's downward bias) rather than the models', and can decide the
     /// sum alone. Decided from the runs' spreads, symmetrically in the models,
     /// so the sign-flip test over the other objects keeps its level; the report
-    /// lists them ([`Report::eval_imprecise`]). Before that, every model
+    /// lists them ([`Report::eval_imprecise`](crate::criticism::diagnose::Report::eval_imprecise)). Before that, every model
     /// filters such objects again with [`DiagnoseConfig::refine_factor`] times
     /// the particles (the same seeds for every model, so the pairing holds),
     /// and an object the refined runs bring under the bar stays, with its

@@ -20,7 +20,7 @@ use super::split::Parts;
 /// The sub-directories of a diagnosis's output that hold its training runs
 /// (checkpoints, parameters, logs): the base fit, the base refitted alone, and
 /// once more with another seed, one run per candidate, and the two refits of
-/// the base within the dynamics scope ([`RefitScope::Dynamics`]). They serve only to resume an interrupted diagnosis;
+/// the base within the dynamics scope ([`RefitScope::Dynamics`](crate::models::extended::RefitScope::Dynamics)). They serve only to resume an interrupted diagnosis;
 /// `report.json` and the plots are what a finished one keeps.
 pub const TRAINING_RUN_DIRS: [&str; 6] =
     ["base", "reference", "reference-reseeded", "candidates", "reference-dynamics", "reference-dynamics-reseeded"];

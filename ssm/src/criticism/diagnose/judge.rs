@@ -91,7 +91,7 @@ impl Report {
         })
     }
 
-    /// The bar of [`DiagnoseConfig::set_aside_unmeasured`] on this report's
+    /// The bar of [`DiagnoseConfig::set_aside_unmeasured`](crate::criticism::diagnose::DiagnoseConfig::set_aside_unmeasured) on this report's
     /// evaluation part, its objects set aside included.
     pub fn unmeasured_bar(&self) -> f64 {
         let set_aside: usize = self.eval_imprecise.iter().filter(|o| o.set_aside).map(|o| o.units).sum();
@@ -99,7 +99,7 @@ impl Report {
     }
 
     /// The least gain (nats per observed unit) that names a cause, rule (b):
-    /// [`DiagnoseConfig::min_gain`], or the size of the refits' own noise when
+    /// [`DiagnoseConfig::min_gain`](crate::criticism::diagnose::DiagnoseConfig::min_gain), or the size of the refits' own noise when
     /// it was measured and is larger.
     pub fn gain_bar(&self) -> f64 {
         gain_bar(self.config.min_gain, self.first_reference().and_then(|r| r.reseeded.as_ref()))

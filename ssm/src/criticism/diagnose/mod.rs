@@ -17,10 +17,10 @@
 //!    and calibrated over the draws (z, p, Holm correction).
 //! 4. **Fit the plausible extensions**, each warm-started from the base at the
 //!    values the check part's discrepancies suggest
-//!    ([`Extension::initial_from_checks`]): an extension is plausible when a
+//!    ([`Extension::initial_from_checks`](crate::models::extended::Extension::initial_from_checks)): an extension is plausible when a
 //!    check that suggests it has an uncorrected p below
 //!    [`DiagnoseConfig::plausible_p`] in the direction the extension moves that
-//!    check ([`CheckResult::screen_p`]: a lag lowers the offset-speed slope, heavy
+//!    check ([`CheckResult::screen_p`](crate::criticism::checks::CheckResult::screen_p): a lag lowers the offset-speed slope, heavy
 //!    tails raise the kurtosis; a discrepancy the other way is no sign of it), or
 //!    always, with [`DiagnoseConfig::fit_all`]. With
 //!    [`DiagnoseConfig::likelihood_screen`] an extension no check flagged is
@@ -40,7 +40,7 @@
 //!    With [`DiagnoseConfig::refit`] (the default) the base's parameters are
 //!    refitted with the extension's — the base network gives back what it
 //!    absorbed of the effect — within the extension's refit scope
-//!    ([`Extension::refit_scope`], [`DiagnoseConfig::scoped_refits`]): every
+//!    ([`Extension::refit_scope`](crate::models::extended::Extension::refit_scope), [`DiagnoseConfig::scoped_refits`]): every
 //!    parameter for an extension of the observations, the policy alone (the
 //!    observation network held) for one of the dynamics. The base alone is
 //!    refitted the same way, in the same scope, from the same start, with the
@@ -70,7 +70,7 @@
 //!    [`improves_flagged_checks`]; one the likelihood screen admitted must
 //!    raise the check part's likelihood over the reference's) and (e),
 //!    for an extension that contains another fitted candidate as a special case
-//!    ([`Extension::nests`]: persistent flips at persistence 0 are independent
+//!    ([`Extension::nests`](crate::models::extended::Extension::nests): persistent flips at persistence 0 are independent
 //!    ones), beat that candidate by object with the same test and minimum
 //!    ([`nested_comparisons`]): the larger model is named only where its extra
 //!    parameter earns its place.
@@ -155,7 +155,7 @@ pub const NO_CAUSE: &str = "none";
 /// ([`SingleProcess`](crate::util::reduce::SingleProcess) alone). In a job of many,
 /// every process runs the whole diagnosis on the whole data; each fit's
 /// training steps are shared between the processes (each holds its share of
-/// the fit part's objects, [`SceneObjective::for_process`]), the checks and held-out
+/// the fit part's objects, [`SceneObjective::for_process`](crate::training::objective::SceneObjective::for_process)), the checks and held-out
 /// evaluations are repeated on every process (they are deterministic, so every
 /// process takes the same decisions), and only the first writes files.
 pub fn diagnose(

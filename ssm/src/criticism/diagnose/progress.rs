@@ -1,6 +1,6 @@
 //! What a diagnosis reports of its progress ([`Stage`]).
 
-/// What [`diagnose`] is doing, for a progress display.
+/// What [`diagnose`](fn@crate::criticism::diagnose::diagnose) is doing, for a progress display.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Stage {
     /// A training run (`base`, `reference` or an extension id) is at `step` of `total`.

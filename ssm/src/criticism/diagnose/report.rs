@@ -145,12 +145,12 @@ pub struct CandidateReport {
     /// Its gain over the reseeded refit ([`DiagnoseConfig::refit_noise`]; nats
     /// per observed unit, paired over the evaluation objects) and that gain's
     /// one-sided sign-flip p, Holm-adjusted over the candidates: rule (b)'s
-    /// second comparison ([`beats_reseeded`]). `None` without the refit, and in
+    /// second comparison ([`beats_reseeded`](crate::criticism::diagnose::beats_reseeded)). `None` without the refit, and in
     /// reports written before it was made.
     #[serde(default)]
     pub over_reseeded: Option<(f64, f64)>,
     /// Rule (e), for an extension that nests another fitted candidate
-    /// ([`Extension::nests`]: `persistent_flip` nests `heading_flip`): its gain
+    /// ([`Extension::nests`](crate::models::extended::Extension::nests): `persistent_flip` nests `heading_flip`): its gain
     /// over that candidate, paired by object, and the gain's one-sided
     /// sign-flip p. `None` when it nests none that was fitted, and in reports
     /// written before the rule.
@@ -192,7 +192,7 @@ pub struct CandidateReport {
     #[serde(default)]
     pub checks_after: Vec<CheckResult>,
     /// Whether the learned parameters change the model materially
-    /// ([`Extension::is_material`]); only a material extension can be the cause.
+    /// ([`Extension::is_material`](crate::models::extended::Extension::is_material)); only a material extension can be the cause.
     pub material: bool,
     /// Whether it qualifies as a cause (passes every rule of step 5).
     pub qualifies: bool,
@@ -289,14 +289,14 @@ pub struct ReseededReport {
 /// read back as version 0, with the defaults of the fields they predate.
 pub const REPORT_FORMAT_VERSION: u32 = 1;
 
-/// The result of [`diagnose`].
+/// The result of [`diagnose`](fn@crate::criticism::diagnose::diagnose).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Report {
     /// The format of the report as written ([`REPORT_FORMAT_VERSION`]; 0 for
     /// a report written before the field).
     #[serde(default)]
     pub format_version: u32,
-    /// The chosen extension's id, [`UNEXPLAINED`] or [`NO_CAUSE`].
+    /// The chosen extension's id, [`UNEXPLAINED`](crate::criticism::diagnose::UNEXPLAINED) or [`NO_CAUSE`](crate::criticism::diagnose::NO_CAUSE).
     pub cause: String,
     /// Its gain on the evaluation part (nats per observed unit; 0 without a cause).
     #[serde(deserialize_with = "crate::stats::nan_from_null")]

@@ -131,7 +131,7 @@ impl CandidateReport {
 
     /// The first rule of step 5 but (d) that the candidate fails, in the order
     /// the rules are listed: (a) a Holm-adjusted p below `cause_level`, (b) a
-    /// finite gain of at least `gain_bar` ([`Report::gain_bar`]) and
+    /// finite gain of at least `gain_bar` ([`Report::gain_bar`](crate::criticism::diagnose::Report::gain_bar)) and
     /// `beats_refit` on `over_reseeded` (its comparison with the reseeded
     /// refit: its own, or one made since for a report written without it), (c)
     /// material, (e) beating the candidate it nests (`over_nested`). `None`

@@ -4,7 +4,7 @@
 //! through a softplus). 1,317 parameters, held in an [`autodiff::nn::ParamStore`].
 //!
 //! The network is written twice: on the tape for the estimators, and on the plain
-//! path the filter runs, [`crate::models::plain_mlp`]'s block kernel (the same
+//! path the filter runs, `models::plain_mlp`'s block kernel (the same
 //! operations in the same order, the layers' sums accumulated in another order: the
 //! two agree to rounding, which a test checks).
 
