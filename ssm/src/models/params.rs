@@ -26,8 +26,8 @@
 //! use autodiff::nn::ParamStore;
 //! use rand::SeedableRng;
 //! use ssm::data::ObservationKind;
-//! use ssm::models::observation::{ObservationModel, PointObservationModel};
-//! use ssm::models::params::{AnyPolicy, Models, OBS_PREFIX};
+//! use ssm::models::observation::{ObservationModel, PointObservationModel, OBS_PREFIX};
+//! use ssm::models::params::{AnyPolicy, Models};
 //! use ssm::models::vehicle::HandCraftedPolicy;
 //!
 //! let mut store = ParamStore::new();
