@@ -27,7 +27,8 @@ fn help_lists_the_instruments_after_the_commands() {
         assert!(at < heading, "`{command}` is listed among the instruments: {text}");
     }
     for instrument in ["power-study", "stability", "score-check", "score-at", "precision"] {
-        let at = text.find(&format!("\n  {instrument} ")).unwrap_or_else(|| panic!("`{instrument}` not listed: {text}"));
+        let at =
+            text.find(&format!("\n  {instrument} ")).unwrap_or_else(|| panic!("`{instrument}` not listed: {text}"));
         assert!(at > heading, "`{instrument}` is listed among the user's commands: {text}");
         let sub = sefi().args([instrument, "--help"]).output().expect("runs");
         assert!(sub.status.success(), "`sefi {instrument} --help`: {}", String::from_utf8_lossy(&sub.stderr));

@@ -17,8 +17,8 @@ use ssm::criticism::diagnose::{
 };
 use ssm::data::Dataset;
 use ssm::models::extended::RefitScope;
-use ssm::util::reduce::{Collective, SingleProcess};
 use ssm::training::{Checkpoint, CHECKPOINT_FILE, EVAL_LOG};
+use ssm::util::reduce::{Collective, SingleProcess};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -407,7 +407,7 @@ fn diagnose_shows_only_the_options_a_user_sets() {
         "seed",
     ];
     assert_eq!(options, expected, "{help}");
-    // A date as `2026-12-07`: `20`, two digits and a dash.
+    // A date in the form YYYY-MM-DD: `20`, two digits and a dash.
     let dated = |text: &str| {
         text.as_bytes()
             .windows(5)

@@ -22,16 +22,16 @@ use pyo3::types::{PyDict, PyString};
 use ssm::criticism::diagnose::{diagnose, diagnose_split, DiagnoseConfig, Protocol};
 use ssm::data::{Dataset, ObservationKind, State};
 use ssm::estimators::{Estimator, EstimatorConfig, Precision, ScoreEstimate, ScoreEstimator};
-use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 use ssm::evaluation::metrics::{self, Tracks, EVAL_LAG, EVAL_PARTICLES};
+use ssm::filter::{FilterConfig, FilterPurpose, Sampling, Tempering};
 use ssm::models::extended::ExtensibleObservation;
 use ssm::models::params::{AnyPolicy, Models, ObservationVisitor};
 use ssm::models::road_user::VehicleSsm;
 use ssm::models::vehicle::{HandCraftedPolicy, NeuralPolicy};
 use ssm::models::DifferentiableModel;
 use ssm::training::objective::{ObjectiveConfig, SceneObjective};
-use ssm::util::reduce::{Collective, SingleProcess};
 use ssm::training::{self, BatchEstimate, EstimateError, Objective, TrainConfig, TrainEvent};
+use ssm::util::reduce::{Collective, SingleProcess};
 
 use crate::convert::{check, finite, guard};
 use crate::dataset::PyDataset;
