@@ -126,36 +126,11 @@ impl VehicleModel {
     }
 
     fn track(&self, config: &FilterConfig) -> Result<Tracks, String> {
-        struct Track<'a> {
-            data: &'a Dataset,
-            models: &'a Models,
-            config: &'a FilterConfig,
-        }
-        impl ObservationVisitor for Track<'_> {
-            type Output = Result<Tracks, String>;
-            fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
-                let m = self.models;
-                metrics::track(self.data, &m.policy, o, &m.observation_params, m.additions(), self.config)
-            }
-        }
-        self.models.observation.visit(Track { data: &self.data, models: &self.models, config })
+        metrics::track_models(&self.data, &self.models, config)
     }
 
     fn metrics_of(&self, tracks: &Tracks, config: &FilterConfig) -> metrics::Metrics {
-        struct Of<'a> {
-            data: &'a Dataset,
-            models: &'a Models,
-            tracks: &'a Tracks,
-            config: &'a FilterConfig,
-        }
-        impl ObservationVisitor for Of<'_> {
-            type Output = metrics::Metrics;
-            fn visit<O: ExtensibleObservation>(self, o: &O) -> metrics::Metrics {
-                let (m, params) = (self.models, &self.models.observation_params);
-                metrics::metrics_of(self.data, self.tracks, &m.policy, o, params, m.additions(), self.config)
-            }
-        }
-        self.models.observation.visit(Of { data: &self.data, models: &self.models, tracks, config })
+        metrics::models_metrics_of(&self.data, &self.models, tracks, config)
     }
 
     fn estimate(

@@ -13,11 +13,10 @@ use std::path::{Path, PathBuf};
 use autodiff::nn::ParamStore;
 use serde_json::{json, Value};
 use ssm::data::{Dataset, ObservationKind, State, STATE_COLUMNS};
-use ssm::evaluation::metrics::{self, Metrics, Tracks, EVAL_LAG, EVAL_PARTICLES};
+use ssm::evaluation::metrics::{self, Metrics, EVAL_LAG, EVAL_PARTICLES};
 use ssm::filter::{FilterConfig, Sampling};
 use ssm::models::drift::DetectorDrift;
-use ssm::models::extended::ExtensibleObservation;
-use ssm::models::params::{AnyObservation, Models, ObservationVisitor};
+use ssm::models::params::{AnyObservation, Models};
 
 use crate::args::FilterArgs;
 use crate::birdseye;
@@ -110,40 +109,6 @@ fn kind_name(kind: ObservationKind) -> &'static str {
     }
 }
 
-/// Runs the filter with whichever observation model `models` holds.
-fn run_track(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<Tracks, String> {
-    struct Track<'a> {
-        data: &'a Dataset,
-        models: &'a Models,
-        config: &'a FilterConfig,
-    }
-    impl ObservationVisitor for Track<'_> {
-        type Output = Result<Tracks, String>;
-        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
-            let m = self.models;
-            metrics::track(self.data, &m.policy, o, &m.observation_params, m.additions(), self.config)
-        }
-    }
-    models.observation.visit(Track { data, models, config })
-}
-
-fn metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterConfig) -> Metrics {
-    struct Of<'a> {
-        data: &'a Dataset,
-        models: &'a Models,
-        tracks: &'a Tracks,
-        config: &'a FilterConfig,
-    }
-    impl ObservationVisitor for Of<'_> {
-        type Output = Metrics;
-        fn visit<O: ExtensibleObservation>(self, o: &O) -> Metrics {
-            let (p, params) = (&self.models.policy, &self.models.observation_params);
-            metrics::metrics_of(self.data, self.tracks, p, o, params, self.models.additions(), self.config)
-        }
-    }
-    models.observation.visit(Of { data, models, tracks, config })
-}
-
 fn fmt_opt(v: Option<f64>) -> String {
     v.map_or_else(|| "-".into(), |v| format!("{v:.4}"))
 }
@@ -163,8 +128,8 @@ pub fn metric_runs(
     let mut out = Vec::with_capacity(runs);
     for r in 0..runs {
         let config = FilterConfig { seed: filter.seed.wrapping_add(r as u64), ..filter.clone() };
-        let tracks = run_track(data, models, &config)?;
-        out.push(metrics_of(data, models, &tracks, &config));
+        let tracks = metrics::track_models(data, models, &config)?;
+        out.push(metrics::models_metrics_of(data, models, &tracks, &config));
     }
     Ok(out)
 }
@@ -358,10 +323,10 @@ pub fn track(args: &TrackArgs) -> Result<(), String> {
         args.particles,
         args.lag
     );
-    let tracks = run_track(&data, &models, &config)?;
+    let tracks = metrics::track_models(&data, &models, &config)?;
     write_atomic(&args.out.join("smoothed.csv"), states_csv(&data, &tracks.smoothed).as_bytes())?;
     write_atomic(&args.out.join("filtered.csv"), states_csv(&data, &tracks.filtered).as_bytes())?;
-    let m = metrics_of(&data, &models, &tracks, &config);
+    let m = metrics::models_metrics_of(&data, &models, &tracks, &config);
     let scene_id = data.scenes()[scene].id;
     let svg = args.out.join(format!("birdseye_scene_{scene_id}.svg"));
     birdseye::draw(&svg, &data, scene, &tracks, args.lag)?;

@@ -533,6 +533,41 @@ pub fn evaluate<P: GaussianPolicy, O: ExtensibleObservation>(
     Ok(metrics_of(data, &tracks, policy, observation, observation_params, ModelAdditions::NONE, config))
 }
 
+/// [`track`] with the policy, observation model and additions that `models` holds.
+pub fn track_models(data: &Dataset, models: &Models, config: &FilterConfig) -> Result<Tracks, String> {
+    struct Track<'a> {
+        data: &'a Dataset,
+        models: &'a Models,
+        config: &'a FilterConfig,
+    }
+    impl ObservationVisitor for Track<'_> {
+        type Output = Result<Tracks, String>;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Self::Output {
+            let m = self.models;
+            track(self.data, &m.policy, o, &m.observation_params, m.additions(), self.config)
+        }
+    }
+    models.observation.visit(Track { data, models, config })
+}
+
+/// [`metrics_of`] with the policy, observation model and additions that `models` holds.
+pub fn models_metrics_of(data: &Dataset, models: &Models, tracks: &Tracks, config: &FilterConfig) -> Metrics {
+    struct Of<'a> {
+        data: &'a Dataset,
+        models: &'a Models,
+        tracks: &'a Tracks,
+        config: &'a FilterConfig,
+    }
+    impl ObservationVisitor for Of<'_> {
+        type Output = Metrics;
+        fn visit<O: ExtensibleObservation>(self, o: &O) -> Metrics {
+            let m = self.models;
+            metrics_of(self.data, self.tracks, &m.policy, o, &m.observation_params, m.additions(), self.config)
+        }
+    }
+    models.observation.visit(Of { data, models, tracks, config })
+}
+
 /// The metrics of an existing filter run `tracks` (made with `config`) on `data`.
 pub fn metrics_of<P: GaussianPolicy, O: ExtensibleObservation>(
     data: &Dataset,
